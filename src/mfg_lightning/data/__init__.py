@@ -1,0 +1,1 @@
+"""Datasets and Lightning DataModules: files or a scene generator → samples (see :mod:`.sample`)."""

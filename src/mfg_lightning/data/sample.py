@@ -1,0 +1,105 @@
+"""The sample every dataset yields, and its validation.
+
+A sample is a ``dict`` of tensors (plus a few identity fields). Every dataset (synthetic, KITTI,
+Virtual KITTI) yields the same keys so the model, losses, metrics and object-motion code never
+care where a sample came from. ``H, W`` is the model's input resolution.
+
+==================  ===================  ==================================================
+key                 shape / type         meaning
+==================  ===================  ==================================================
+``flow``            ``(2, H, W)`` f32    optical flow from the source frame to the target
+                                         frame, pixels at the input resolution, (u, v)
+``flow_valid``      ``(H, W)`` bool      pixels whose flow is known (False: invalid / sky /
+                                         non-finite in the file)
+``pose``            ``(4, 4)`` f32       relative pose ``T_src,tgt`` = camera at the target
+                                         frame expressed in the camera at the source frame
+                                         (metres); see :mod:`mfg_lightning.geometry`
+``intrinsics``      ``(4,)`` f32         ``(fx, fy, cx, cy)`` in pixels at the input resolution
+``depth``           ``(H, W)`` f32       (optional) depth of the source frame along z, metres;
+                                         0 where unknown
+``object_mask``     ``(H, W)`` bool      (optional) ground-truth independently moving pixels
+``object_flow``     ``(2, H, W)`` f32    (optional) flow due to object motion alone (flow minus
+                                         the rigid flow), pixels; 0 off objects
+``rgb``             ``(3, H, W)`` uint8  (optional) the source frame, for pictures
+``sequence``        ``str``              sequence / world name (e.g. ``"09"``, ``"0001"``)
+``frame``           ``int``              index of the source frame in its sequence
+``target``          ``int``              index of the target frame (``frame + 1`` usually)
+``sample_id``       ``str``              ``"<dataset>/<split>/<sequence>/<frame>-><target>"``,
+                                         used in every error message about this sample
+==================  ===================  ==================================================
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+REQUIRED_KEYS = (
+    "flow",
+    "flow_valid",
+    "pose",
+    "intrinsics",
+    "sequence",
+    "frame",
+    "target",
+    "sample_id",
+)
+OPTIONAL_KEYS = ("depth", "object_mask", "object_flow", "rgb")
+
+
+class SampleError(ValueError):
+    """A sample is malformed; the message names the sample and the offending key."""
+
+
+def sanitize_flow(
+    flow: torch.Tensor, valid: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """Mask non-finite flow pixels.
+
+    Args:
+        flow: ``(..., 2, H, W)`` flow in pixels.
+        valid: ``(..., H, W)`` validity mask.
+
+    Returns:
+        ``(flow, valid, n_bad)``: flow with non-finite pixels set to 0, the mask with them
+        cleared, and how many pixels were non-finite.
+    """
+    finite = torch.isfinite(flow).all(dim=-3)
+    n_bad = int((~finite).sum())
+    if n_bad:
+        flow = torch.where(finite.unsqueeze(-3), flow, torch.zeros_like(flow))
+        valid = valid & finite
+    return flow, valid, n_bad
+
+
+def check_sample(sample: dict[str, Any], height: int, width: int) -> None:
+    """Raise :class:`SampleError` naming the sample and key if a sample breaks the schema.
+
+    Non-finite flow is *not* an error (it is masked by :func:`sanitize_flow`); non-finite poses or
+    intrinsics are, since no pixel mask can repair them.
+    """
+    sid = sample.get("sample_id", "<unknown sample>")
+    for key in REQUIRED_KEYS:
+        if key not in sample:
+            raise SampleError(f"{sid}: missing key '{key}'")
+    expected = {
+        "flow": (2, height, width),
+        "flow_valid": (height, width),
+        "pose": (4, 4),
+        "intrinsics": (4,),
+        "depth": (height, width),
+        "object_mask": (height, width),
+        "object_flow": (2, height, width),
+        "rgb": (3, height, width),
+    }
+    for key, shape in expected.items():
+        if key in sample and tuple(sample[key].shape) != shape:
+            raise SampleError(
+                f"{sid}: '{key}' has shape {tuple(sample[key].shape)}, expected {shape}"
+            )
+    for key in ("pose", "intrinsics"):
+        if not torch.isfinite(sample[key]).all():
+            raise SampleError(f"{sid}: '{key}' has non-finite values")
+    if (sample["intrinsics"][:2] <= 0).any():
+        raise SampleError(f"{sid}: focal lengths must be positive, got {sample['intrinsics'][:2]}")

@@ -1,0 +1,569 @@
+"""Continuous egomotion geometry: A(p), B(p), motion fields, closed-form recovery, SE(3).
+
+This module is the single home of the motion-field geometry of the paper's section 3. Datasets,
+losses, the Lightning module, metrics and object-motion extraction call it; none re-derives it.
+Every function is batched over a leading dimension ``B`` and works on any device and float dtype.
+
+Conventions
+-----------
+* **Camera axes**: x right, y down, z forward (KITTI, OpenCV).
+* **Pixels**: ``u`` (column) and ``v`` (row) with integer values at pixel centres, so the principal
+  point ``(cx, cy)`` is in the same coordinates as KITTI's calibration. Intrinsics are passed as a
+  tensor ``(B, 4)`` holding ``(fx, fy, cx, cy)`` in pixels *at the resolution of the field*.
+* **Fields** are tensors ``(B, 2, H, W)`` of image velocities in pixels per frame, channel 0 the
+  horizontal (u) and channel 1 the vertical (v) component.
+* **Poses**: a pose ``T_world_cam`` is a camera-to-world 4×4 matrix. The relative motion from frame
+  k to k+1 is ``T_k,k+1 = T_world_cam(k)^-1 · T_world_cam(k+1)``: the camera at k+1 expressed in
+  the camera at k (``../shared/docs/protocols.md``).
+* **Egomotion (t, ω)**: the camera's own translation ``t`` (metres per frame) and rotation vector
+  ``ω`` (radians per frame), both in the coordinates of the camera at k. A relative pose
+  ``T_k,k+1 = [R | t]`` converts to ``(t, ω)`` with ``ω = log(R)`` (:func:`pose_to_motion`), and
+  back with ``R = exp(ω)`` (:func:`motion_to_pose`). Driving forward gives ``t_z > 0``.
+* **Motion field**: a static point ``P`` (camera-k coordinates) seen by a camera moving with
+  ``(t, ω)`` moves, relative to the camera, by ``-t - ω × P``. Its image velocity at normalised
+  coordinates ``(x, y) = ((u - cx)/fx, (v - cy)/fy)`` and inverse depth ``ρ = 1/Z`` is::
+
+      v = ρ A t + B ω,   A = [[-1,  0, x],        B = [[ x y,   -(1 + x²),  y],
+                              [ 0, -1, y]]             [ 1 + y², -x y,     -x]]
+
+  then scaled to pixels by ``(fx, fy)``. The paper prints A and B with the opposite overall sign,
+  which is the same field written for the motion of the scene relative to the camera,
+  ``(t, ω)_paper = -(t, ω)``; we use the camera's own motion so that recovered parameters read
+  as egomotion (forward driving: ``t_z > 0``). The field is the first-order (small-motion)
+  approximation of the exact reprojection flow (:func:`reprojection_flow`); the difference
+  shrinks quadratically with the motion (tested).
+* **Translational field at unit depth** (``ρ = 1`` m⁻¹): ``v_t = A t``; the rotational field is
+  ``v_ω = B ω``; the full field is ``v = ρ v_t + v_ω``.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "FieldBasis",
+    "backproject",
+    "compose",
+    "field_basis",
+    "invert_pose",
+    "motion_field",
+    "motion_matrices",
+    "motion_to_pose",
+    "normalized_grid",
+    "pose_to_motion",
+    "project",
+    "recover_motion",
+    "relative_pose",
+    "reprojection_flow",
+    "rotation_angle",
+    "rotational_field",
+    "scale_intrinsics",
+    "se3_exp",
+    "se3_log",
+    "so3_exp",
+    "so3_log",
+    "trajectory_from_motions",
+    "translational_field",
+]
+
+_EPS = 1e-8
+
+
+# --------------------------------------------------------------------------------------------
+# Pixel grids and the A, B matrices
+# --------------------------------------------------------------------------------------------
+
+
+def _as_batch_intrinsics(intrinsics: Tensor) -> Tensor:
+    """Return intrinsics shaped ``(B, 4)`` (a single ``(4,)`` row is given a batch of 1)."""
+    if intrinsics.dim() == 1:
+        intrinsics = intrinsics.unsqueeze(0)
+    if intrinsics.dim() != 2 or intrinsics.shape[-1] != 4:
+        raise ValueError(
+            f"intrinsics must be (B, 4) = (fx, fy, cx, cy), got shape {tuple(intrinsics.shape)}"
+        )
+    return intrinsics
+
+
+def normalized_grid(intrinsics: Tensor, height: int, width: int) -> Tensor:
+    """Normalised image coordinates of every pixel centre.
+
+    Args:
+        intrinsics: ``(B, 4)`` ``(fx, fy, cx, cy)`` in pixels at this resolution.
+        height, width: grid size in pixels.
+
+    Returns:
+        ``(B, 2, H, W)``: ``x = (u - cx) / fx`` and ``y = (v - cy) / fy`` (dimensionless).
+    """
+    K = _as_batch_intrinsics(intrinsics)
+    u = torch.arange(width, device=K.device, dtype=K.dtype)
+    v = torch.arange(height, device=K.device, dtype=K.dtype)
+    fx, fy, cx, cy = (K[:, i, None, None] for i in range(4))
+    x = (u[None, None, :] - cx) / fx
+    y = (v[None, :, None] - cy) / fy
+    return torch.stack(torch.broadcast_tensors(x, y), dim=1)
+
+
+def motion_matrices(intrinsics: Tensor, height: int, width: int) -> tuple[Tensor, Tensor]:
+    """The A(p) and B(p) matrices of every pixel, in pixel units.
+
+    Args:
+        intrinsics: ``(B, 4)`` ``(fx, fy, cx, cy)`` in pixels.
+        height, width: grid size.
+
+    Returns:
+        ``(A, B)``, each ``(B, H, W, 2, 3)``: ``A @ t`` is the translational image velocity in
+        pixels at inverse depth 1 m⁻¹ for a camera translation ``t`` (m); ``B @ ω`` the rotational
+        one for a rotation vector ``ω`` (rad). See the module docstring for the sign convention.
+    """
+    K = _as_batch_intrinsics(intrinsics)
+    xy = normalized_grid(K, height, width)
+    x, y = xy[:, 0], xy[:, 1]
+    one, zero = torch.ones_like(x), torch.zeros_like(x)
+    fx = K[:, 0, None, None]
+    fy = K[:, 1, None, None]
+    a_row0 = torch.stack([-one, zero, x], dim=-1) * fx[..., None]
+    a_row1 = torch.stack([zero, -one, y], dim=-1) * fy[..., None]
+    b_row0 = torch.stack([x * y, -(1 + x * x), y], dim=-1) * fx[..., None]
+    b_row1 = torch.stack([1 + y * y, -x * y, -x], dim=-1) * fy[..., None]
+    A = torch.stack([a_row0, a_row1], dim=-2)
+    B = torch.stack([b_row0, b_row1], dim=-2)
+    return A, B
+
+
+def translational_field(t: Tensor, intrinsics: Tensor, height: int, width: int) -> Tensor:
+    """Translational motion field at unit inverse depth, ``v_t = A t``.
+
+    Args:
+        t: ``(B, 3)`` camera translation in metres per frame (camera-k coordinates).
+        intrinsics: ``(B, 4)`` or ``(4,)`` in pixels.
+
+    Returns:
+        ``(B, 2, H, W)`` pixels per frame for a scene at depth 1 m (ρ = 1 m⁻¹).
+    """
+    K = _as_batch_intrinsics(intrinsics).to(t)
+    xy = normalized_grid(K, height, width)
+    x, y = xy[:, 0], xy[:, 1]
+    tx, ty, tz = (t[:, i, None, None] for i in range(3))
+    u = K[:, 0, None, None] * (-tx + x * tz)
+    v = K[:, 1, None, None] * (-ty + y * tz)
+    return torch.stack([u, v], dim=1)
+
+
+def rotational_field(omega: Tensor, intrinsics: Tensor, height: int, width: int) -> Tensor:
+    """Rotational motion field ``v_ω = B ω`` (independent of depth).
+
+    Args:
+        omega: ``(B, 3)`` camera rotation vector in radians per frame.
+        intrinsics: ``(B, 4)`` or ``(4,)`` in pixels.
+
+    Returns:
+        ``(B, 2, H, W)`` pixels per frame.
+    """
+    K = _as_batch_intrinsics(intrinsics).to(omega)
+    xy = normalized_grid(K, height, width)
+    x, y = xy[:, 0], xy[:, 1]
+    wx, wy, wz = (omega[:, i, None, None] for i in range(3))
+    u = K[:, 0, None, None] * (x * y * wx - (1 + x * x) * wy + y * wz)
+    v = K[:, 1, None, None] * ((1 + y * y) * wx - x * y * wy - x * wz)
+    return torch.stack([u, v], dim=1)
+
+
+def motion_field(t: Tensor, omega: Tensor, inv_depth: Tensor, intrinsics: Tensor) -> Tensor:
+    """The full motion field ``v = ρ A t + B ω`` (paper eq. 2).
+
+    Args:
+        t: ``(B, 3)`` translation (m per frame); omega: ``(B, 3)`` rotation vector (rad per frame).
+        inv_depth: ``(B, H, W)`` inverse depth ρ in m⁻¹ (0 for points at infinity).
+        intrinsics: ``(B, 4)`` in pixels.
+
+    Returns:
+        ``(B, 2, H, W)`` pixels per frame.
+    """
+    height, width = inv_depth.shape[-2:]
+    v_t = translational_field(t, intrinsics, height, width)
+    v_w = rotational_field(omega, intrinsics, height, width)
+    return inv_depth[:, None] * v_t + v_w
+
+
+# --------------------------------------------------------------------------------------------
+# Closed-form recovery of (t, ω) from fields
+# --------------------------------------------------------------------------------------------
+
+
+class FieldBasis:
+    """A and B of one pixel grid with their least-squares pseudo-inverses, computed once.
+
+    ``recover_translation`` solves ``min_t ‖A t - v_t‖²`` over all pixels and
+    ``recover_rotation`` solves ``min_ω ‖B ω - v_ω‖²`` (paper eq. 11, ``t̃ = ṽ_t / A | ρ=1``).
+    Use :func:`field_basis` to get a cached instance rather than building one per frame.
+
+    Args:
+        intrinsics: ``(4,)`` ``(fx, fy, cx, cy)`` in pixels.
+        height, width: grid size.
+    """
+
+    def __init__(self, intrinsics: Tensor, height: int, width: int) -> None:
+        K = _as_batch_intrinsics(intrinsics)
+        if K.shape[0] != 1:
+            raise ValueError("FieldBasis describes one grid: pass a single (4,) intrinsics row")
+        A, B = motion_matrices(K.double(), height, width)
+        # (2N, 3) with the two components of each pixel stacked channel-first, matching a
+        # (2, H, W) field flattened row-major.
+        self.A = A[0].permute(2, 0, 1, 3).reshape(2 * height * width, 3)
+        self.B = B[0].permute(2, 0, 1, 3).reshape(2 * height * width, 3)
+        self.A_pinv = torch.linalg.pinv(self.A).to(K.dtype)
+        self.B_pinv = torch.linalg.pinv(self.B).to(K.dtype)
+        self.A = self.A.to(K.dtype)
+        self.B = self.B.to(K.dtype)
+        self.height, self.width = height, width
+
+    def recover_translation(self, v_t: Tensor) -> Tensor:
+        """``(B, 2, H, W)`` translational field at ρ = 1 → ``(B, 3)`` translation (m)."""
+        return v_t.flatten(1) @ self.A_pinv.to(v_t).T
+
+    def recover_rotation(self, v_omega: Tensor) -> Tensor:
+        """``(B, 2, H, W)`` rotational field → ``(B, 3)`` rotation vector (rad)."""
+        return v_omega.flatten(1) @ self.B_pinv.to(v_omega).T
+
+
+_BASIS_CACHE: OrderedDict[tuple, FieldBasis] = OrderedDict()
+_BASIS_CACHE_SIZE = 64
+
+
+def field_basis(intrinsics: Tensor, height: int, width: int) -> FieldBasis:
+    """Cached :class:`FieldBasis` for one grid (keyed by intrinsics, size, device and dtype).
+
+    Args:
+        intrinsics: ``(4,)`` in pixels.
+    """
+    K = _as_batch_intrinsics(intrinsics)[0]
+    key = (*(round(float(k), 6) for k in K), height, width, K.device, K.dtype)
+    basis = _BASIS_CACHE.get(key)
+    if basis is None:
+        basis = FieldBasis(K, height, width)
+        _BASIS_CACHE[key] = basis
+        if len(_BASIS_CACHE) > _BASIS_CACHE_SIZE:
+            _BASIS_CACHE.popitem(last=False)
+    else:
+        _BASIS_CACHE.move_to_end(key)
+    return basis
+
+
+def recover_motion(
+    v_t: Tensor | None, v_omega: Tensor | None, intrinsics: Tensor
+) -> tuple[Tensor | None, Tensor | None]:
+    """Closed-form egomotion from predicted fields (paper eq. 11), batched.
+
+    Samples that share intrinsics share one cached pseudo-inverse; a batch normally has one
+    set of intrinsics, so this is a single matrix product.
+
+    Args:
+        v_t: ``(B, 2, H, W)`` translational field at unit inverse depth, or None.
+        v_omega: ``(B, 2, H, W)`` rotational field, or None.
+        intrinsics: ``(B, 4)`` or ``(4,)`` in pixels at the fields' resolution.
+
+    Returns:
+        ``(t, ω)``: ``(B, 3)`` each (None where the field was None).
+    """
+    ref = v_t if v_t is not None else v_omega
+    if ref is None:
+        raise ValueError("recover_motion needs at least one field")
+    batch, _, height, width = ref.shape
+    K = _as_batch_intrinsics(intrinsics).to(device=ref.device, dtype=ref.dtype)
+    if K.shape[0] == 1:
+        K = K.expand(batch, 4)
+    unique, inverse = torch.unique(K, dim=0, return_inverse=True)
+    t = None if v_t is None else v_t.new_empty(batch, 3)
+    w = None if v_omega is None else v_omega.new_empty(batch, 3)
+    for i, row in enumerate(unique):
+        basis = field_basis(row, height, width)
+        idx = (inverse == i).nonzero(as_tuple=True)[0]
+        if unique.shape[0] == 1:
+            idx = slice(None)
+        if t is not None:
+            t[idx] = basis.recover_translation(v_t[idx])
+        if w is not None:
+            w[idx] = basis.recover_rotation(v_omega[idx])
+    return t, w
+
+
+# --------------------------------------------------------------------------------------------
+# Exact reprojection (the slow, obvious counterpart of the motion field)
+# --------------------------------------------------------------------------------------------
+
+
+def backproject(depth: Tensor, intrinsics: Tensor) -> Tensor:
+    """Back-project every pixel with its depth.
+
+    Args:
+        depth: ``(B, H, W)`` depth along the camera z axis in metres.
+        intrinsics: ``(B, 4)`` in pixels.
+
+    Returns:
+        ``(B, H, W, 3)`` points in camera coordinates (metres).
+    """
+    height, width = depth.shape[-2:]
+    xy = normalized_grid(_as_batch_intrinsics(intrinsics).to(depth), height, width)
+    ones = torch.ones_like(depth)
+    rays = torch.stack([xy[:, 0].expand_as(depth), xy[:, 1].expand_as(depth), ones], dim=-1)
+    return rays * depth[..., None]
+
+
+def project(points: Tensor, intrinsics: Tensor) -> Tensor:
+    """Pinhole projection.
+
+    Args:
+        points: ``(B, H, W, 3)`` camera coordinates (metres), z > 0.
+        intrinsics: ``(B, 4)`` in pixels.
+
+    Returns:
+        ``(B, H, W, 2)`` pixel coordinates ``(u, v)``.
+    """
+    K = _as_batch_intrinsics(intrinsics).to(points)
+    z = points[..., 2].clamp_min(_EPS)
+    u = K[:, 0, None, None] * points[..., 0] / z + K[:, 2, None, None]
+    v = K[:, 1, None, None] * points[..., 1] / z + K[:, 3, None, None]
+    return torch.stack([u, v], dim=-1)
+
+
+def reprojection_flow(
+    depth: Tensor, pose: Tensor, intrinsics: Tensor, point_motion: Tensor | None = None
+) -> Tensor:
+    """Exact optical flow of a camera move: back-project, move, re-project.
+
+    Args:
+        depth: ``(B, H, W)`` depth of frame k in metres.
+        pose: ``(B, 4, 4)`` relative pose ``T_k,k+1`` (camera k+1 in camera k).
+        intrinsics: ``(B, 4)`` in pixels.
+        point_motion: optional ``(B, H, W, 3)`` displacement of each scene point between the two
+            frames, in camera-k coordinates (metres): independently moving objects.
+
+    Returns:
+        ``(B, 2, H, W)`` flow from frame k to frame k+1 in pixels.
+    """
+    points = backproject(depth, intrinsics)
+    if point_motion is not None:
+        points = points + point_motion
+    R = pose[:, :3, :3].to(points)
+    t = pose[:, :3, 3].to(points)
+    # X_{k+1} = R^T (X_k - t): the inverse of T_k,k+1 maps camera-k points into camera k+1.
+    moved = torch.einsum("bji,bhwj->bhwi", R, points - t[:, None, None, :])
+    target = project(moved, intrinsics)
+    height, width = depth.shape[-2:]
+    u = torch.arange(width, device=depth.device, dtype=points.dtype)
+    v = torch.arange(height, device=depth.device, dtype=points.dtype)
+    grid = torch.stack(torch.meshgrid(u, v, indexing="xy"), dim=-1)
+    return (target - grid).permute(0, 3, 1, 2)
+
+
+def scale_intrinsics(intrinsics: Tensor, scale_x: float, scale_y: float) -> Tensor:
+    """Intrinsics of a resized image.
+
+    Pixel centres map as ``u' = (u + 0.5) · s - 0.5``, so ``cx' = (cx + 0.5) · s - 0.5``.
+
+    Args:
+        intrinsics: ``(..., 4)`` ``(fx, fy, cx, cy)`` in pixels of the original image.
+        scale_x, scale_y: new width / old width and new height / old height.
+
+    Returns:
+        ``(..., 4)`` in pixels of the resized image.
+    """
+    fx, fy, cx, cy = intrinsics.unbind(-1)
+    return torch.stack(
+        [fx * scale_x, fy * scale_y, (cx + 0.5) * scale_x - 0.5, (cy + 0.5) * scale_y - 0.5], -1
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# SO(3) and SE(3)
+# --------------------------------------------------------------------------------------------
+
+
+def _hat(w: Tensor) -> Tensor:
+    """``(..., 3)`` vector → ``(..., 3, 3)`` skew-symmetric matrix ``[w]×``."""
+    zero = torch.zeros_like(w[..., 0])
+    wx, wy, wz = w.unbind(-1)
+    return torch.stack([zero, -wz, wy, wz, zero, -wx, -wy, wx, zero], dim=-1).reshape(
+        *w.shape[:-1], 3, 3
+    )
+
+
+def _sinc_terms(theta: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``sin θ/θ``, ``(1 - cos θ)/θ²`` and ``(θ - sin θ)/θ³`` with Taylor series near 0."""
+    small = theta < 1e-4
+    safe = torch.where(small, torch.ones_like(theta), theta)
+    t2 = theta * theta
+    a = torch.where(small, 1 - t2 / 6, torch.sin(safe) / safe)
+    b = torch.where(small, 0.5 - t2 / 24, (1 - torch.cos(safe)) / (safe * safe))
+    c = torch.where(small, 1 / 6 - t2 / 120, (safe - torch.sin(safe)) / safe**3)
+    return a, b, c
+
+
+def so3_exp(omega: Tensor) -> Tensor:
+    """Rodrigues: rotation vector ``(..., 3)`` (rad) → rotation matrix ``(..., 3, 3)``."""
+    theta = omega.norm(dim=-1)[..., None, None]
+    a, b, _ = _sinc_terms(theta)
+    W = _hat(omega)
+    eye = torch.eye(3, dtype=omega.dtype, device=omega.device).expand_as(W)
+    return eye + a * W + b * (W @ W)
+
+
+def so3_log(R: Tensor) -> Tensor:
+    """Rotation matrix ``(..., 3, 3)`` → rotation vector ``(..., 3)`` (rad), angle in [0, π]."""
+    trace = R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2]
+    cos = ((trace - 1) / 2).clamp(-1.0, 1.0)
+    vee = torch.stack(
+        [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]],
+        dim=-1,
+    )
+    sin = 0.5 * vee.norm(dim=-1)
+    theta = torch.atan2(sin, cos)
+    small = theta < 1e-4
+    factor = torch.where(
+        small, 0.5 + theta**2 / 12, theta / (2 * torch.sin(theta).clamp_min(1e-12))
+    )
+    w = vee * factor[..., None]
+    # Near π the antisymmetric part vanishes: read the axis from the symmetric part instead.
+    near_pi = theta > torch.pi - 1e-3
+    if bool(near_pi.any()):
+        S = (R + R.transpose(-1, -2)) / 2 - cos[..., None, None] * torch.eye(
+            3, dtype=R.dtype, device=R.device
+        )
+        col = S.diagonal(dim1=-2, dim2=-1).argmax(dim=-1)
+        axis = torch.gather(S, -1, col[..., None, None].expand(*S.shape[:-1], 1)).squeeze(-1)
+        axis = axis / axis.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        # Choose the sign consistent with the (small) antisymmetric part.
+        sign = torch.where((axis * vee).sum(-1) < 0, -1.0, 1.0).to(R.dtype)
+        w = torch.where(near_pi[..., None], axis * (theta * sign)[..., None], w)
+    return w
+
+
+def rotation_angle(R: Tensor) -> Tensor:
+    """Angle of a rotation matrix ``(..., 3, 3)`` in radians: ``arccos(clip((tr R − 1)/2))``."""
+    trace = R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2]
+    return torch.arccos(((trace - 1) / 2).clamp(-1.0, 1.0))
+
+
+def _make_pose(R: Tensor, t: Tensor) -> Tensor:
+    T = torch.zeros(*R.shape[:-2], 4, 4, dtype=R.dtype, device=R.device)
+    T[..., :3, :3] = R
+    T[..., :3, 3] = t
+    T[..., 3, 3] = 1
+    return T
+
+
+def se3_exp(xi: Tensor) -> Tensor:
+    """Twist ``(..., 6)`` = ``(v, ω)`` → pose ``(..., 4, 4)`` (the SE(3) exponential)."""
+    v, w = xi[..., :3], xi[..., 3:]
+    theta = w.norm(dim=-1)[..., None, None]
+    a, b, c = _sinc_terms(theta)
+    W = _hat(w)
+    eye = torch.eye(3, dtype=xi.dtype, device=xi.device).expand_as(W)
+    R = eye + a * W + b * (W @ W)
+    V = eye + b * W + c * (W @ W)
+    return _make_pose(R, (V @ v[..., None])[..., 0])
+
+
+def se3_log(T: Tensor) -> Tensor:
+    """Pose ``(..., 4, 4)`` → twist ``(..., 6)`` = ``(v, ω)`` (the SE(3) logarithm)."""
+    w = so3_log(T[..., :3, :3])
+    theta = w.norm(dim=-1)[..., None, None]
+    a, b, _ = _sinc_terms(theta)
+    W = _hat(w)
+    eye = torch.eye(3, dtype=T.dtype, device=T.device).expand_as(W)
+    # V^-1 = I - W/2 + (1 - a / (2 b)) / θ² W²  (series near 0: 1/12).
+    small = theta < 1e-4
+    safe = torch.where(small, torch.ones_like(theta), theta)
+    coef = torch.where(small, torch.full_like(theta, 1 / 12), (1 - a / (2 * b)) / (safe * safe))
+    V_inv = eye - 0.5 * W + coef * (W @ W)
+    v = (V_inv @ T[..., :3, 3:4])[..., 0]
+    return torch.cat([v, w], dim=-1)
+
+
+def invert_pose(T: Tensor) -> Tensor:
+    """Inverse of rigid transforms ``(..., 4, 4)`` (exact, using Rᵀ)."""
+    R = T[..., :3, :3].transpose(-1, -2)
+    t = -(R @ T[..., :3, 3:4])[..., 0]
+    return _make_pose(R, t)
+
+
+def compose(T_ab: Tensor, T_bc: Tensor) -> Tensor:
+    """``T_ab · T_bc`` for ``(..., 4, 4)`` poses."""
+    return T_ab @ T_bc
+
+
+def relative_pose(T_world_a: Tensor, T_world_b: Tensor) -> Tensor:
+    """``T_a,b = T_world_a^-1 · T_world_b``: camera b expressed in camera a. ``(..., 4, 4)``."""
+    return invert_pose(T_world_a) @ T_world_b
+
+
+def pose_to_motion(T: Tensor) -> tuple[Tensor, Tensor]:
+    """Relative pose ``T_k,k+1`` ``(..., 4, 4)`` → egomotion ``(t, ω)``, ``(..., 3)`` each.
+
+    ``t`` is the translation column (metres) and ``ω = log(R)`` (radians); the module docstring
+    gives the frames.
+    """
+    return T[..., :3, 3], so3_log(T[..., :3, :3])
+
+
+def motion_to_pose(t: Tensor, omega: Tensor) -> Tensor:
+    """Egomotion ``(t, ω)`` ``(..., 3)`` each → relative pose ``T_k,k+1`` ``(..., 4, 4)``."""
+    return _make_pose(so3_exp(omega), t)
+
+
+def trajectory_from_motions(relative: Tensor) -> Tensor:
+    """Compose relative poses into a trajectory starting at the identity.
+
+    ``T(0) = I``, ``T(k+1) = T(k) · T_k,k+1`` (``../shared/docs/protocols.md``).
+
+    Args:
+        relative: ``(..., N, 4, 4)`` relative poses ``T_k,k+1`` for k = 0 … N−1.
+
+    Returns:
+        ``(..., N + 1, 4, 4)`` camera-to-world poses in the frame of the first camera.
+    """
+    eye = torch.eye(4, dtype=relative.dtype, device=relative.device)
+    poses = [eye.expand(*relative.shape[:-3], 4, 4)]
+    for k in range(relative.shape[-3]):
+        poses.append(poses[-1] @ relative[..., k, :, :])
+    return torch.stack(poses, dim=-3)
+
+
+# --------------------------------------------------------------------------------------------
+# Cleaning up poses read from files
+# --------------------------------------------------------------------------------------------
+
+
+def project_to_se3(T: Tensor) -> Tensor:
+    """The nearest rigid transform: rotation block projected onto SO(3), bottom row reset.
+
+    Pose files store rotations to about seven significant digits (KITTI writes ``%e``), so
+    ``RᵀR`` misses the identity by ~1e-7. The rotation angle ``arccos((tr R − 1) / 2)`` used by RPE
+    and the KITTI drift is steep near zero and turns that rounding into a spurious error of
+    ~5e-4 rad between two *identical* KITTI trajectories; projecting first removes it. Exact
+    rotations come back unchanged up to rounding.
+
+    The projection is the closest rotation in the Frobenius norm, ``U diag(1, 1, det(U Vᵀ)) Vᵀ``
+    from the SVD ``R = U S Vᵀ`` (the orthogonal polar factor, with a reflection turned into the
+    nearest proper rotation). The translation column is kept as it is.
+
+    Args:
+        T: ``(..., 4, 4)`` approximately rigid transforms (any float dtype).
+
+    Returns:
+        ``(..., 4, 4)`` rigid transforms with ``RᵀR = I``, ``det R = +1`` and bottom row
+        ``(0, 0, 0, 1)``.
+    """
+    U, _, Vh = torch.linalg.svd(T[..., :3, :3])
+    det = torch.linalg.det(U @ Vh)
+    ones = torch.ones_like(det)
+    # where, not sign: a singular block (det 0) still has to come back as a proper rotation.
+    D = torch.diag_embed(torch.stack([ones, ones, torch.where(det < 0, -ones, ones)], dim=-1))
+    return _make_pose(U @ D @ Vh, T[..., :3, 3])
+
+
+__all__ += ["project_to_se3"]

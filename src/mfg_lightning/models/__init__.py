@@ -1,0 +1,1 @@
+"""The MFG network (:mod:`.mfg`) and its LightningModule (:mod:`.mfg_module`)."""

@@ -1,0 +1,158 @@
+"""The Motion Field Generator network (paper section 4, Figure 2).
+
+An asymmetric autoencoder: a fully convolutional encoder (conv + ReLU) ends in a global max-pool
+to M non-negative hidden units; two bias-free linear decoders map the hidden units to the
+translational (unit inverse depth) and rotational motion fields at half the input resolution,
+upsampled bilinearly to the input resolution. Each decoder column is one unit's basis field.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+
+class MFGOutput(NamedTuple):
+    """What :class:`MFG` returns.
+
+    Attributes:
+        v_t: ``(B, 2, H, W)`` translational field at unit inverse depth, pixels.
+        v_omega: ``(B, 2, H, W)`` rotational field, pixels.
+        hidden: ``(B, M)`` hidden activations after top-k (non-negative).
+        hidden_map: ``(B, M, h, w)`` the last encoder feature map before the max-pool.
+    """
+
+    v_t: Tensor
+    v_omega: Tensor
+    hidden: Tensor
+    hidden_map: Tensor
+
+
+def validate_top_k(top_k: float | None) -> float | None:
+    """Check a top-k fraction: None (keep all) or a number in (0, 1]."""
+    if top_k is None:
+        return None
+    top_k = float(top_k)
+    if not (0.0 < top_k <= 1.0) or math.isnan(top_k):
+        raise ValueError(
+            f"model.top_k must be a fraction in (0, 1] of hidden units (or null), got {top_k}"
+        )
+    return top_k
+
+
+def keep_top_k(hidden: Tensor, top_k: float | None) -> Tensor:
+    """Keep the ``top_k`` fraction of most active units of each input, zero the rest.
+
+    The paper's sparsity evaluation (section 5.3): ``k = max(1, round(top_k · M))`` units per
+    input survive. Ties at the threshold are broken by ``torch.topk``'s order.
+
+    Args:
+        hidden: ``(B, M)`` activations.
+        top_k: fraction in (0, 1] or None (identity).
+    """
+    if top_k is None or top_k >= 1.0:
+        return hidden
+    k = max(1, round(top_k * hidden.shape[1]))
+    idx = hidden.topk(k, dim=1).indices
+    mask = torch.zeros_like(hidden).scatter_(1, idx, 1.0)
+    return hidden * mask
+
+
+class MFG(nn.Module):
+    """Motion Field Generator.
+
+    Args:
+        height, width: input flow resolution (pixels).
+        hidden_units: M, the number of hidden units (paper: 1000).
+        channels: output channels of the encoder blocks before the hidden layer.
+        kernels: kernel size of every block, hidden block included (one more than channels).
+        strides: stride of every block, hidden block included.
+        double_blocks: how many leading blocks have two convolutions (the second has stride 1).
+        decoder_scale: resolution of the decoded fields relative to the input (paper: 0.5).
+        top_k: fraction of hidden units kept at evaluation (None: all). Training is unaffected.
+    """
+
+    def __init__(
+        self,
+        height: int = 48,
+        width: int = 128,
+        hidden_units: int = 1000,
+        channels: Sequence[int] = (32, 64, 128, 256, 512),
+        kernels: Sequence[int] = (5, 5, 5, 3, 3, 3),
+        strides: Sequence[int] = (2, 2, 2, 2, 2, 1),
+        double_blocks: int = 2,
+        decoder_scale: float = 0.5,
+        top_k: float | None = None,
+    ) -> None:
+        super().__init__()
+        channels, kernels, strides = list(channels), list(kernels), list(strides)
+        if not (len(kernels) == len(strides) == len(channels) + 1):
+            raise ValueError(
+                "model.net: kernels and strides need one entry per block including the hidden "
+                f"block ({len(channels) + 1}), got {len(kernels)} and {len(strides)}"
+            )
+        if hidden_units <= 0:
+            raise ValueError(f"model.net.hidden_units must be positive, got {hidden_units}")
+        self.height, self.width = height, width
+        self.hidden_units = hidden_units
+        self.top_k = validate_top_k(top_k)
+        layers: list[nn.Module] = []
+        c_in = 2
+        for i, (c_out, k, s) in enumerate(
+            zip([*channels, hidden_units], kernels, strides, strict=True)
+        ):
+            layers += [nn.Conv2d(c_in, c_out, k, stride=s, padding=k // 2), nn.ReLU(inplace=True)]
+            if i < double_blocks:
+                layers += [
+                    nn.Conv2d(c_out, c_out, k, stride=1, padding=k // 2),
+                    nn.ReLU(inplace=True),
+                ]
+            c_in = c_out
+        self.encoder = nn.Sequential(*layers)
+        self.out_height = max(1, round(height * decoder_scale))
+        self.out_width = max(1, round(width * decoder_scale))
+        n_out = 2 * self.out_height * self.out_width
+        self.decoder_t = nn.Linear(hidden_units, n_out, bias=False)
+        self.decoder_omega = nn.Linear(hidden_units, n_out, bias=False)
+
+    def encode(self, flow: Tensor) -> tuple[Tensor, Tensor]:
+        """``(B, 2, H, W)`` flow → hidden ``(B, M)`` (before top-k) and the map ``(B, M, h, w)``."""
+        hidden_map = self.encoder(flow)
+        return hidden_map.amax(dim=(2, 3)), hidden_map
+
+    def decode(self, hidden: Tensor) -> tuple[Tensor, Tensor]:
+        """Hidden ``(B, M)`` → ``(v_t, v_ω)``, each ``(B, 2, H, W)`` pixels."""
+        fields = []
+        for decoder in (self.decoder_t, self.decoder_omega):
+            f = decoder(hidden).view(-1, 2, self.out_height, self.out_width)
+            if (self.out_height, self.out_width) != (self.height, self.width):
+                f = F.interpolate(
+                    f, size=(self.height, self.width), mode="bilinear", align_corners=False
+                )
+            fields.append(f)
+        return fields[0], fields[1]
+
+    def basis_fields(self) -> tuple[Tensor, Tensor]:
+        """Every unit's decoder columns as fields: ``(M, 2, H, W)`` translational and rotational."""
+        eye = torch.eye(self.hidden_units, device=self.decoder_t.weight.device)
+        return self.decode(eye)
+
+    def forward(self, flow: Tensor, top_k: float | None = None) -> MFGOutput:
+        """Flow ``(B, 2, H, W)`` in pixels → :class:`MFGOutput`.
+
+        Top-k (``top_k`` argument, else ``self.top_k``) applies in evaluation mode only.
+        """
+        if flow.shape[-2:] != (self.height, self.width):
+            raise ValueError(
+                f"MFG was built for {self.height}×{self.width} flow, got {tuple(flow.shape[-2:])}"
+            )
+        hidden, hidden_map = self.encode(flow)
+        if not self.training:
+            hidden = keep_top_k(hidden, validate_top_k(top_k) if top_k is not None else self.top_k)
+        v_t, v_omega = self.decode(hidden)
+        return MFGOutput(v_t, v_omega, hidden, hidden_map)

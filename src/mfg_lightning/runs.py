@@ -1,0 +1,95 @@
+"""Building the parts of a run from a config, and writing what a run produced.
+
+Shared by the entry points (train, evaluate) so that each of them stays thin.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import subprocess
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+log = logging.getLogger(__name__)
+
+
+def instantiate_list(cfg: DictConfig | None) -> list[Any]:
+    """Instantiate every entry with a ``_target_`` of a config mapping (callbacks, loggers)."""
+    if not cfg:
+        return []
+    return [instantiate(v) for v in cfg.values() if isinstance(v, DictConfig) and "_target_" in v]
+
+
+def build_model(cfg: DictConfig) -> L.LightningModule:
+    """Instantiate the LightningModule and remember its resolved config for checkpoints."""
+    model = instantiate(cfg.model)
+    model.model_config = OmegaConf.to_container(cfg.model, resolve=True)
+    return model
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    """Write a text file atomically (temporary file in the same directory, then rename)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def to_float(value: Any) -> float | None:
+    """A metric value as a JSON-safe float (None for NaN or infinity)."""
+    try:
+        f = float(value)
+    except (TypeError, ValueError):
+        return None
+    return f if math.isfinite(f) else None
+
+
+def write_metrics(path: Path, metrics: dict[str, Any], extra: dict[str, Any] | None = None) -> dict:
+    """Write ``metrics.json``: ``{"metrics": {...}, **extra}`` with plain floats."""
+    payload = {"metrics": {k: to_float(v) for k, v in sorted(metrics.items())}}
+    payload.update(extra or {})
+    atomic_write_text(path, json.dumps(payload, indent=2) + "\n")
+    return payload
+
+
+def git_commit() -> str | None:
+    """The commit of the source tree the package was imported from, if it is a git checkout."""
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            cwd=Path(__file__).resolve().parent,
+            capture_output=True,
+            text=True,
+            timeout=5,
+            check=False,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() else None
+
+
+def run_info() -> dict[str, Any]:
+    """Version information stored with every run."""
+    import torch
+
+    from mfg_lightning import __version__
+
+    return {
+        "mfg_lightning": __version__,
+        "git_commit": git_commit(),
+        "torch": torch.__version__,
+        "lightning": L.__version__,
+    }

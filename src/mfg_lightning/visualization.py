@@ -1,0 +1,58 @@
+"""Pictures: optical-flow colour coding and image grids (no geometry here).
+
+Flow fields are drawn with the standard Middlebury colour wheel (Baker et al. 2011) via the
+``flow_vis`` package; this module only adds a fixed, shared normalisation so that fields drawn
+side by side are comparable.
+"""
+
+from __future__ import annotations
+
+import flow_vis
+import numpy as np
+import torch
+
+
+def flow_to_rgb(flow: torch.Tensor | np.ndarray, max_norm: float | None = None) -> np.ndarray:
+    """Colour-code one flow field.
+
+    Args:
+        flow: ``(2, H, W)`` (u, v) in pixels.
+        max_norm: magnitude mapped to full saturation; None uses the field's own maximum.
+
+    Returns:
+        ``(H, W, 3)`` uint8 RGB.
+    """
+    if isinstance(flow, torch.Tensor):
+        flow = flow.detach().float().cpu().numpy()
+    uv = np.nan_to_num(np.asarray(flow, dtype=np.float64)).transpose(1, 2, 0)
+    if max_norm is None:
+        max_norm = float(np.sqrt((uv**2).sum(-1)).max())
+    uv = uv / max(max_norm, 1e-9)
+    return flow_vis.flow_to_color(uv.clip(-1, 1), convert_to_bgr=False)
+
+
+def flows_to_rgb(flows: torch.Tensor, shared_norm: bool = True) -> torch.Tensor:
+    """Colour-code a batch of flows for TensorBoard.
+
+    Args:
+        flows: ``(N, 2, H, W)`` pixels.
+        shared_norm: normalise all fields by the largest magnitude among them (comparable colours).
+
+    Returns:
+        ``(N, 3, H, W)`` uint8.
+    """
+    max_norm = float(flows.detach().norm(dim=1).max()) if shared_norm else None
+    images = [flow_to_rgb(f, max_norm) for f in flows]
+    return torch.from_numpy(np.stack(images)).permute(0, 3, 1, 2)
+
+
+def scalar_to_rgb(values: torch.Tensor | np.ndarray, cmap: str = "magma") -> np.ndarray:
+    """Map a ``(H, W)`` scalar image to ``(H, W, 3)`` uint8 (matplotlib colour map, min–max)."""
+    from matplotlib import colormaps
+
+    if isinstance(values, torch.Tensor):
+        values = values.detach().float().cpu().numpy()
+    v = np.nan_to_num(np.asarray(values, dtype=np.float64))
+    lo, hi = float(v.min()), float(v.max())
+    v = (v - lo) / max(hi - lo, 1e-12)
+    return (colormaps[cmap](v)[..., :3] * 255).astype(np.uint8)

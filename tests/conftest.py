@@ -1,0 +1,53 @@
+"""Shared test settings: quiet, deterministic, CPU-only, small thread pools."""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+os.environ.setdefault("MPLBACKEND", "Agg")
+# Two test workers share two cores: one thread each keeps them from fighting.
+torch.set_num_threads(1)
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared"
+
+
+def run_module(module: str, *args: str, cwd: Path, timeout: int = 300, check: bool = True):
+    """Run ``python -m module args`` in a subprocess (a real entry point, as a user would)."""
+    import subprocess
+
+    env = dict(
+        os.environ,
+        OMP_NUM_THREADS="1",
+        MKL_NUM_THREADS="1",
+        HYDRA_FULL_ERROR="0",
+        MFG_CACHE_DIR=str(cwd / "cache"),
+    )
+    proc = subprocess.run(
+        [sys.executable, "-m", module, *args],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        check=False,
+    )
+    if check and proc.returncode != 0:
+        raise AssertionError(
+            f"{module} {' '.join(args)} failed ({proc.returncode}):\n"
+            f"{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
+        )
+    return proc
+
+
+@pytest.fixture
+def shared_poses() -> Path:
+    poses = SHARED / "data" / "kitti_odometry" / "poses"
+    if not poses.is_dir():
+        pytest.skip("../shared/data/kitti_odometry/poses is not present")
+    return poses

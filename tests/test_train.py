@@ -1,0 +1,105 @@
+"""Real, short trainings through the Hydra entry point."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from conftest import run_module
+from mfg_lightning.config import compose
+
+pytestmark = pytest.mark.slow
+
+
+def _events(run_dir: Path) -> EventAccumulator:
+    acc = EventAccumulator(str(run_dir / "tensorboard"), size_guidance={"images": 0, "scalars": 0})
+    acc.Reload()
+    return acc
+
+
+def test_short_training_writes_a_complete_run_directory(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    run_module("mfg_lightning.train", "debug=tiny", f"hydra.run.dir={run}", cwd=tmp_path)
+    # checkpoints (last and best), resolved config, metrics.json
+    ckpts = sorted(p.name for p in (run / "checkpoints").iterdir())
+    assert "last.ckpt" in ckpts and any(c.startswith("best-") for c in ckpts)
+    assert "dataset:" in (run / "config.yaml").read_text()
+    assert "${" not in (run / "config.yaml").read_text()  # resolved
+    payload = json.loads((run / "metrics.json").read_text())
+    metrics = payload["metrics"]
+    for key in (
+        "test/trans_err",
+        "test/rot_err",
+        "test/baseline_trans_err",
+        "test/active_fraction",
+    ):
+        assert metrics[key] is not None and metrics[key] >= 0, key
+    assert payload["global_step"] == 4
+    # TensorBoard event files, read back: every loss term, the active fraction and the pictures.
+    acc = _events(run)
+    scalars = set(acc.Tags()["scalars"])
+    for tag in (
+        "train/loss",
+        "train/l_t",
+        "train/l_omega",
+        "train/l_s",
+        "train/w_t",
+        "train/w_omega",
+        "train/active_fraction",
+        "val/trans_err",
+        "val/rot_err",
+    ):
+        assert tag in scalars, tag
+    images = set(acc.Tags()["images"])
+    for tag in (
+        "train/flow",
+        "train/v_t_gt",
+        "train/v_t_pred",
+        "train/v_omega_gt",
+        "train/v_omega_pred",
+        "train/hidden_activations",
+    ):
+        assert tag in images, tag
+    # The checkpoint carries the model config, so it can be rebuilt without the run directory.
+    ckpt = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False, map_location="cpu")
+    assert ckpt["mfg_model_config"]["net"]["hidden_units"] == 64
+
+
+def test_help_lists_the_config_groups(tmp_path: Path) -> None:
+    out = run_module("mfg_lightning.train", "--help", cwd=tmp_path).stdout
+    for group in ("dataset:", "model:", "trainer:", "logger:", "callbacks:", "debug:"):
+        assert group in out
+
+
+@pytest.mark.parametrize(
+    "override,message",
+    [
+        ("dataset=nosuchdataset", "Could not find 'dataset/nosuchdataset'"),
+        ("model.no_such_key=1", "no_such_key"),
+        ("model.top_k=0", "model.top_k"),
+        ("model.top_k=-0.1", "model.top_k"),
+        ("model.loss.w_s=-1", "model.loss.w_s must be non-negative"),
+    ],
+)
+def test_bad_configuration_gives_a_clear_error(tmp_path: Path, override: str, message: str) -> None:
+    proc = run_module(
+        "mfg_lightning.train",
+        "debug=tiny",
+        override,
+        f"hydra.run.dir={tmp_path / 'r'}",
+        cwd=tmp_path,
+        check=False,
+    )
+    assert proc.returncode != 0
+    assert message in proc.stderr + proc.stdout
+    assert not (tmp_path / "r" / "metrics.json").exists()
+
+
+def test_config_composes_with_every_group_option() -> None:
+    cfg = compose("train", ["trainer=gpu", "logger=none", "callbacks=none", "debug=fast_dev_run"])
+    assert cfg.trainer.accelerator == "gpu"
+    assert cfg.trainer.fast_dev_run is True
