@@ -8,15 +8,15 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
 import subprocess
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import lightning as L
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
+
+from mfg_lightning.atomic import atomic_write_text
 
 log = logging.getLogger(__name__)
 
@@ -32,20 +32,8 @@ def build_model(cfg: DictConfig) -> L.LightningModule:
     """Instantiate the LightningModule and remember its resolved config for checkpoints."""
     model = instantiate(cfg.model)
     model.model_config = OmegaConf.to_container(cfg.model, resolve=True)
+    model.dataset_config = OmegaConf.to_container(cfg.dataset, resolve=True)
     return model
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    """Write a text file atomically (temporary file in the same directory, then rename)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def to_float(value: Any) -> float | None:
@@ -93,3 +81,45 @@ def run_info() -> dict[str, Any]:
         "torch": torch.__version__,
         "lightning": L.__version__,
     }
+
+
+class UserError(Exception):
+    """Base class marker: errors whose message is the whole story (bad input, not a bug)."""
+
+
+def user_error_message(err: BaseException) -> str | None:
+    """The one-line message for an error caused by the user's input, or None for a bug.
+
+    Input errors are the project's own ``ValueError`` subclasses (bad config values, malformed
+    files, checkpoints that do not fit) and missing files; Hydra wraps errors raised while
+    building objects from the config in ``InstantiationException``, whose cause is unwrapped.
+    """
+    from hydra.errors import InstantiationException
+
+    if isinstance(err, InstantiationException) and err.__cause__ is not None:
+        return user_error_message(err.__cause__)
+    if isinstance(err, (ValueError, FileNotFoundError, UserError)):
+        return (
+            " ".join(str(err).split("\n")[:1]) if isinstance(err, FileNotFoundError) else str(err)
+        )
+    return None
+
+
+def exit_on_user_error(fn):
+    """Decorator for entry points: input errors print ``error: …`` and exit with status 2;
+    anything else (a bug) propagates with its traceback."""
+    import functools
+    import sys
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except Exception as err:
+            message = user_error_message(err)
+            if message is None:
+                raise
+            print(f"error: {message}", file=sys.stderr)
+            sys.exit(2)
+
+    return wrapper

@@ -21,6 +21,7 @@ from mfg_lightning.config import CONFIG_DIR
 from mfg_lightning.runs import (
     atomic_write_text,
     build_model,
+    exit_on_user_error,
     instantiate_list,
     run_info,
     write_metrics,
@@ -82,6 +83,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="train")
+@exit_on_user_error
 def main(cfg: DictConfig) -> float | None:
     metrics = train(cfg)
     return metrics.get(cfg.get("optimized_metric") or "")

@@ -33,6 +33,7 @@ import torch
 
 from mfg_lightning import geometry
 from mfg_lightning.data.base import MFGDataModule, MotionDataset
+from mfg_lightning.pose_io import read_kitti_poses
 
 log = logging.getLogger(__name__)
 
@@ -113,34 +114,6 @@ def procedural_trajectory(rng: np.random.Generator, length: int) -> torch.Tensor
         torch.from_numpy(motions[:, :3]), torch.from_numpy(motions[:, 3:])
     )
     return geometry.trajectory_from_motions(rel)
-
-
-def read_kitti_poses(path: Path) -> torch.Tensor:
-    """Read a KITTI ``poses/XX.txt`` file: ``(N, 4, 4)`` float64 ``T_world_cam``.
-
-    Raises:
-        ValueError: naming the file and line of a malformed or non-finite row.
-    """
-    rows = []
-    with open(path) as fh:
-        for lineno, line in enumerate(fh, 1):
-            if not line.strip():
-                continue
-            try:
-                values = [float(v) for v in line.split()]
-            except ValueError:
-                raise ValueError(
-                    f"{path}:{lineno}: not 12 numbers: {line.strip()[:80]!r}"
-                ) from None
-            if len(values) != 12 or not np.all(np.isfinite(values)):
-                raise ValueError(f"{path}:{lineno}: expected 12 finite numbers, got {len(values)}")
-            rows.append(values)
-    if not rows:
-        raise ValueError(f"{path}: empty pose file")
-    poses = torch.zeros(len(rows), 4, 4, dtype=torch.float64)
-    poses[:, :3, :] = torch.tensor(rows, dtype=torch.float64).view(-1, 3, 4)
-    poses[:, 3, 3] = 1
-    return poses
 
 
 # --------------------------------------------------------------------------------------------
@@ -502,7 +475,7 @@ class SyntheticDataModule(MFGDataModule):
                     raise FileNotFoundError(
                         f"KITTI pose file not found: {path} (dataset.poses_dir={root})"
                     )
-                poses = read_kitti_poses(path)
+                poses = torch.from_numpy(read_kitti_poses(path))
                 trajs[seq] = poses[: self.max_frames] if self.max_frames else poses
         self._trajectories[which] = trajs
         return trajs

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import lightning as L
@@ -20,9 +21,16 @@ from torchmetrics import MeanMetric, SumMetric
 
 from mfg_lightning import geometry
 from mfg_lightning.data.sample import sanitize_flow
+from mfg_lightning.evaluation import EvaluationResult, TrajectoryEvaluator
 from mfg_lightning.losses import LossTerms, MFGLoss
 from mfg_lightning.metrics.frame_errors import constant_motion_errors, frame_errors
+from mfg_lightning.metrics.object_motion import ObjectMotionScores
 from mfg_lightning.models.mfg import MFG, MFGOutput, validate_top_k
+from mfg_lightning.object_motion import (
+    ObjectMotionConfig,
+    extract_object_motion,
+    threshold_baseline,
+)
 from mfg_lightning.visualization import flows_to_rgb, scalar_to_rgb
 
 log = logging.getLogger(__name__)
@@ -44,6 +52,10 @@ class MFGLitModule(L.LightningModule):
         top_k: fraction of hidden units kept at evaluation (None: all); overrides ``net.top_k``.
         image_log_every_n_steps: how often fields are drawn to TensorBoard (0: never).
         max_consecutive_nonfinite: stop after this many non-finite losses in a row.
+        object_motion: object-motion filter parameters; when set, validation and test on
+            batches that carry depth and a ground-truth object mask also score the extracted
+            object motion (``<stage>/object/*``) and the plain-threshold baseline
+            (``<stage>/object_baseline/*``). None disables it.
     """
 
     def __init__(
@@ -55,9 +67,10 @@ class MFGLitModule(L.LightningModule):
         top_k: float | None = None,
         image_log_every_n_steps: int = 200,
         max_consecutive_nonfinite: int = 20,
+        object_motion: ObjectMotionConfig | None = None,
     ) -> None:
         super().__init__()
-        self.save_hyperparameters(ignore=["net", "loss"], logger=False)
+        self.save_hyperparameters(ignore=["net", "loss", "object_motion"], logger=False)
         self.net = net
         self.loss_fn = loss
         self.net.top_k = validate_top_k(top_k)
@@ -69,6 +82,8 @@ class MFGLitModule(L.LightningModule):
         #: the model's config, set by the entry point and stored in checkpoints so that
         #: :func:`load_from_checkpoint` can rebuild the network without the run directory.
         self.model_config: dict | None = None
+        #: the training dataset's config, stored in checkpoints for evaluation defaults
+        self.dataset_config: dict | None = None
         # The training set's mean motion, the 'always predict the mean' baseline.
         self.register_buffer("mean_t", torch.zeros(3))
         self.register_buffer("mean_omega", torch.zeros(3))
@@ -77,21 +92,38 @@ class MFGLitModule(L.LightningModule):
             {
                 stage: nn.ModuleDict(
                     {
-                        name: MeanMetric()
-                        for name in (
-                            "trans_err",
-                            "rot_err",
-                            "loss",
-                            "active_fraction",
-                            "baseline_trans_err",
-                            "baseline_rot_err",
-                        )
+                        **{
+                            name: MeanMetric()
+                            for name in (
+                                "trans_err",
+                                "rot_err",
+                                "loss",
+                                "active_fraction",
+                                "baseline_trans_err",
+                                "baseline_rot_err",
+                            )
+                        },
+                        "nonfinite_flow_pixels": SumMetric(),
                     }
                 )
                 for stage in ("val", "test")
             }
         )
-        self.nonfinite_flow = SumMetric()
+        #: non-finite input-flow pixels masked during training so far (this process)
+        self.nonfinite_flow_pixels = 0
+        self.object_motion = object_motion
+        # Trajectory metrics (ATE over snippets, RPE, drift) need whole sequences: collected
+        # over an epoch, scored at its end.
+        self.trajectory_evaluators = {s: TrajectoryEvaluator() for s in ("val", "test")}
+        #: the last epoch's trajectory evaluation per stage (evaluate.py writes its poses)
+        self.last_evaluation: dict[str, EvaluationResult] = {}
+        self.object_scores = nn.ModuleDict(
+            {
+                f"{stage}_{method}": ObjectMotionScores()
+                for stage in ("val", "test")
+                for method in ("object", "object_baseline")
+            }
+        )
 
     # -- model -------------------------------------------------------------------------------
 
@@ -109,18 +141,18 @@ class MFGLitModule(L.LightningModule):
 
     # -- shared step -------------------------------------------------------------------------
 
-    def _prepare(self, batch: dict[str, Any]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """Masked input flow and ground-truth fields of a batch."""
+    def _prepare(self, batch: dict[str, Any]) -> tuple[Tensor, Tensor, Tensor, Tensor, int]:
+        """Masked input flow, ground-truth fields and intrinsics of a batch, and the number of
+        non-finite flow pixels that were masked."""
         flow, _, n_bad = sanitize_flow(batch["flow"], batch["flow_valid"])
         if n_bad:
-            self.nonfinite_flow.update(n_bad)
             log.warning("masked %d non-finite flow pixels in %s", n_bad, _ids(batch))
         K = batch["intrinsics"]
         height, width = flow.shape[-2:]
         t, w = geometry.pose_to_motion(batch["pose"].to(flow))
         v_t = geometry.translational_field(t, K, height, width)
         v_w = geometry.rotational_field(w, K, height, width)
-        return flow, v_t, v_w, K
+        return flow, v_t, v_w, K, n_bad
 
     def _loss(self, out: MFGOutput, v_t: Tensor, v_w: Tensor) -> LossTerms:
         return self.loss_fn(out.v_t, out.v_omega, v_t, v_w, out.hidden)
@@ -130,7 +162,8 @@ class MFGLitModule(L.LightningModule):
     def training_step(self, batch: dict[str, Any] | None, batch_idx: int) -> Tensor | None:
         if batch is None:  # every sample of the batch was skipped as unreadable
             return None
-        flow, v_t, v_w, _ = self._prepare(batch)
+        flow, v_t, v_w, _, n_bad = self._prepare(batch)
+        self.nonfinite_flow_pixels += n_bad
         out = self(flow)
         terms = self._loss(out, v_t, v_w)
         if not torch.isfinite(terms.total):
@@ -158,8 +191,7 @@ class MFGLitModule(L.LightningModule):
             },
             batch_size=bs,
         )
-        if self.nonfinite_flow.update_count:
-            self.log("train/nonfinite_flow_pixels", self.nonfinite_flow, batch_size=bs)
+        self.log("train/nonfinite_flow_pixels", float(self.nonfinite_flow_pixels), batch_size=bs)
         if self.image_log_every_n_steps and self.global_step % self.image_log_every_n_steps == 0:
             self._log_images("train", flow, v_t, v_w, out)
         return terms.total
@@ -169,7 +201,7 @@ class MFGLitModule(L.LightningModule):
     def _evaluate(self, batch: dict[str, Any] | None, stage: str) -> dict[str, Tensor] | None:
         if batch is None:
             return None
-        flow, v_t, v_w, K = self._prepare(batch)
+        flow, v_t, v_w, K, n_bad = self._prepare(batch)
         out = self(flow)
         terms = self._loss(out, v_t, v_w)
         t, w = geometry.recover_motion(out.v_t, out.v_omega, K)
@@ -179,11 +211,35 @@ class MFGLitModule(L.LightningModule):
         m["rot_err"].update(rot_err)
         m["loss"].update(terms.total)
         m["active_fraction"].update(_active_fraction(out.hidden))
+        m["nonfinite_flow_pixels"].update(n_bad)
         if bool(self.has_mean_motion):
             b_t, b_r = constant_motion_errors(self.mean_t, self.mean_omega, batch["pose"])
             m["baseline_trans_err"].update(b_t)
             m["baseline_rot_err"].update(b_r)
+        self._score_object_motion(batch, flow, out, stage)
+        self.trajectory_evaluators[stage].update(
+            batch["sequence"], batch["frame"], batch["target"],
+            geometry.motion_to_pose(t.double(), w.double()), batch["pose"],
+        )
         return {"t": t, "omega": w, "out": out, "flow": flow, "v_t": v_t, "v_omega": v_w}
+
+    def _score_object_motion(
+        self, batch: dict[str, Any], flow: Tensor, out: MFGOutput, stage: str
+    ) -> None:
+        """Object motion from the predicted fields and depth, against the ground truth."""
+        cfg = self.object_motion
+        if cfg is None or "depth" not in batch or "object_mask" not in batch:
+            return
+        depth, valid = batch["depth"], batch["flow_valid"]
+        res = extract_object_motion(flow, out.v_t, out.v_omega, depth, cfg, valid=valid)
+        gt_mask, gt_flow = batch["object_mask"], batch.get("object_flow")
+        self.object_scores[f"{stage}_object"].update(
+            res.mask, res.object_flow, gt_mask, gt_flow, depth, res.valid
+        )
+        base = threshold_baseline(res.residual, cfg.baseline_threshold, res.valid)
+        self.object_scores[f"{stage}_object_baseline"].update(
+            base, res.residual * base[:, None], gt_mask, gt_flow, depth, res.valid
+        )
 
     def _log_eval(self, stage: str) -> None:
         for name, metric in self.eval_metrics[stage].items():
@@ -191,6 +247,20 @@ class MFGLitModule(L.LightningModule):
                 self.log(
                     f"{stage}/{name}", metric.compute(), prog_bar=name in ("trans_err", "rot_err")
                 )
+            metric.reset()
+        evaluator = self.trajectory_evaluators[stage]
+        if len(evaluator):
+            evaluator.sync()
+            res = evaluator.compute()
+            self.last_evaluation[stage] = res
+            metrics = {f"{stage}/{k}": float(v) for k, v in res.metrics.items()}
+            self.log(f"{stage}/ate", metrics.pop(f"{stage}/ate"), prog_bar=True)
+            self.log_dict(metrics)
+        evaluator.reset()
+        for method in ("object", "object_baseline"):
+            metric = self.object_scores[f"{stage}_{method}"]
+            if metric.update_count:
+                self.log_dict({f"{stage}/{method}/{k}": v for k, v in metric.compute().items()})
             metric.reset()
 
     def on_fit_start(self) -> None:
@@ -267,9 +337,12 @@ class MFGLitModule(L.LightningModule):
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         if self.model_config is not None:
             checkpoint["mfg_model_config"] = self.model_config
+        if self.dataset_config is not None:
+            checkpoint["mfg_dataset_config"] = self.dataset_config
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         self.model_config = checkpoint.get("mfg_model_config", self.model_config)
+        self.dataset_config = checkpoint.get("mfg_dataset_config", self.dataset_config)
 
 
 def _active_fraction(hidden: Tensor) -> Tensor:
@@ -281,3 +354,54 @@ def _ids(batch: dict[str, Any], limit: int = 4) -> str:
     ids = list(batch.get("sample_id", []))
     more = f" (+{len(ids) - limit} more)" if len(ids) > limit else ""
     return ", ".join(map(str, ids[:limit])) + more
+
+
+class CheckpointError(ValueError):
+    """A checkpoint is missing, unreadable, or does not fit the model it should restore."""
+
+
+def load_checkpoint(path: str | Path) -> dict[str, Any]:
+    """Read a checkpoint file written by ``mfg_lightning.train`` (CPU tensors)."""
+    path = Path(path).expanduser()
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint not found: {path}")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as err:  # truncated or not a torch file at all
+        raise CheckpointError(f"cannot read checkpoint {path}: {err}") from err
+    if not isinstance(ckpt, dict) or "state_dict" not in ckpt:
+        raise CheckpointError(f"{path} is not a Lightning checkpoint (no state_dict)")
+    if "mfg_model_config" not in ckpt:
+        raise CheckpointError(
+            f"{path} has no mfg_model_config: it was not written by mfg_lightning.train"
+        )
+    return ckpt
+
+
+def module_from_checkpoint(path: str | Path, **overrides: Any) -> MFGLitModule:
+    """Rebuild the LightningModule of a checkpoint from its stored config and load its weights.
+
+    Args:
+        path: the ``.ckpt`` file.
+        overrides: replace top-level keys of the stored model config (e.g. ``top_k=0.05``).
+
+    Raises:
+        CheckpointError: missing or unreadable file, or weights that do not fit the stored
+            architecture.
+    """
+    from hydra.utils import instantiate
+
+    ckpt = load_checkpoint(path)
+    cfg = {**ckpt["mfg_model_config"], **overrides}
+    model: MFGLitModule = instantiate(cfg)
+    try:
+        model.load_state_dict(ckpt["state_dict"])
+    except RuntimeError as err:
+        net = cfg.get("net", {})
+        raise CheckpointError(
+            f"{path}: weights do not fit an MFG with hidden_units={net.get('hidden_units')}, "
+            f"input {net.get('height')}×{net.get('width')}: {str(err).splitlines()[0]}"
+        ) from err
+    model.model_config = cfg
+    model.dataset_config = ckpt.get("mfg_dataset_config")
+    return model

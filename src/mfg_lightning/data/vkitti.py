@@ -1,0 +1,686 @@
+"""Virtual KITTI 1.3.1 and 2.0.3 as Lightning DataModules with the paper's two splits.
+
+Layouts read (``../shared/docs/formats.md``; ``data_root`` is the directory holding the unpacked
+tarballs, never written to)::
+
+    1.3.1 (version=1)
+    vkitti_1.3.1_rgb/<world>/<var>/%05d.png
+    vkitti_1.3.1_depthgt/<world>/<var>/%05d.png
+    vkitti_1.3.1_flowgt/<world>/<var>/%05d.png
+    vkitti_1.3.1_extrinsicsgt/<world>_<var>.txt
+
+    2.0.3 (version=2)
+    vkitti_2.0.3_rgb/SceneXX/<var>/frames/rgb/Camera_0/rgb_%05d.jpg
+    vkitti_2.0.3_depth/SceneXX/<var>/frames/depth/Camera_0/depth_%05d.png
+    vkitti_2.0.3_forwardFlow/SceneXX/<var>/frames/forwardFlow/Camera_0/flow_%05d.png
+    vkitti_2.0.3_textgt/SceneXX/<var>/extrinsic.txt, intrinsic.txt   (Camera_0 rows are used)
+
+Worlds are named ``0001 0002 0006 0018 0020`` in both versions (2.0.3's ``Scene01`` … are the same
+worlds). Splits (the paper):
+
+* ``split: egomotion`` (``dataset=vkitti``): test 0001, train 0002 0006 0018 0020;
+* ``split: objects`` (``dataset=vkitti_objects``): train 0001 0006 0020, test 0002 0018.
+
+Validation: a contiguous tail of each *training* world (``val_fraction``, default 5 %, at least
+one pair; :func:`~mfg_lightning.data.transforms.holdout_ranges`), removed from training; test
+worlds are never used for validation. The paper counts frames (1679 / 447 for the egomotion
+split); a sample here is a pair ``t → t + 1``, so a world of N frames gives N − 1 samples.
+
+Each sample (schema of :mod:`mfg_lightning.data.sample`) at the model's input size:
+
+* ``flow``, ``flow_valid``: the ground-truth forward flow (``B == 0`` pixels invalid), resized by
+  :func:`~mfg_lightning.data.transforms.resize_flow`;
+* ``depth``: metres along z (:func:`~mfg_lightning.data.transforms.resize_depth`); the far plane
+  (sky) keeps its stored 655.35 m;
+* ``pose``: ``T_t,t+1 = T_world_cam(t)^-1 · T_world_cam(t+1)`` where ``T_world_cam`` is the
+  inverse of the file's world-to-camera extrinsics;
+* ``intrinsics``: fx = fy = 725, cx = 620.5, cy = 187 (1.3.1) or the frame's row of
+  ``intrinsic.txt`` (2.0.3), scaled to the input size;
+* ``object_mask``, ``object_flow``: independently moving pixels, found at the *native*
+  resolution as pixels whose ground-truth flow differs from the rigid flow of the camera motion
+  (:func:`mfg_lightning.geometry.reprojection_flow` of the depth and pose) by more than
+  ``object_threshold`` native pixels. Only pixels with valid flow and a real depth count: the far
+  plane (sky) and invalid flow are never objects. ``object_flow = flow − rigid flow`` on the mask
+  (0 elsewhere), resized like the flow (mean over the object pixels of each output pixel); an
+  output pixel is on the mask when at least half of its valid native pixels are;
+* ``rgb``: the source image (``load_rgb``).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from mfg_lightning import geometry
+from mfg_lightning.data import flow_io, transforms
+from mfg_lightning.data.base import MFGDataModule, MotionDataset
+from mfg_lightning.data.flow_io import DataFileError, DataRootError, SkipCounter, report_skipped
+from mfg_lightning.data.sample import sanitize_flow
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "SPLITS",
+    "VKITTI1_INTRINSICS",
+    "VirtualKittiDataModule",
+    "VirtualKittiDataset",
+    "normalize_version",
+    "normalize_world",
+    "read_vkitti_extrinsics",
+    "read_vkitti_intrinsics",
+]
+
+WORLDS = ("0001", "0002", "0006", "0018", "0020")
+VARIATIONS = (
+    "clone", "15-deg-left", "15-deg-right", "30-deg-left", "30-deg-right",
+    "morning", "sunset", "overcast", "fog", "rain",
+)  # fmt: skip
+#: The paper's splits: name → (train worlds, test worlds).
+SPLITS = {
+    "egomotion": (("0002", "0006", "0018", "0020"), ("0001",)),
+    "objects": (("0001", "0006", "0020"), ("0002", "0018")),
+}
+#: Virtual KITTI 1.3.1's camera, the same for every frame: (fx, fy, cx, cy) at 1242×375.
+VKITTI1_INTRINSICS = (725.0, 725.0, 620.5, 187.0)
+
+VKITTI1_LAYOUT = """\
+<data_root>/                          (the unpacked Virtual KITTI 1.3.1 tarballs)
+├── vkitti_1.3.1_rgb/0001/clone/00000.png 00001.png …
+├── vkitti_1.3.1_depthgt/0001/clone/00000.png …        16-bit depth, cm
+├── vkitti_1.3.1_flowgt/0001/clone/00000.png …         16-bit forward flow
+└── vkitti_1.3.1_extrinsicsgt/0001_clone.txt …         world-to-camera 4×4 per frame
+    (worlds 0001 0002 0006 0018 0020; variations clone, 15-deg-left, …, fog, rain)"""
+
+VKITTI2_LAYOUT = """\
+<data_root>/                          (the unpacked Virtual KITTI 2.0.3 tarballs)
+├── vkitti_2.0.3_rgb/Scene01/clone/frames/rgb/Camera_0/rgb_00000.jpg …
+├── vkitti_2.0.3_depth/Scene01/clone/frames/depth/Camera_0/depth_00000.png …
+├── vkitti_2.0.3_forwardFlow/Scene01/clone/frames/forwardFlow/Camera_0/flow_00000.png …
+└── vkitti_2.0.3_textgt/Scene01/clone/extrinsic.txt, intrinsic.txt
+    (scenes Scene01 Scene02 Scene06 Scene18 Scene20; variations clone, 15-deg-left, …)"""
+
+
+def normalize_version(version: Any) -> int:
+    """``1``, ``"1.3.1"`` → 1; ``2``, ``"2.0.3"`` → 2."""
+    text = str(version).strip()
+    if text in ("1", "1.3", "1.3.1"):
+        return 1
+    if text in ("2", "2.0", "2.0.3"):
+        return 2
+    raise ValueError(
+        f"dataset.version must be 1 (Virtual KITTI 1.3.1) or 2 (2.0.3), got {version!r}"
+    )
+
+
+def normalize_world(world: Any) -> str:
+    """``1``, ``"1"``, ``"0001"``, ``"Scene01"`` → ``"0001"``."""
+    text = str(world).strip()
+    if text.lower().startswith("scene"):
+        text = text[5:]
+    if not text.isdigit():
+        raise ValueError(f"unknown Virtual KITTI world {world!r}; worlds are {', '.join(WORLDS)}")
+    return f"{int(text):04d}"
+
+
+# --------------------------------------------------------------------------------------------
+# Text files
+# --------------------------------------------------------------------------------------------
+
+
+def _numeric_rows(path: Path, width: int) -> np.ndarray:
+    """The rows after the header line of a whitespace-separated table, as float64 ``(N, width)``."""
+    try:
+        lines = path.read_text().splitlines()
+    except FileNotFoundError:
+        raise DataFileError(f"{path}: file not found") from None
+    rows = [line.split() for line in lines[1:] if line.strip()]
+    for i, row in enumerate(rows):
+        if len(row) != width:
+            raise DataFileError(f"{path}: line {i + 2} has {len(row)} fields, expected {width}")
+    try:
+        return np.array(rows, np.float64).reshape(-1, width)
+    except ValueError:
+        raise DataFileError(f"{path}: non-numeric entries") from None
+
+
+def read_vkitti_extrinsics(path: str | os.PathLike, version: int = 1) -> dict[int, np.ndarray]:
+    """World-to-camera extrinsics per frame (camera 0 for 2.0.3).
+
+    1.3.1: ``frame`` then 16 numbers per line; 2.0.3: ``frame cameraID`` then 16 numbers.
+
+    Returns:
+        frame → ``(4, 4)`` float64 world-to-camera matrix (``T_cam_world``, metres).
+    """
+    path = Path(path)
+    if version == 1:
+        table = _numeric_rows(path, 17)
+        frames, mats = table[:, 0], table[:, 1:]
+    else:
+        table = _numeric_rows(path, 18)
+        table = table[table[:, 1] == 0]
+        frames, mats = table[:, 0], table[:, 2:]
+    return {int(f): m.reshape(4, 4) for f, m in zip(frames, mats, strict=True)}
+
+
+def read_vkitti_intrinsics(path: str | os.PathLike) -> dict[int, np.ndarray]:
+    """2.0.3 ``intrinsic.txt``: ``frame cameraID K[0,0] K[1,1] K[0,2] K[1,2]`` per line.
+
+    Returns:
+        frame → ``(4,)`` ``(fx, fy, cx, cy)`` of camera 0 in native pixels.
+    """
+    table = _numeric_rows(Path(path), 6)
+    table = table[table[:, 1] == 0]
+    return {int(row[0]): row[2:].copy() for row in table}
+
+
+def _list_numbered(directory: Path, prefix: str, suffix: str) -> set[int]:
+    frames = set()
+    if not directory.is_dir():
+        return frames
+    with os.scandir(directory) as it:
+        for entry in it:
+            name = entry.name
+            if name.startswith(prefix) and name.lower().endswith(suffix):
+                core = name[len(prefix) : len(name) - len(suffix)]
+                if core.isdigit():
+                    frames.add(int(core))
+    return frames
+
+
+# --------------------------------------------------------------------------------------------
+# Layout
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """Paths of one Virtual KITTI version under ``root``."""
+
+    root: Path
+    version: int
+
+    @property
+    def tag(self) -> str:
+        return "vkitti_1.3.1" if self.version == 1 else "vkitti_2.0.3"
+
+    @property
+    def tree(self) -> str:
+        return VKITTI1_LAYOUT if self.version == 1 else VKITTI2_LAYOUT
+
+    def _scene(self, world: str) -> str:
+        return world if self.version == 1 else f"Scene{int(world):02d}"
+
+    def top_dirs(self) -> list[Path]:
+        names = (
+            ("rgb", "depthgt", "flowgt", "extrinsicsgt")
+            if self.version == 1
+            else ("rgb", "depth", "forwardFlow", "textgt")
+        )
+        return [self.root / f"{self.tag}_{n}" for n in names]
+
+    def rgb_dir(self, world: str, var: str) -> Path:
+        if self.version == 1:
+            return self.root / f"{self.tag}_rgb" / world / var
+        return self.root / f"{self.tag}_rgb" / self._scene(world) / var / "frames/rgb/Camera_0"
+
+    def depth_dir(self, world: str, var: str) -> Path:
+        if self.version == 1:
+            return self.root / f"{self.tag}_depthgt" / world / var
+        return self.root / f"{self.tag}_depth" / self._scene(world) / var / "frames/depth/Camera_0"
+
+    def flow_dir(self, world: str, var: str) -> Path:
+        if self.version == 1:
+            return self.root / f"{self.tag}_flowgt" / world / var
+        return (
+            self.root / f"{self.tag}_forwardFlow" / self._scene(world) / var
+            / "frames/forwardFlow/Camera_0"
+        )  # fmt: skip
+
+    def extrinsics_file(self, world: str, var: str) -> Path:
+        if self.version == 1:
+            return self.root / f"{self.tag}_extrinsicsgt" / f"{world}_{var}.txt"
+        return self.root / f"{self.tag}_textgt" / self._scene(world) / var / "extrinsic.txt"
+
+    def intrinsics_file(self, world: str, var: str) -> Path | None:
+        if self.version == 1:
+            return None
+        return self.root / f"{self.tag}_textgt" / self._scene(world) / var / "intrinsic.txt"
+
+    # file names: (prefix, suffix) of rgb, depth, flow
+    def names(self) -> dict[str, tuple[str, str]]:
+        if self.version == 1:
+            return {"rgb": ("", ".png"), "depth": ("", ".png"), "flow": ("", ".png")}
+        return {"rgb": ("rgb_", ".jpg"), "depth": ("depth_", ".png"), "flow": ("flow_", ".png")}
+
+    def file(self, kind: str, world: str, var: str, frame: int) -> Path:
+        prefix, suffix = self.names()[kind]
+        directory = {"rgb": self.rgb_dir, "depth": self.depth_dir, "flow": self.flow_dir}[kind]
+        return directory(world, var) / f"{prefix}{frame:05d}{suffix}"
+
+
+def check_vkitti_root(
+    data_root: str | os.PathLike | None, version: int, worlds: Sequence[str], variation: str
+) -> _Layout:
+    """Return the layout, or raise ONE :class:`DataRootError` listing what is missing and showing
+    the expected tree."""
+    tree = VKITTI1_LAYOUT if version == 1 else VKITTI2_LAYOUT
+    name = "Virtual KITTI 1.3.1" if version == 1 else "Virtual KITTI 2.0.3"
+    if data_root is None or str(data_root).strip() in ("", "???", "None", "null"):
+        raise DataRootError(
+            f"dataset.data_root is not set: point it at the directory holding the unpacked "
+            f"{name} tarballs. Expected layout:\n{tree}"
+        )
+    root = Path(data_root).expanduser()
+    if not root.is_dir():
+        raise DataRootError(
+            f"dataset.data_root={root} is not a directory. Expected layout:\n{tree}"
+        )
+    layout = _Layout(root.resolve(), version)
+    missing = [d for d in layout.top_dirs() if not d.is_dir()]
+    if not missing:
+        for world in worlds:
+            needed = [
+                layout.rgb_dir(world, variation),
+                layout.depth_dir(world, variation),
+                layout.flow_dir(world, variation),
+                layout.extrinsics_file(world, variation),
+            ]
+            intr = layout.intrinsics_file(world, variation)
+            missing += [p for p in [*needed, intr] if p is not None and not p.exists()]
+    if missing:
+        other = _Layout(layout.root, 3 - version)
+        hint = ""
+        if all(d.is_dir() for d in other.top_dirs()):
+            hint = f"\n(this looks like the other version: set dataset.version={3 - version})"
+        shown = "\n".join(f"  {p}" for p in missing[:20])
+        more = f"\n  … and {len(missing) - 20} more" if len(missing) > 20 else ""
+        raise DataRootError(
+            f"dataset.data_root={root} does not look like {name} (variation {variation}); "
+            f"missing:\n{shown}{more}{hint}\nExpected layout:\n{tree}"
+        )
+    return layout
+
+
+# --------------------------------------------------------------------------------------------
+# Dataset
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _World:
+    name: str
+    extrinsics: dict[int, np.ndarray]  # frame → world-to-camera
+    intrinsics: dict[int, np.ndarray] | None  # frame → (fx, fy, cx, cy) native (2.0.3)
+
+
+class VirtualKittiDataset(MotionDataset):
+    """Pairs ``t → t + 1`` of Virtual KITTI worlds (see the module docstring).
+
+    Args:
+        data_root: directory holding the unpacked ``vkitti_<version>_*`` directories.
+        worlds: world names (``"0001"`` …).
+        variation: rendering variation (``clone``, ``fog``, …).
+        version: 1 (1.3.1) or 2 (2.0.3).
+        height, width: the model's input size.
+        split: name used in ``sample_id`` and messages.
+        portion: ``"all"`` frames of each world, its ``"train"`` head or its ``"val"`` tail.
+        val_fraction: fraction of each world held out as its validation tail.
+        object_threshold: residual ``‖flow − rigid flow‖`` above which a pixel is moving, in
+            pixels of the native (1242 × 375) resolution.
+        load_rgb: deliver the source image as ``rgb``.
+        skip_bad_samples: warn and skip unreadable samples instead of raising.
+    """
+
+    name = "vkitti"
+
+    def __init__(
+        self,
+        data_root: str | os.PathLike,
+        worlds: Sequence[str],
+        variation: str = "clone",
+        version: int | str = 1,
+        height: int = 48,
+        width: int = 128,
+        split: str = "train",
+        portion: str = "all",
+        val_fraction: float = 0.05,
+        object_threshold: float = 1.0,
+        load_rgb: bool = True,
+        skip_bad_samples: bool = False,
+    ) -> None:
+        super().__init__()
+        if portion not in ("all", "train", "val"):
+            raise ValueError(f"portion must be 'all', 'train' or 'val', got {portion!r}")
+        if object_threshold <= 0:
+            raise ValueError(f"dataset.object_threshold must be positive, got {object_threshold}")
+        if variation not in VARIATIONS:
+            warnings.warn(
+                f"dataset.variation={variation!r} is not one of {VARIATIONS}", stacklevel=2
+            )
+        self.version = normalize_version(version)
+        self.world_names = [normalize_world(w) for w in worlds]
+        self.variation = str(variation)
+        self.layout = check_vkitti_root(data_root, self.version, self.world_names, self.variation)
+        self.height, self.width = int(height), int(width)
+        self.split = split
+        self.object_threshold = float(object_threshold)
+        self.load_rgb = load_rgb
+        self.skip_bad_samples = skip_bad_samples
+        self.skipped = SkipCounter()
+        self._worlds: dict[str, _World] = {}
+        self.samples: list[tuple[str, int, int]] = []
+        problems: list[str] = []
+        for world in self.world_names:
+            problems += self._index_world(world, portion, val_fraction)
+        if problems:
+            text = "\n".join(problems)
+            if not skip_bad_samples:
+                raise DataFileError(
+                    f"Virtual KITTI {split} split: {text}\n(set dataset.skip_bad_samples=true "
+                    "to skip the affected samples with a warning)"
+                )
+            warnings.warn(
+                f"Virtual KITTI {split} split, skipping affected samples: {text}", stacklevel=2
+            )
+
+    def _index_world(self, world: str, portion: str, val_fraction: float) -> list[str]:
+        L, var = self.layout, self.variation
+        ext_file = L.extrinsics_file(world, var)
+        extrinsics = read_vkitti_extrinsics(ext_file, self.version)
+        intr_file = L.intrinsics_file(world, var)
+        intrinsics = read_vkitti_intrinsics(intr_file) if intr_file is not None else None
+        self._worlds[world] = _World(world, extrinsics, intrinsics)
+        names = L.names()
+        present = {
+            "rgb": _list_numbered(L.rgb_dir(world, var), *names["rgb"]),
+            "depth": _list_numbered(L.depth_dir(world, var), *names["depth"]),
+            "flow": _list_numbered(L.flow_dir(world, var), *names["flow"]),
+        }
+        n = max(present["rgb"], default=-1) + 1
+        problems: list[str] = []
+        if n == 0:
+            return [f"{L.rgb_dir(world, var)}: no frames"]
+        no_pose = [f for f in range(n) if f not in extrinsics]
+        if no_pose:
+            problems.append(
+                f"{ext_file}: no extrinsics for {len(no_pose)} of the {n} frames in "
+                f"{L.rgb_dir(world, var)} (first: frame {no_pose[0]})"
+            )
+        if intrinsics is not None:
+            no_k = [f for f in range(n - 1) if f not in intrinsics]
+            if no_k:
+                problems.append(
+                    f"{intr_file}: no intrinsics for {len(no_k)} frames (first: {no_k[0]})"
+                )
+        # Every source frame needs its depth and flow (and image with load_rgb); the last frame
+        # has no successor, so its flow is not needed (2.0.3 does not ship it).
+        kinds = ("depth", "flow", "rgb") if self.load_rgb else ("depth", "flow")
+        for kind in kinds:
+            gone = [f for f in range(n - 1) if f not in present[kind]]
+            if gone:
+                shown = ", ".join(L.file(kind, world, var, f).name for f in gone[:5])
+                problems.append(
+                    f"{L.file(kind, world, var, gone[0]).parent}: {len(gone)} {kind} file(s) "
+                    f"missing: {shown}" + (" …" if len(gone) > 5 else "")
+                )
+        train_rng, val_rng = transforms.holdout_ranges(
+            n, val_fraction if portion != "all" else 0.0, span=1
+        )
+        allowed = {"all": range(n), "train": train_rng, "val": val_rng}[portion]
+        for src in allowed:
+            tgt = src + 1
+            if tgt not in allowed or src not in extrinsics or tgt not in extrinsics:
+                continue
+            if any(src not in present[k] for k in kinds):
+                continue
+            if intrinsics is not None and src not in intrinsics:
+                continue
+            self.samples.append((world, src, tgt))
+        return problems
+
+    # -- MotionDataset -----------------------------------------------------------------------
+
+    def __len__(self) -> int:
+        return len(self.samples)
+
+    def _T_world_cam(self, world: str, frame: int) -> torch.Tensor:
+        return geometry.invert_pose(torch.from_numpy(self._worlds[world].extrinsics[frame]))
+
+    def relative_poses(self) -> torch.Tensor:
+        """``(N, 4, 4)`` float32 ``T_src,tgt`` of every sample, from the extrinsics only."""
+        if not self.samples:
+            return torch.zeros(0, 4, 4)
+        src = torch.stack([self._T_world_cam(w, a) for w, a, _ in self.samples])
+        tgt = torch.stack([self._T_world_cam(w, b) for w, _, b in self.samples])
+        return geometry.relative_pose(src, tgt).float()
+
+    def sequences(self) -> dict[str, list[int]]:
+        out: dict[str, list[int]] = {}
+        for i, (world, _, _) in enumerate(self.samples):
+            out.setdefault(world, []).append(i)
+        return out
+
+    def native_intrinsics(self, world: str, frame: int) -> np.ndarray:
+        """``(4,)`` ``(fx, fy, cx, cy)`` of ``frame`` in native pixels."""
+        intrinsics = self._worlds[world].intrinsics
+        if intrinsics is None:
+            return np.array(VKITTI1_INTRINSICS, np.float64)
+        return intrinsics[frame]
+
+    def files(self, index: int) -> list[Path]:
+        """The files sample ``index`` reads (for checks): flow, depth and (``load_rgb``) image."""
+        world, src, _ = self.samples[index]
+        kinds = ("flow", "depth", "rgb") if self.load_rgb else ("flow", "depth")
+        return [self.layout.file(k, world, self.variation, src) for k in kinds]
+
+    def describe(self) -> dict[str, dict[str, Any]]:
+        """Per world: frames, native size (from the first flow file's header), intrinsics of the
+        first sample (native and at the input size)."""
+        out: dict[str, dict[str, Any]] = {}
+        for world, indices in self.sequences().items():
+            _, src, _ = self.samples[indices[0]]
+            native_hw = flow_io.image_size(self.layout.file("flow", world, self.variation, src))
+            K = self.native_intrinsics(world, src)
+            K_in = transforms.resize_intrinsics(K, native_hw, (self.height, self.width))
+            out[world] = {
+                "frames": len(self._worlds[world].extrinsics),
+                "native_size": list(native_hw),
+                "intrinsics_native": [round(float(v), 4) for v in K],
+                "intrinsics_input": [round(float(v), 4) for v in K_in],
+            }
+        return out
+
+    def sample_id(self, index: int) -> str:
+        world, src, tgt = self.samples[index]
+        return f"{self.name}/{self.split}/{world}/{src}->{tgt}"
+
+    def __getitem__(self, index: int) -> dict[str, Any] | None:
+        try:
+            return self._load(index)
+        except DataFileError as err:
+            if not self.skip_bad_samples:
+                raise DataFileError(f"{self.sample_id(index)}: {err}") from err
+            self.skipped.add()
+            warnings.warn(f"skipping {self.sample_id(index)}: {err}", stacklevel=2)
+            return None
+
+    def _load(self, index: int) -> dict[str, Any]:
+        world, src, tgt = self.samples[index]
+        L, var = self.layout, self.variation
+        flow_path = L.file("flow", world, var, src)
+        depth_path = L.file("depth", world, var, src)
+        flow, valid = flow_io.read_vkitti_flow_png(flow_path)
+        depth, far = flow_io.read_vkitti_depth(depth_path)
+        if depth.shape != flow.shape[:2]:
+            raise DataFileError(
+                f"{depth_path}: depth is {depth.shape[1]}×{depth.shape[0]} but the flow "
+                f"{flow_path} is {flow.shape[1]}×{flow.shape[0]}"
+            )
+        native_hw = depth.shape
+        K = self.native_intrinsics(world, src)
+        pose64 = geometry.relative_pose(
+            self._T_world_cam(world, src), self._T_world_cam(world, tgt)
+        )
+        mask, residual = moving_object_mask(
+            flow, valid, depth, far, pose64.numpy(), K, self.object_threshold
+        )
+        hw = (self.height, self.width)
+        flow_lr, valid_lr = transforms.resize_flow(flow, valid, *hw)
+        defined = valid & ~far & (depth > 0)
+        mask_lr = transforms.resize_mask(mask, *hw, defined=defined) & valid_lr
+        obj_lr, _ = transforms.resize_flow(residual, mask, *hw, min_valid_fraction=1e-6)
+        obj_lr[~mask_lr] = 0.0
+        flow_t, valid_t, _ = sanitize_flow(
+            transforms.flow_to_tensor(flow_lr), torch.from_numpy(valid_lr)
+        )
+        sample: dict[str, Any] = {
+            "flow": flow_t,
+            "flow_valid": valid_t,
+            "pose": pose64.float(),
+            "intrinsics": transforms.resize_intrinsics(K, native_hw, hw),
+            "depth": torch.from_numpy(transforms.resize_depth(depth, *hw)),
+            "object_mask": torch.from_numpy(mask_lr),
+            "object_flow": transforms.flow_to_tensor(obj_lr),
+            "sequence": world,
+            "frame": src,
+            "target": tgt,
+            "sample_id": self.sample_id(index),
+        }
+        if self.load_rgb:
+            rgb = transforms.resize_rgb(flow_io.read_rgb(L.file("rgb", world, var, src)), *hw)
+            sample["rgb"] = torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1)))
+        return sample
+
+
+def moving_object_mask(
+    flow: np.ndarray,
+    valid: np.ndarray,
+    depth: np.ndarray,
+    far: np.ndarray,
+    pose: np.ndarray,
+    intrinsics: np.ndarray,
+    threshold: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Ground-truth moving pixels: where the flow is not explained by the camera's motion.
+
+    Args:
+        flow: ``(H, W, 2)`` ground-truth flow ``t → t+1`` in pixels; valid: ``(H, W)`` bool.
+        depth: ``(H, W)`` metres of frame t; far: ``(H, W)`` bool far-plane (sky) pixels.
+        pose: ``(4, 4)`` ``T_t,t+1`` (camera t+1 in camera t).
+        intrinsics: ``(4,)`` ``(fx, fy, cx, cy)`` at this resolution.
+        threshold: pixels; a residual norm above it marks a moving pixel.
+
+    Returns:
+        ``(mask, residual)``: ``(H, W)`` bool, and ``(H, W, 2)`` float32 ``flow − rigid flow``
+        (the rigid flow from :func:`mfg_lightning.geometry.reprojection_flow`; 0 where the
+        pixel has no valid flow or no real depth).
+    """
+    defined = valid & ~far & (depth > 0)
+    rigid = geometry.reprojection_flow(
+        torch.from_numpy(np.where(defined, depth, 1.0).astype(np.float64))[None],
+        torch.from_numpy(np.asarray(pose, np.float64))[None],
+        torch.from_numpy(np.asarray(intrinsics, np.float64))[None],
+    )[0]
+    residual = flow - rigid.permute(1, 2, 0).numpy().astype(np.float32)
+    residual[~defined] = 0.0
+    mask = defined & (np.linalg.norm(residual, axis=2) > threshold)
+    return mask, residual
+
+
+# --------------------------------------------------------------------------------------------
+# DataModule
+# --------------------------------------------------------------------------------------------
+
+
+class VirtualKittiDataModule(MFGDataModule):
+    """Virtual KITTI with the paper's splits (``split``: ``egomotion`` or ``objects``).
+
+    Args:
+        data_root: directory holding the unpacked ``vkitti_*`` tarballs.
+        version: 1 (1.3.1, default) or 2 (2.0.3).
+        variation: rendering variation (default ``clone``).
+        split: ``"egomotion"`` (test 0001) or ``"objects"`` (test 0002, 0018).
+        train_worlds, test_worlds: override the split's worlds (None: the paper's).
+        val_fraction: the validation tail of each training world (default 5 %).
+        object_threshold: moving-pixel threshold in native pixels (default 1.0).
+        load_rgb, skip_bad_samples: see :class:`VirtualKittiDataset`.
+        height, width, batch_size, eval_batch_size, num_workers, seed, pin_memory,
+            persistent_workers: see :class:`~mfg_lightning.data.base.MFGDataModule`.
+    """
+
+    def __init__(
+        self,
+        data_root: str | None = None,
+        height: int = 48,
+        width: int = 128,
+        batch_size: int = 1,
+        eval_batch_size: int = 32,
+        num_workers: int = 0,
+        seed: int = 0,
+        version: int | str = 1,
+        variation: str = "clone",
+        split: str = "egomotion",
+        train_worlds: Sequence[str] | None = None,
+        test_worlds: Sequence[str] | None = None,
+        val_fraction: float = 0.05,
+        object_threshold: float = 1.0,
+        load_rgb: bool = True,
+        skip_bad_samples: bool = False,
+        pin_memory: bool = False,
+        persistent_workers: bool = False,
+    ) -> None:
+        super().__init__(
+            height=height,
+            width=width,
+            batch_size=batch_size,
+            eval_batch_size=eval_batch_size,
+            num_workers=num_workers,
+            seed=seed,
+            pin_memory=pin_memory,
+            persistent_workers=persistent_workers,
+        )
+        if split not in SPLITS:
+            raise ValueError(f"dataset.split must be one of {sorted(SPLITS)}, got {split!r}")
+        default_train, default_test = SPLITS[split]
+        self.train_worlds = [normalize_world(w) for w in (train_worlds or default_train)]
+        self.test_worlds = [normalize_world(w) for w in (test_worlds or default_test)]
+        overlap = sorted(set(self.train_worlds) & set(self.test_worlds))
+        if overlap:
+            raise ValueError(f"worlds {overlap} are in both the training and the test split")
+        if not 0.0 < float(val_fraction) < 1.0:
+            raise ValueError(
+                f"dataset.val_fraction must be in (0, 1) (a tail of each training world), "
+                f"got {val_fraction}"
+            )
+        self.split_name = split
+        self.dataset_kwargs: dict[str, Any] = {
+            "data_root": data_root,
+            "variation": variation,
+            "version": normalize_version(version),
+            "height": height,
+            "width": width,
+            "val_fraction": float(val_fraction),
+            "object_threshold": float(object_threshold),
+            "load_rgb": load_rgb,
+            "skip_bad_samples": skip_bad_samples,
+        }
+
+    def build_dataset(self, split: str) -> VirtualKittiDataset:
+        if split not in ("train", "val", "test"):
+            raise ValueError(f"unknown split {split!r}")
+        worlds = self.test_worlds if split == "test" else self.train_worlds
+        portion = {"train": "train", "val": "val", "test": "all"}[split]
+        return VirtualKittiDataset(
+            worlds=worlds, split=split, portion=portion, **self.dataset_kwargs
+        )
+
+    def teardown(self, stage: str | None = None) -> None:
+        report_skipped(self.datasets)

@@ -1,0 +1,183 @@
+"""KITTI odometry drift (Geiger et al. 2012, the KITTI odometry devkit's ``evaluate_odometry``).
+
+Definition (``../shared/docs/protocols.md``, "KITTI odometry drift", as computed by the devkit's
+``calcSequenceErrors``), for ground-truth poses ``Q`` and estimated poses ``P`` of one sequence:
+
+* ``dist[k]``: the ground-truth path length from frame 0 to frame k (sum of the distances between
+  consecutive positions);
+* for every first frame ``f = 0, 10, 20, …`` and every length ``len = 100, 200, …, 800`` m, the last
+  frame ``l`` is the first frame with ``dist[l] > dist[f] + len``; the segment is skipped when the
+  sequence ends before;
+* ``E = (P_f^-1 · P_l)^-1 · (Q_f^-1 · Q_l)`` (note the order: the inverse estimate first), the
+  segment's translational error ``‖translation(E)‖ / len`` and rotational error
+  ``angle(E) / len`` with ``angle = arccos(clip((tr R − 1) / 2, −1, 1))``;
+* the result is the mean over all segments (of all sequences pooled, as the devkit's ``saveStats``):
+  ``t_err`` in % (×100) and ``r_err`` in degrees per 100 m (×180/π×100).
+
+Differences from the C++ devkit, on purpose: float64 instead of float32 throughout (the devkit's
+float32 path length can move a segment's last frame by one at exact ties), and rotation blocks
+projected onto SO(3) first (:func:`mfg_lightning.trajectories.evaluation_poses`). Neither changes a
+leaderboard-scale number. No scale alignment is done (the devkit does none): a monocular method's
+poses must be in metres. With no complete segment (a path shorter than 100 m) the drift is
+undefined and NaN is returned.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+from torch import Tensor
+from torchmetrics import Metric
+
+from mfg_lightning import geometry
+
+# One helper for list states shared by the trajectory metrics.
+from mfg_lightning.metrics.ate import _cat
+from mfg_lightning.trajectories import evaluation_poses
+
+__all__ = [
+    "KITTI_SEGMENT_LENGTHS",
+    "KITTI_STEP",
+    "KittiDrift",
+    "kitti_drift",
+    "kitti_drift_from_segments",
+    "kitti_segment_errors",
+]
+
+#: Segment lengths of the devkit in metres.
+KITTI_SEGMENT_LENGTHS: tuple[float, ...] = (100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0)
+#: Frames between segment starts in the devkit ("every second" at 10 Hz).
+KITTI_STEP = 10
+
+
+def kitti_segment_errors(
+    pred: Tensor,
+    target: Tensor,
+    lengths: Sequence[float] = KITTI_SEGMENT_LENGTHS,
+    step: int = KITTI_STEP,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Per-segment errors of one sequence, as the devkit's ``calcSequenceErrors``.
+
+    Args:
+        pred: ``(N, 4, 4)`` estimated camera-to-world poses (metres), in frame order.
+        target: ``(N, 4, 4)`` ground-truth camera-to-world poses (metres), in frame order.
+        lengths: segment lengths of ground-truth path in metres.
+        step: frames between two segment starts.
+
+    Returns:
+        ``(t_err, r_err, length)``, ``(S,)`` float64 each, for the S complete segments ordered by
+        first frame, then length: translational error per metre (a fraction), rotational error in
+        radians per metre, and the segment's nominal length in metres.
+    """
+    if pred.shape != target.shape or pred.dim() != 3 or tuple(pred.shape[-2:]) != (4, 4):
+        raise ValueError(
+            "pred and target must both be the poses of one sequence shaped (N, 4, 4), got "
+            f"{tuple(pred.shape)} and {tuple(target.shape)}"
+        )
+    if step < 1:
+        raise ValueError(f"step must be >= 1, got {step}")
+    P = evaluation_poses(pred)
+    Q = evaluation_poses(target).to(P.device)
+    n = Q.shape[0]
+    seg = torch.as_tensor(lengths, dtype=torch.float64, device=Q.device)
+    steps = (Q[1:, :3, 3] - Q[:-1, :3, 3]).norm(dim=-1)
+    dist = torch.cat([steps.new_zeros(1), steps.cumsum(0)])
+    first = torch.arange(0, n, step, device=Q.device)
+    # dist is non-decreasing, so the first frame with dist > dist[f] + len is a sorted search;
+    # frames before f have dist <= dist[f] and are never returned.
+    last = torch.searchsorted(dist, dist[first][:, None] + seg[None, :], right=True)
+    complete = last < n
+    first = first[:, None].expand_as(last)[complete]
+    last = last[complete]
+    seg = seg[None, :].expand(complete.shape)[complete]
+    delta_est = geometry.relative_pose(P[first], P[last])
+    delta_gt = geometry.relative_pose(Q[first], Q[last])
+    error = geometry.relative_pose(delta_est, delta_gt)
+    t_err = error[:, :3, 3].norm(dim=-1) / seg
+    r_err = geometry.rotation_angle(error[:, :3, :3]) / seg
+    return t_err, r_err, seg
+
+
+def kitti_drift_from_segments(t_err: Tensor, r_err: Tensor) -> dict[str, Tensor]:
+    """The devkit's overall numbers from per-segment errors (of one or several sequences).
+
+    Args:
+        t_err, r_err: ``(S,)`` as returned by :func:`kitti_segment_errors` (per metre).
+
+    Returns:
+        ``{"t_err", "r_err"}``: mean translational error in %, mean rotational error in degrees
+        per 100 m (float64 scalars; NaN when ``S == 0``).
+    """
+    if t_err.numel() == 0:
+        nan = torch.tensor(float("nan"), dtype=torch.float64, device=t_err.device)
+        return {"t_err": nan, "r_err": nan.clone()}
+    return {"t_err": t_err.mean() * 100.0, "r_err": r_err.mean() * (180.0 / math.pi) * 100.0}
+
+
+def kitti_drift(
+    pred: Tensor,
+    target: Tensor,
+    lengths: Sequence[float] = KITTI_SEGMENT_LENGTHS,
+    step: int = KITTI_STEP,
+) -> dict[str, Tensor]:
+    """KITTI drift of one sequence: the functional twin of :class:`KittiDrift`.
+
+    Args:
+        pred, target: ``(N, 4, 4)`` estimated and ground-truth camera-to-world poses (metres).
+        lengths, step: the devkit's segment lengths (m) and start spacing (frames).
+
+    Returns:
+        ``{"t_err", "r_err"}``: float64 scalars, the mean translational error in % of the distance
+        travelled and the mean rotational error in degrees per 100 m; NaN without segments.
+    """
+    t_err, r_err, _ = kitti_segment_errors(pred, target, lengths, step)
+    return kitti_drift_from_segments(t_err, r_err)
+
+
+class KittiDrift(Metric):
+    """KITTI odometry drift accumulated over sequences (Geiger et al. 2012), DDP-safe.
+
+    Each ``update`` takes one whole sequence (segments are up to 800 m long, so a sequence cannot
+    be split). Per-segment errors are stored in list states reduced by concatenation; ``compute``
+    averages over all segments of all sequences, as the devkit does for its overall numbers.
+
+    Args:
+        lengths, step: the devkit's segment lengths (m) and start spacing (frames).
+        kwargs: passed to :class:`torchmetrics.Metric`.
+
+    ``compute()`` returns ``{"t_err", "r_err"}`` (% and deg/100 m; NaN without segments).
+    """
+
+    is_differentiable = False
+    higher_is_better = False
+    full_state_update = False
+
+    def __init__(
+        self,
+        lengths: Sequence[float] = KITTI_SEGMENT_LENGTHS,
+        step: int = KITTI_STEP,
+        **kwargs: Any,
+    ) -> None:
+        super().__init__(**kwargs)
+        self.lengths = tuple(float(x) for x in lengths)
+        self.step = step
+        self.add_state("t_values", default=[], dist_reduce_fx="cat")
+        self.add_state("r_values", default=[], dist_reduce_fx="cat")
+
+    def update(self, pred: Tensor, target: Tensor) -> None:
+        """Add the segments of one sequence.
+
+        Args:
+            pred: ``(N, 4, 4)`` estimated camera-to-world poses (metres), in frame order.
+            target: ``(N, 4, 4)`` ground-truth camera-to-world poses (metres), in frame order.
+        """
+        t_err, r_err, _ = kitti_segment_errors(pred, target, self.lengths, self.step)
+        self.t_values.append(t_err)
+        self.r_values.append(r_err)
+
+    def compute(self) -> dict[str, Tensor]:
+        """``{"t_err", "r_err"}`` over every segment seen."""
+        return kitti_drift_from_segments(_cat(self.t_values), _cat(self.r_values))

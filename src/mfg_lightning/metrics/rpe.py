@@ -1,0 +1,135 @@
+"""Relative pose error (Sturm et al. 2012, the TUM RGB-D benchmark; the paper's Table 2).
+
+Definition (``../shared/docs/protocols.md``, "RPE"): for ground-truth poses ``Q`` and estimated
+poses ``P`` of one sequence and a frame gap ``Δ``,
+
+    E_i = (Q_i^-1 · Q_i+Δ)^-1 · (P_i^-1 · P_i+Δ),   i = 0 … N − 1 − Δ,
+
+the translational error is ``‖translation(E_i)‖`` (pose units, metres for KITTI) and the rotational
+error is the angle of ``rotation(E_i)``, ``arccos(clip((tr R − 1) / 2, −1, 1))`` in radians. Over
+all ``i`` (and all sequences): mean, population standard deviation and RMSE. This equals ``evo``'s
+``evo_rpe --delta Δ --delta_unit f`` with pose relations ``trans_part`` and ``angle_rad``
+(cross-checked in ``tests/test_metrics_rpe.py``); for Δ > 1 add ``--all_pairs``, since evo's
+default then steps the first frame by Δ instead of taking every ``i``. Rotation blocks are first
+projected onto SO(3) (:func:`mfg_lightning.trajectories.evaluation_poses`): rounding in pose files
+otherwise puts a floor of ~5e-4 rad under the arccos.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import Tensor
+from torchmetrics import Metric
+
+from mfg_lightning import geometry
+
+# One helper for list states shared by the trajectory metrics.
+from mfg_lightning.metrics.ate import _cat
+from mfg_lightning.trajectories import evaluation_poses
+
+__all__ = ["RelativePoseError", "relative_pose_error", "relative_pose_errors"]
+
+
+def _check_sequence(pred: Tensor, target: Tensor, delta: int) -> None:
+    if pred.shape != target.shape or pred.dim() != 3 or tuple(pred.shape[-2:]) != (4, 4):
+        raise ValueError(
+            "pred and target must both be the poses of one sequence shaped (N, 4, 4), got "
+            f"{tuple(pred.shape)} and {tuple(target.shape)}"
+        )
+    if delta < 1:
+        raise ValueError(f"delta must be a positive number of frames, got {delta}")
+
+
+def relative_pose_errors(pred: Tensor, target: Tensor, delta: int = 1) -> tuple[Tensor, Tensor]:
+    """Per-pair RPE of one sequence.
+
+    Args:
+        pred: ``(N, 4, 4)`` estimated camera-to-world poses ``P_i``, in frame order.
+        target: ``(N, 4, 4)`` ground-truth camera-to-world poses ``Q_i``, in frame order.
+        delta: ``Δ``, the frame gap.
+
+    Returns:
+        ``(trans, rot)``, ``(max(N − Δ, 0),)`` float64 each: ``‖translation(E_i)‖`` in pose units
+        and the rotation angle of ``E_i`` in radians.
+    """
+    _check_sequence(pred, target, delta)
+    P = evaluation_poses(pred)
+    Q = evaluation_poses(target).to(P.device)
+    motion_est = geometry.relative_pose(P[:-delta], P[delta:])
+    motion_gt = geometry.relative_pose(Q[:-delta], Q[delta:])
+    error = geometry.relative_pose(motion_gt, motion_est)
+    return error[:, :3, 3].norm(dim=-1), geometry.rotation_angle(error[:, :3, :3])
+
+
+def _summary(trans: Tensor, rot: Tensor) -> dict[str, Tensor]:
+    """Mean, population std and RMSE of each error; NaN when there are no pairs."""
+    out: dict[str, Tensor] = {}
+    for name, values in (("trans", trans), ("rot", rot)):
+        if values.numel() == 0:
+            nan = torch.tensor(float("nan"), dtype=torch.float64, device=values.device)
+            out.update({name: nan, f"{name}_std": nan.clone(), f"{name}_rmse": nan.clone()})
+            continue
+        out[name] = values.mean()
+        out[f"{name}_std"] = values.std(correction=0)
+        out[f"{name}_rmse"] = values.square().mean().sqrt()
+    return out
+
+
+def relative_pose_error(pred: Tensor, target: Tensor, delta: int = 1) -> dict[str, Tensor]:
+    """RPE of one sequence: the functional twin of :class:`RelativePoseError`.
+
+    Args:
+        pred, target: ``(N, 4, 4)`` estimated and ground-truth camera-to-world poses, in order.
+        delta: ``Δ`` in frames (the paper: 1).
+
+    Returns:
+        ``{"trans", "trans_std", "trans_rmse", "rot", "rot_std", "rot_rmse"}``: float64 scalars,
+        translations in pose units, rotations in radians; NaN when ``N <= Δ``.
+    """
+    return _summary(*relative_pose_errors(pred, target, delta))
+
+
+class RelativePoseError(Metric):
+    """Accumulated RPE over one or several sequences (Sturm et al. 2012), DDP-safe.
+
+    Each ``update`` takes the whole (or a contiguous chunk of a) sequence; pairs never span two
+    updates. To feed one long sequence in chunks, overlap consecutive chunks by ``Δ`` frames.
+    Per-pair errors are stored in list states reduced by concatenation, so the result does not
+    depend on how the pairs were split over updates or processes.
+
+    Args:
+        delta: ``Δ`` in frames (the paper: 1).
+        kwargs: passed to :class:`torchmetrics.Metric`.
+
+    ``compute()`` returns ``{"trans", "trans_std", "trans_rmse", "rot", "rot_std", "rot_rmse"}``
+    (float64 scalars; pose units and radians).
+    """
+
+    is_differentiable = False
+    higher_is_better = False
+    full_state_update = False
+
+    def __init__(self, delta: int = 1, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        if delta < 1:
+            raise ValueError(f"delta must be a positive number of frames, got {delta}")
+        self.delta = delta
+        self.add_state("trans_values", default=[], dist_reduce_fx="cat")
+        self.add_state("rot_values", default=[], dist_reduce_fx="cat")
+
+    def update(self, pred: Tensor, target: Tensor) -> None:
+        """Add the pairs of one sequence.
+
+        Args:
+            pred: ``(N, 4, 4)`` estimated camera-to-world poses, in frame order.
+            target: ``(N, 4, 4)`` ground-truth camera-to-world poses, in frame order.
+        """
+        trans, rot = relative_pose_errors(pred, target, self.delta)
+        self.trans_values.append(trans)
+        self.rot_values.append(rot)
+
+    def compute(self) -> dict[str, Tensor]:
+        """The six RPE statistics over every pair seen (NaN if none)."""
+        return _summary(_cat(self.trans_values), _cat(self.rot_values))

@@ -1,0 +1,191 @@
+"""KITTI drift (Geiger et al. 2012): known values and a loop written from the devkit's algorithm."""
+
+from __future__ import annotations
+
+import math
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from mfg_lightning.metrics import KittiDrift, kitti_drift, kitti_segment_errors
+from mfg_lightning.pose_io import read_kitti_poses
+
+KITTI_POSES = Path(__file__).parents[2] / "shared" / "data" / "kitti_odometry" / "poses"
+LENGTHS = (100, 200, 300, 400, 500, 600, 700, 800)
+
+
+def _straight_line(n: int, step: float = 1.0) -> np.ndarray:
+    """n frames ``step`` metres apart along z, no rotation."""
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    poses[:, 2, 3] = step * np.arange(n)
+    return poses
+
+
+def _from_motions(motions: np.ndarray) -> np.ndarray:
+    poses = [np.eye(4)]
+    for m in motions:
+        poses.append(poses[-1] @ m)
+    return np.stack(poses)
+
+
+def _drive(n: int, seed: int) -> np.ndarray:
+    """A car-like trajectory: about 1 m per frame forward with smooth turns, exact rotations."""
+    rng = np.random.default_rng(seed)
+    motions = np.tile(np.eye(4), (n - 1, 1, 1))
+    yaw = 0.02 * np.sin(np.arange(n - 1) / 40.0) + rng.normal(0, 0.002, n - 1)
+    rotvec = np.stack([rng.normal(0, 1e-3, n - 1), yaw, rng.normal(0, 1e-3, n - 1)], axis=1)
+    motions[:, :3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
+    motions[:, :3, 3] = np.stack(
+        [rng.normal(0, 0.02, n - 1), rng.normal(0, 0.01, n - 1), 1.0 + rng.normal(0, 0.05, n - 1)],
+        axis=1,
+    )
+    return _from_motions(motions)
+
+
+def _perturbed_estimate(gt: np.ndarray, seed: int) -> np.ndarray:
+    """Compose the true motions with small errors: an estimate that drifts."""
+    rng = np.random.default_rng(seed)
+    motions = np.linalg.inv(gt[:-1]) @ gt[1:]
+    noise = np.tile(np.eye(4), (len(motions), 1, 1))
+    noise[:, :3, :3] = Rotation.from_rotvec(rng.normal(0, 2e-3, (len(motions), 3))).as_matrix()
+    noise[:, :3, 3] = rng.normal(0, 0.03, (len(motions), 3))
+    return gt[0] @ _from_motions(motions @ noise)
+
+
+def _devkit_loop(gt: np.ndarray, est: np.ndarray) -> tuple[list[float], list[float]]:
+    """calcSequenceErrors of the KITTI odometry devkit, transcribed as plain loops."""
+    dist = [0.0]
+    for i in range(1, len(gt)):
+        dist.append(dist[-1] + float(np.linalg.norm(gt[i - 1][:3, 3] - gt[i][:3, 3])))
+    t_errs, r_errs = [], []
+    for first in range(0, len(gt), 10):
+        for length in LENGTHS:
+            last = next((i for i in range(first, len(dist)) if dist[i] > dist[first] + length), -1)
+            if last == -1:
+                continue
+            delta_gt = np.linalg.inv(gt[first]) @ gt[last]
+            delta_est = np.linalg.inv(est[first]) @ est[last]
+            error = np.linalg.inv(delta_est) @ delta_gt
+            cos = 0.5 * (np.trace(error[:3, :3]) - 1.0)
+            r_errs.append(math.acos(max(min(cos, 1.0), -1.0)) / length)
+            t_errs.append(float(np.linalg.norm(error[:3, 3])) / length)
+    return t_errs, r_errs
+
+
+def _drift(est: np.ndarray, gt: np.ndarray) -> dict[str, float]:
+    return {
+        k: v.item() for k, v in kitti_drift(torch.from_numpy(est), torch.from_numpy(gt)).items()
+    }
+
+
+def test_identical_trajectories_have_no_drift() -> None:
+    gt = _drive(900, 0)
+    result = _drift(gt, gt)
+    assert result["t_err"] == pytest.approx(0.0, abs=1e-9)
+    # arccos resolves angles only down to ~2e-8 rad in float64: ~1e-6 deg/100 m at 100 m.
+    assert result["r_err"] == pytest.approx(0.0, abs=1e-5)
+
+
+def test_constant_scale_error_of_a_single_segment() -> None:
+    # 102 frames 1 m apart: the only complete segment is 100 m from frame 0. Its last frame is the
+    # first with dist > 100, frame 101, so the true displacement is 101 m and a 0.9 scale misses
+    # 10.1 m of it: t_err = 10.1 / 100 = 10.1 %.
+    gt = _straight_line(102)
+    est = _straight_line(102, step=0.9)
+    _, _, lengths = kitti_segment_errors(torch.from_numpy(est), torch.from_numpy(gt))
+    assert lengths.tolist() == [100.0]
+    result = _drift(est, gt)
+    assert result["t_err"] == pytest.approx(10.1, abs=1e-9)
+    assert result["r_err"] == pytest.approx(0.0, abs=1e-5)
+
+
+def test_constant_scale_error_over_many_segments() -> None:
+    n, scale = 1000, 1.2
+    gt = _straight_line(n)
+    est = _straight_line(n, step=scale)
+    # Segment (first f, length L) ends at frame f + L + 1 and exists while that is < n; each one
+    # has error |1 − s| (L + 1) / L.
+    per_segment = [
+        abs(1 - scale) * (length + 1) / length
+        for first in range(0, n, 10)
+        for length in LENGTHS
+        if first + length + 1 < n
+    ]
+    assert _drift(est, gt)["t_err"] == pytest.approx(100 * np.mean(per_segment), rel=1e-12)
+
+
+def test_constant_rotation_rate_error() -> None:
+    # The estimate turns by α about y every frame while the truth goes straight: over the single
+    # 100 m segment (101 frames) the rotation error is 101 α, i.e. 101 α / 100 rad per metre.
+    alpha = 1e-3
+    motion = np.eye(4)
+    motion[:3, :3] = Rotation.from_rotvec([0.0, alpha, 0.0]).as_matrix()
+    motion[2, 3] = 1.0
+    est = _from_motions(np.tile(motion, (101, 1, 1)))
+    expected = 101 * alpha / 100 * (180 / math.pi) * 100
+    assert _drift(est, _straight_line(102))["r_err"] == pytest.approx(expected, rel=1e-9)
+
+
+def test_matches_the_devkit_loop_on_a_drifting_estimate() -> None:
+    gt = _drive(700, 1)
+    est = _perturbed_estimate(gt, 2)
+    t_loop, r_loop = _devkit_loop(gt, est)
+    t_err, r_err, _ = kitti_segment_errors(torch.from_numpy(est), torch.from_numpy(gt))
+    assert len(t_loop) == t_err.numel() > 100
+    np.testing.assert_allclose(t_err.numpy(), t_loop, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(r_err.numpy(), r_loop, rtol=1e-6, atol=1e-10)
+    result = _drift(est, gt)
+    assert result["t_err"] == pytest.approx(100 * np.mean(t_loop), rel=1e-9)
+    assert result["r_err"] == pytest.approx(np.mean(r_loop) * 180 / math.pi * 100, rel=1e-6)
+
+
+def test_matches_the_devkit_loop_on_kitti_09() -> None:
+    if not KITTI_POSES.is_dir():
+        pytest.skip(f"{KITTI_POSES} not present")
+    raw = read_kitti_poses(KITTI_POSES / "09.txt")
+    gt = raw.copy()
+    # The loop uses exact rotations (scipy's own projection of the 6-digit file's blocks).
+    gt[:, :3, :3] = Rotation.from_matrix(raw[:, :3, :3]).as_matrix()
+    est = _perturbed_estimate(gt, 3)
+    t_loop, r_loop = _devkit_loop(gt, est)
+    t_err, r_err, _ = kitti_segment_errors(torch.from_numpy(est), torch.from_numpy(raw))
+    np.testing.assert_allclose(t_err.numpy(), t_loop, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(r_err.numpy(), r_loop, rtol=1e-5, atol=1e-9)
+
+
+def test_metric_pools_segments_of_all_sequences() -> None:
+    gts = [_drive(400, 4), _drive(250, 5)]
+    ests = [_perturbed_estimate(g, 6 + i) for i, g in enumerate(gts)]
+    per_sequence = [
+        kitti_segment_errors(torch.from_numpy(e), torch.from_numpy(g))
+        for e, g in zip(ests, gts, strict=True)
+    ]
+    t_all = torch.cat([s[0] for s in per_sequence])
+    r_all = torch.cat([s[1] for s in per_sequence])
+    expected = {"t_err": 100 * t_all.mean().item(), "r_err": r_all.mean().item() * 18000 / math.pi}
+
+    together = KittiDrift()
+    for e, g in zip(ests, gts, strict=True):
+        together.update(torch.from_numpy(e), torch.from_numpy(g))
+    merged, other = KittiDrift(), KittiDrift()
+    merged.update(torch.from_numpy(ests[0]), torch.from_numpy(gts[0]))
+    other.update(torch.from_numpy(ests[1]), torch.from_numpy(gts[1]))
+    merged.merge_state(other)  # the reductions a DDP sync applies
+    for metric in (together, merged):
+        result = metric.compute()
+        assert set(result) == {"t_err", "r_err"}
+        for key, value in expected.items():
+            assert result[key].item() == pytest.approx(value, rel=1e-12)
+
+
+def test_paths_shorter_than_100_m_have_undefined_drift() -> None:
+    gt = _straight_line(100)  # 99 m
+    assert all(math.isnan(v) for v in _drift(gt, gt).values())
+    metric = KittiDrift()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # torchmetrics warns about compute before update
+        assert all(math.isnan(v.item()) for v in metric.compute().values())

@@ -1,0 +1,134 @@
+"""The LightningModule in-process: bad values never reach the weights."""
+
+from __future__ import annotations
+
+import functools
+
+import lightning as L
+import pytest
+import torch
+
+from mfg_lightning.data.synthetic import SyntheticDataModule, SyntheticDrivingDataset
+from mfg_lightning.losses import MFGLoss
+from mfg_lightning.models.mfg import MFG
+from mfg_lightning.models.mfg_module import MFGLitModule, NonFiniteLossError
+
+
+class CorruptFlowDataset(torch.utils.data.Dataset):
+    """Synthetic samples with a patch of NaN and infinite flow (a half-corrupt file, say)."""
+
+    def __init__(self, inner: SyntheticDrivingDataset) -> None:
+        self.inner = inner
+
+    def __len__(self) -> int:
+        return len(self.inner)
+
+    def __getitem__(self, i: int) -> dict:
+        s = self.inner[i]
+        s["flow"][:, :3, :5] = float("nan")
+        s["flow"][0, 5, 5] = float("inf")
+        return s
+
+
+class CorruptDataModule(SyntheticDataModule):
+    def build_dataset(self, split: str):
+        return CorruptFlowDataset(super().build_dataset(split))
+
+
+def _module(loss: MFGLoss | None = None, **kw) -> MFGLitModule:
+    net = MFG(height=32, width=64, hidden_units=32, channels=(8, 8, 8, 16, 16))
+    return MFGLitModule(
+        net,
+        loss or MFGLoss(w_s=1.0),
+        functools.partial(torch.optim.Adam, lr=1e-3),
+        image_log_every_n_steps=0,
+        **kw,
+    )
+
+
+def _dm(cls=SyntheticDataModule) -> SyntheticDataModule:
+    return cls(
+        height=32,
+        width=64,
+        batch_size=4,
+        eval_batch_size=8,
+        train_sequences=1,
+        test_sequences=1,
+        sequence_length=12,
+        val_fraction=0.2,
+    )
+
+
+def _trainer(tmp_path, steps: int = 3) -> L.Trainer:
+    return L.Trainer(
+        max_steps=steps,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        limit_val_batches=1,
+        default_root_dir=tmp_path,
+    )
+
+
+def test_non_finite_flow_is_masked_counted_and_never_reaches_the_weights(tmp_path) -> None:
+    torch.manual_seed(0)
+    model = _module()
+    trainer = _trainer(tmp_path)
+    trainer.fit(model, datamodule=_dm(CorruptDataModule))
+    assert trainer.global_step == 3
+    assert all(torch.isfinite(p).all() for p in model.parameters())
+    # 15 NaN pixels and 1 infinite pixel per sample; 3 steps over 9 training samples.
+    assert float(trainer.callback_metrics["train/nonfinite_flow_pixels"]) == 16 * 9
+    assert float(trainer.callback_metrics["val/nonfinite_flow_pixels"]) == 16 * 2
+
+
+class NaNLoss(MFGLoss):
+    """Fault injection: the loss of the first ``bad_steps`` calls is NaN."""
+
+    def __init__(self, bad_steps: int) -> None:
+        super().__init__(w_s=1.0)
+        self.calls, self.bad_steps = 0, bad_steps
+
+    def forward(self, *args):
+        terms = super().forward(*args)
+        self.calls += 1
+        if self.calls <= self.bad_steps:
+            return terms._replace(total=terms.total * float("nan"))
+        return terms
+
+
+def test_a_non_finite_loss_skips_the_optimiser_step(tmp_path) -> None:
+    torch.manual_seed(0)
+    model = _module(NaNLoss(bad_steps=2))
+    before = [p.detach().clone() for p in model.parameters()]
+    trainer = L.Trainer(
+        max_steps=2,
+        limit_train_batches=2,
+        limit_val_batches=0,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        default_root_dir=tmp_path,
+    )
+    trainer.fit(model, datamodule=_dm())
+    for p, q in zip(model.parameters(), before, strict=True):
+        assert torch.equal(p, q)
+
+
+def test_persistent_non_finite_losses_stop_the_run_naming_the_samples(tmp_path) -> None:
+    model = _module(NaNLoss(bad_steps=100), max_consecutive_nonfinite=3)
+    with pytest.raises(
+        NonFiniteLossError, match=r"3 consecutive non-finite losses.*synthetic/train"
+    ):
+        _trainer(tmp_path, steps=10).fit(model, datamodule=_dm())
+
+
+def test_predict_motion_matches_closed_form_recovery() -> None:
+    model = _module().eval()
+    batch = _dm().dataset("test")[0]
+    with torch.no_grad():
+        t, w, out = model.predict_motion(batch["flow"][None], batch["intrinsics"][None])
+    assert t.shape == w.shape == (1, 3)
+    assert out.v_t.shape == (1, 2, 32, 64)
