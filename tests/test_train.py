@@ -64,6 +64,18 @@ def test_short_training_writes_a_complete_run_directory(tmp_path: Path) -> None:
         "train/hidden_activations",
     ):
         assert tag in images, tag
+    # TensorBoard's HParams view: settings and final metrics of the run.
+    hparams_runs = [
+        EventAccumulator(str(f)) for f in sorted((run / "tensorboard").glob("events.out.*"))
+    ]
+    tags = set()
+    for ea in hparams_runs:
+        ea.Reload()
+        try:
+            tags |= set(ea.PluginTagToContent("hparams"))
+        except KeyError:
+            continue
+    assert "_hparams_/session_start_info" in tags
     # The checkpoint carries the model config, so it can be rebuilt without the run directory.
     ckpt = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False, map_location="cpu")
     assert ckpt["mfg_model_config"]["net"]["hidden_units"] == 64

@@ -15,6 +15,7 @@ from typing import Any
 import hydra
 import lightning as L
 from hydra.utils import instantiate
+from lightning.pytorch.loggers import TensorBoardLogger
 from omegaconf import DictConfig, OmegaConf
 
 from mfg_lightning.config import CONFIG_DIR
@@ -40,6 +41,28 @@ def resolve_ckpt_path(ckpt_path: str | None, output_dir: Path) -> str | None:
     return str(path)
 
 
+def flat_hparams(cfg: DictConfig) -> dict[str, Any]:
+    """The run's settings as ``{"model.loss.w_s": 100.0, ...}`` scalars for TensorBoard HParams.
+
+    Hydra's own settings and paths are left out; lists become strings.
+    """
+    container = OmegaConf.to_container(cfg, resolve=True)
+    flat: dict[str, Any] = {}
+
+    def walk(prefix: str, node: Any) -> None:
+        if isinstance(node, dict):
+            for key, value in node.items():
+                if prefix == "" and key in ("paths", "hydra", "callbacks", "logger"):
+                    continue
+                walk(f"{prefix}{key}.", value)
+        else:
+            key = prefix[:-1]
+            flat[key] = node if isinstance(node, (int, float, str, bool)) else str(node)
+
+    walk("", container)
+    return flat
+
+
 def train(cfg: DictConfig) -> dict[str, Any]:
     """Fit and test as configured. Returns the final metrics (``val/*`` and ``test/*``)."""
     output_dir = Path(cfg.paths.output_dir)
@@ -52,8 +75,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     callbacks = instantiate_list(cfg.get("callbacks"))
     loggers = instantiate_list(cfg.get("logger"))
     trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
-    for lg in loggers:
-        lg.log_hyperparams(OmegaConf.to_container(cfg, resolve=True))
+    hparams = flat_hparams(cfg)
 
     start = time.perf_counter()
     trainer.fit(
@@ -68,6 +90,10 @@ def train(cfg: DictConfig) -> dict[str, Any]:
             log.warning("no best checkpoint (no validation ran?): testing the current weights")
         trainer.test(model, datamodule=datamodule, ckpt_path=best, weights_only=False)
         metrics.update({k: v for k, v in trainer.callback_metrics.items() if k.startswith("test/")})
+        for lg in loggers:
+            if isinstance(lg, TensorBoardLogger):
+                # TensorBoard's HParams view: this run's settings beside its final metrics.
+                lg.log_hyperparams(hparams, metrics={k: float(v) for k, v in metrics.items()})
         if trainer.is_global_zero:
             write_metrics(
                 output_dir / "metrics.json",
