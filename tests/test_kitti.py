@@ -238,8 +238,8 @@ def test_training_runs_end_to_end(fk: FakeKitti, tmp_path: Path) -> None:
         "mfg_lightning.train", "dataset=kitti", f"dataset.data_root={fk.root}",
         "dataset.backward_flow=true", "dataset.dis_preset=ultrafast", "dataset.batch_size=2",
         "dataset.eval_batch_size=4", "model.net.hidden_units=64", "trainer.max_steps=2",
-        "trainer.val_check_interval=1", "+trainer.limit_val_batches=1",
-        "+trainer.limit_test_batches=1", "logger=none", "callbacks=none", f"hydra.run.dir={run}",
+        "trainer.val_check_interval=1", "trainer.limit_val_batches=1",
+        "trainer.limit_test_batches=1", "logger=none", "callbacks=none", f"hydra.run.dir={run}",
         cwd=tmp_path,
     )  # fmt: skip
     assert (run / "metrics.json").is_file()

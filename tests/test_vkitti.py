@@ -209,8 +209,8 @@ def test_training_runs_end_to_end(vk1: FakeVkitti, tmp_path: Path) -> None:
     run_module(
         "mfg_lightning.train", "dataset=vkitti", f"dataset.data_root={vk1.root}",
         "dataset.batch_size=2", "dataset.eval_batch_size=4", "model.net.hidden_units=64",
-        "trainer.max_steps=2", "trainer.val_check_interval=1", "+trainer.limit_val_batches=1",
-        "+trainer.limit_test_batches=1", "logger=none", "callbacks=none", f"hydra.run.dir={run}",
+        "trainer.max_steps=2", "trainer.val_check_interval=1", "trainer.limit_val_batches=1",
+        "trainer.limit_test_batches=1", "logger=none", "callbacks=none", f"hydra.run.dir={run}",
         cwd=tmp_path,
     )  # fmt: skip
     assert (run / "metrics.json").is_file()

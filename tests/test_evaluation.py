@@ -1,0 +1,113 @@
+"""TrajectoryEvaluator: per-sample predictions → snippet ATE, RPE, drift, per sequence."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from mfg_lightning import geometry
+from mfg_lightning.evaluation import TrajectoryEvaluator
+from mfg_lightning.metrics import relative_pose_error, snippet_ate
+from mfg_lightning.trajectories import snippets_from_poses
+
+
+def _trajectory(n: int, seed: int) -> torch.Tensor:
+    gen = torch.Generator().manual_seed(seed)
+    xi = torch.zeros(n - 1, 6, dtype=torch.float64)
+    xi[:, 2] = 0.8 + 0.1 * torch.rand(n - 1, generator=gen, dtype=torch.float64)
+    xi[:, 4] = 0.02 * torch.randn(n - 1, generator=gen, dtype=torch.float64)
+    return geometry.trajectory_from_motions(geometry.se3_exp(xi))
+
+
+def _records(traj: torch.Tensor, offsets=(1,), noise: float = 0.0, seed: int = 0):
+    """(frames, targets, pred, gt) of every (k, k + o) pair of a trajectory."""
+    gen = torch.Generator().manual_seed(seed)
+    n = traj.shape[0]
+    pairs = [(k, k + o) for k in range(n) for o in offsets if 0 <= k + o < n]
+    src = torch.tensor([a for a, _ in pairs])
+    tgt = torch.tensor([b for _, b in pairs])
+    gt = geometry.relative_pose(traj[src], traj[tgt])
+    xi = noise * torch.randn(len(pairs), 6, generator=gen, dtype=torch.float64)
+    pred = gt @ geometry.se3_exp(xi)
+    return src, tgt, pred, gt
+
+
+def test_perfect_predictions_score_zero() -> None:
+    traj = _trajectory(30, 0)
+    ev = TrajectoryEvaluator()
+    src, tgt, pred, gt = _records(traj)
+    ev.update(["s"] * len(src), src, tgt, pred, gt)
+    m = ev.compute().metrics
+    for key in ("ate", "ate_rmse", "rpe_trans", "s/ate"):
+        assert m[key] == pytest.approx(0.0, abs=1e-9), key
+    # arccos((trace − 1) / 2) resolves angles to ~1e-8 rad in float64
+    assert m["rpe_rot"] == pytest.approx(0.0, abs=1e-7)
+    # 30 frames: 29 motions, 26 five-frame snippets; too short for drift (no 100 m segment).
+    assert math.isnan(m["drift_t_err"])
+
+
+def test_matches_the_metrics_on_the_composed_trajectory() -> None:
+    """Frame-by-frame snippets and RPE equal the metrics of the composed predicted trajectory."""
+    traj = _trajectory(40, 1)
+    src, tgt, pred, gt = _records(traj, noise=0.01)
+    ev = TrajectoryEvaluator()
+    ev.update(["09"] * len(src), src, tgt, pred, gt)
+    res = ev.compute()
+    pred_traj = geometry.trajectory_from_motions(pred)
+    ate = snippet_ate(snippets_from_poses(pred_traj, 5), snippets_from_poses(traj, 5))
+    rpe = relative_pose_error(pred_traj, traj)
+    assert res.metrics["ate"] == pytest.approx(float(ate["ate"]), rel=1e-9)
+    assert res.metrics["09/ate_std"] == pytest.approx(float(ate["ate_std"]), rel=1e-9)
+    assert res.metrics["rpe_trans"] == pytest.approx(float(rpe["trans"]), rel=1e-9)
+    assert res.metrics["rpe_rot"] == pytest.approx(float(rpe["rot"]), rel=1e-6)
+    torch.testing.assert_close(res.sequences["09"].pred, pred_traj)
+    assert res.sequences["09"].frames.tolist() == list(range(40))
+
+
+def test_batches_order_and_duplicates_do_not_change_the_result() -> None:
+    trajs = {"09": _trajectory(25, 2), "10": _trajectory(18, 3)}
+    whole = TrajectoryEvaluator()
+    parts = TrajectoryEvaluator()
+    for name, traj in trajs.items():
+        src, tgt, pred, gt = _records(traj, noise=0.02, seed=len(name))
+        whole.update([name] * len(src), src, tgt, pred, gt)
+        perm = torch.randperm(len(src), generator=torch.Generator().manual_seed(4))
+        for chunk in perm.split(4):
+            parts.update([name] * len(chunk), src[chunk], tgt[chunk], pred[chunk], gt[chunk])
+        # a DistributedSampler pads with repeats: seen twice, counted once
+        parts.update([name] * 3, src[:3], tgt[:3], pred[:3], gt[:3])
+    a, b = whole.compute().metrics, parts.compute().metrics
+    assert a.keys() == b.keys()
+    for key in a:
+        assert a[key] == pytest.approx(b[key], nan_ok=True, rel=1e-12), key
+    # Pooled over both sequences' snippets: 21 + 14.
+    assert {"09/ate", "10/ate"} <= a.keys()
+
+
+def test_central_frame_snippets() -> None:
+    traj = _trajectory(20, 5)
+    ev = TrajectoryEvaluator()
+    src, tgt, pred, gt = _records(traj, offsets=(-2, -1, 1, 2))
+    ev.update(["s"] * len(src), src, tgt, pred, gt)
+    m = ev.compute().metrics
+    assert m["ate_central"] == pytest.approx(0.0, abs=1e-9)
+    # A constant scale error of the motions from the centre is removed by the ATE alignment.
+    scaled = pred.clone()
+    scaled[:, :3, 3] *= 1.7
+    ev.reset()
+    ev.update(["s"] * len(src), src, tgt, scaled, gt)
+    assert ev.compute().metrics["ate_central"] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_gaps_split_sequences_into_runs() -> None:
+    traj = _trajectory(30, 6)
+    src, tgt, pred, gt = _records(traj)
+    keep = src != 12  # one unreadable sample skipped
+    ev = TrajectoryEvaluator()
+    ev.update(["s"] * int(keep.sum()), src[keep], tgt[keep], pred[keep], gt[keep])
+    res = ev.compute()
+    assert res.metrics["ate"] == pytest.approx(0.0, abs=1e-9)
+    # The longest run (frames 13 … 29) is kept as the sequence's trajectory.
+    assert res.sequences["s"].frames.tolist() == list(range(13, 30))
