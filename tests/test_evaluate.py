@@ -98,8 +98,8 @@ def test_object_motion_needs_depth(tmp_path: Path) -> None:
     common = [f"dataset.data_root={fk.root}", "dataset.dis_preset=ultrafast"]
     run_module("mfg_lightning.train", "dataset=kitti", *common, "model.net.hidden_units=16",
                "model.net.channels=[4,4,4,4,4]", "trainer.max_steps=1",
-               "trainer.limit_val_batches=1", "trainer.val_check_interval=1", "test=false", "logger=none",
-               f"hydra.run.dir={run}", cwd=tmp_path)  # fmt: skip
+               "trainer.limit_val_batches=1", "trainer.val_check_interval=1", "test=false",
+               "logger=none", f"hydra.run.dir={run}", cwd=tmp_path)  # fmt: skip
     proc = run_module("mfg_lightning.evaluate", "task=object_motion",
                       f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}",
                       f"hydra.run.dir={tmp_path / 'e'}", cwd=tmp_path, check=False)  # fmt: skip
