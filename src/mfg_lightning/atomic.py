@@ -30,6 +30,10 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
         if path.exists():
             os.chmod(tmp, path.stat().st_mode & 0o7777)
         os.replace(tmp, path)
+    except OSError as err:
+        tmp.unlink(missing_ok=True)
+        # A failed write() names no file: name the destination (e.g. "No space left on device").
+        raise OSError(err.errno, err.strerror, str(path)) from err
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise

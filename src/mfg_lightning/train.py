@@ -2,23 +2,43 @@
 
 Builds everything from the config with ``hydra.utils.instantiate``, fits, tests the best
 checkpoint and writes ``metrics.json`` into the run directory (``hydra.run.dir``), which also
-holds ``checkpoints/`` (last and best), the TensorBoard event files and the resolved config.
+holds ``checkpoints/`` (last and best), the TensorBoard event files, the resolved config
+(``config.yaml``) and ``run_info.json`` (package version, git commit, seed, what it resumed from).
+
+A run stopped at any point (SIGKILL, SIGTERM, a crash) continues exactly where its last
+checkpoint left it with ``ckpt_path=last`` or ``resume=true`` and the same ``hydra.run.dir``
+(:mod:`mfg_lightning.callbacks`: atomic checkpoints, a data order that resumes mid-epoch,
+a checkpoint on SIGTERM).
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import json
 import logging
+import signal
 import time
+import zipfile
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import hydra
 import lightning as L
 from hydra.utils import instantiate
+from lightning.fabric.plugins.io.checkpoint_io import CheckpointIO
 from lightning.pytorch.loggers import TensorBoardLogger
-from omegaconf import DictConfig, OmegaConf
+from lightning.pytorch.utilities.exceptions import SIGTERMException
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from mfg_lightning.callbacks import (
+    AtomicCheckpointIO,
+    LastCheckpoint,
+    storage_error,
+)
 from mfg_lightning.config import CONFIG_DIR
+from mfg_lightning.models.mfg_module import CheckpointError
 from mfg_lightning.runs import (
     atomic_write_text,
     build_model,
@@ -31,13 +51,27 @@ from mfg_lightning.runs import (
 log = logging.getLogger("mfg_lightning.train")
 
 
-def resolve_ckpt_path(ckpt_path: str | None, output_dir: Path) -> str | None:
-    """``"last"`` → ``<run dir>/checkpoints/last.ckpt``; a missing file is a clear error."""
+def resolve_ckpt_path(ckpt_path: str | None, output_dir: Path, resume: bool = False) -> str | None:
+    """The checkpoint to resume from, or None for a fresh start.
+
+    ``ckpt_path="last"`` means ``<run dir>/checkpoints/last.ckpt``; without ``ckpt_path``,
+    ``resume=True`` picks that file up if it exists (a requeued job resumes, a first one starts).
+    A missing file named by ``ckpt_path`` or an unreadable (truncated) one is a clear error.
+    """
+    last = output_dir / "checkpoints" / "last.ckpt"
     if ckpt_path is None:
-        return None
-    path = output_dir / "checkpoints" / "last.ckpt" if ckpt_path == "last" else Path(ckpt_path)
+        if not (resume and last.is_file()):
+            return None
+        path = last
+    else:
+        path = last if ckpt_path == "last" else Path(ckpt_path)
     if not path.is_file():
         raise FileNotFoundError(f"ckpt_path: checkpoint not found: {path}")
+    # torch.save writes a zip archive whose directory sits at the end of the file, so a file cut
+    # short (a save killed by an older, non-atomic writer) fails this cheap check.
+    if not zipfile.is_zipfile(path):
+        raise CheckpointError(f"ckpt_path: {path} is not a readable checkpoint (truncated?)")
+    log.info("resuming from %s", path)
     return str(path)
 
 
@@ -63,32 +97,65 @@ def flat_hparams(cfg: DictConfig) -> dict[str, Any]:
     return flat
 
 
+def build_trainer(cfg: DictConfig, callbacks: list[Any], loggers: list[Any]) -> L.Trainer:
+    """The configured ``lightning.Trainer``, writing checkpoints atomically unless the config
+    brings its own checkpoint IO plugin (``trainer.plugins``: one or a list, configs with a
+    ``_target_`` or Lightning's plugin names)."""
+    given = cfg.trainer.get("plugins") or []
+    given = list(given) if isinstance(given, (list, ListConfig)) else [given]
+    plugins = [instantiate(p) if isinstance(p, DictConfig) else p for p in given]
+    if not any(isinstance(p, CheckpointIO) for p in plugins):
+        plugins.append(AtomicCheckpointIO())
+    return instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False, plugins=plugins)
+
+
+@contextlib.contextmanager
+def exit_on_sigterm(trainer: L.Trainer) -> Iterator[None]:
+    """Lightning ends a fit or test stopped by SIGTERM with ``SIGTERMException`` (a
+    ``SystemExit`` of status 0); exit with 143 instead, the conventional status of a process
+    ended by SIGTERM, so that schedulers and scripts see an interrupted job. During a fit,
+    ``LastCheckpoint`` has saved ``last.ckpt`` by then."""
+    try:
+        yield
+    except SIGTERMException:
+        log.warning("stopped by SIGTERM at step %d", trainer.global_step)
+        raise SystemExit(128 + signal.SIGTERM) from None
+
+
 def train(cfg: DictConfig) -> dict[str, Any]:
     """Fit and test as configured. Returns the final metrics (``val/*`` and ``test/*``)."""
     output_dir = Path(cfg.paths.output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
+    ckpt_path = resolve_ckpt_path(cfg.get("ckpt_path"), output_dir, bool(cfg.get("resume")))
     atomic_write_text(output_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
+    info = {**run_info(), "seed": cfg.seed, "resumed_from": ckpt_path}
+    atomic_write_text(output_dir / "run_info.json", json.dumps(info, indent=2) + "\n")
     L.seed_everything(cfg.seed, workers=True)
 
     datamodule: L.LightningDataModule = instantiate(cfg.dataset)
     model = build_model(cfg)
     callbacks = instantiate_list(cfg.get("callbacks"))
+    # LastCheckpoint saves after ModelCheckpoint has recorded a validation's score (stable sort).
+    callbacks.sort(key=lambda cb: isinstance(cb, LastCheckpoint))
     loggers = instantiate_list(cfg.get("logger"))
-    trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
+    trainer = build_trainer(cfg, callbacks, loggers)
     hparams = flat_hparams(cfg)
 
     start = time.perf_counter()
-    trainer.fit(
-        model, datamodule=datamodule, ckpt_path=resolve_ckpt_path(cfg.get("ckpt_path"), output_dir)
-    )
+    with exit_on_sigterm(trainer):
+        trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=False)
     train_seconds = time.perf_counter() - start
-    metrics = {k: v for k, v in trainer.callback_metrics.items() if k.startswith("val/")}
+    # The last validation's metrics; a run resumed after it has them from the checkpoint.
+    last = [cb.validation_metrics for cb in callbacks if isinstance(cb, LastCheckpoint)]
+    metrics = {**(last[0] if last else {})}
+    metrics.update({k: v for k, v in trainer.callback_metrics.items() if k.startswith("val/")})
 
     if cfg.get("test"):
         best = getattr(trainer.checkpoint_callback, "best_model_path", "") or None
         if best is None:
             log.warning("no best checkpoint (no validation ran?): testing the current weights")
-        trainer.test(model, datamodule=datamodule, ckpt_path=best, weights_only=False)
+        with exit_on_sigterm(trainer):
+            trainer.test(model, datamodule=datamodule, ckpt_path=best, weights_only=False)
         metrics.update({k: v for k, v in trainer.callback_metrics.items() if k.startswith("test/")})
         for lg in loggers:
             if isinstance(lg, TensorBoardLogger):
@@ -111,7 +178,17 @@ def train(cfg: DictConfig) -> dict[str, Any]:
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="train")
 @exit_on_user_error
 def main(cfg: DictConfig) -> float | None:
-    metrics = train(cfg)
+    try:
+        metrics = train(cfg)
+    except OSError as err:
+        # A full disk anywhere (flow cache, logs, metrics) is one clear line, not a traceback.
+        if err.errno not in (errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC)):
+            raise
+        where = [
+            OmegaConf.select(cfg, f"paths.{k}", default=None) for k in ("output_dir", "cache_dir")
+        ]
+        hint = "this run writes to " + " and ".join(str(w) for w in where if w)
+        raise storage_error(err.filename, err, hint=hint) from err
     return metrics.get(cfg.get("optimized_metric") or "")
 
 

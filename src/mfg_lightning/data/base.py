@@ -16,6 +16,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset, default_collate
 
 from mfg_lightning import geometry
+from mfg_lightning.data.resumable_loader import ResumableDataLoader
 
 log = logging.getLogger(__name__)
 
@@ -158,7 +159,10 @@ class MFGDataModule(L.LightningDataModule):
         )
 
     def train_dataloader(self) -> DataLoader:
-        return self._loader("train", shuffle=True, batch_size=self.batch_size)
+        # Epoch e's order depends on (seed, e) only, and the position is checkpointed mid-epoch.
+        return ResumableDataLoader.like(
+            self._loader("train", shuffle=True, batch_size=self.batch_size), seed=self.seed
+        )
 
     def val_dataloader(self) -> DataLoader:
         return self._loader("val", shuffle=False, batch_size=self.eval_batch_size)

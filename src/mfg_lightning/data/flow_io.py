@@ -34,6 +34,8 @@ import io
 import logging
 import os
 import struct
+import zipfile
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -302,7 +304,8 @@ def read_npy_flow(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
             array = loaded
     except DataFileError:
         raise
-    except (ValueError, OSError, EOFError) as err:
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as err:
+        # zipfile/zlib: a corrupt or truncated .npz archive
         raise DataFileError(f"{path}: not a readable numpy file ({err})") from None
     if not np.issubdtype(array.dtype, np.floating):
         raise DataFileError(f"{path}: flow must be a float array, got dtype {array.dtype}")
@@ -385,7 +388,7 @@ def image_size(path: str | os.PathLike) -> tuple[int, int]:
         raise DataFileError(f"{path}: file not found") from None
     except OSError as err:
         raise DataFileError(f"{path}: cannot read ({err.strerror or err})") from None
-    if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
+    if len(head) == 24 and head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
         width, height = struct.unpack(">II", head[16:24])
         return int(height), int(width)
     image = _decode_png(path)

@@ -147,9 +147,13 @@ def read_kitti_calib(path: str | os.PathLike) -> np.ndarray:
         ``(4,)`` float64 in pixels of the native image.
     """
     try:
-        lines = Path(path).read_text().splitlines()
+        lines = Path(path).read_bytes().decode("utf-8").splitlines()
     except FileNotFoundError:
         raise DataFileError(f"{path}: file not found") from None
+    except OSError as err:
+        raise DataFileError(f"{path}: cannot read ({err.strerror or err})") from None
+    except UnicodeDecodeError:
+        raise DataFileError(f"{path}: not a text file (not UTF-8)") from None
     for line in lines:
         key, _, rest = line.partition(":")
         if key.strip() == "P2":
@@ -159,6 +163,8 @@ def read_kitti_calib(path: str | os.PathLike) -> np.ndarray:
                 raise DataFileError(f"{path}: P2 has a non-numeric entry") from None
             if P.size != 12:
                 raise DataFileError(f"{path}: P2 has {P.size} numbers, expected 12")
+            if not np.isfinite(P).all():
+                raise DataFileError(f"{path}: P2 has a non-finite entry")
             P = P.reshape(3, 4)
             return np.array([P[0, 0], P[1, 1], P[0, 2], P[1, 2]])
     raise DataFileError(f"{path}: no 'P2:' line (the left colour camera's projection matrix)")

@@ -103,3 +103,85 @@ def check_sample(sample: dict[str, Any], height: int, width: int) -> None:
             raise SampleError(f"{sid}: '{key}' has non-finite values")
     if (sample["intrinsics"][:2] <= 0).any():
         raise SampleError(f"{sid}: focal lengths must be positive, got {sample['intrinsics'][:2]}")
+
+
+def _batch_ids(batch: dict[str, Any], rows: torch.Tensor | None = None, limit: int = 4) -> str:
+    """The ``sample_id`` of the given batch rows (all when None), for error messages."""
+    ids = batch.get("sample_id")
+    if not isinstance(ids, (list, tuple)):
+        return "<batch without sample_id>"
+    picked = list(ids) if rows is None else [ids[i] for i in rows.tolist() if i < len(ids)]
+    more = f" (+{len(picked) - limit} more)" if len(picked) > limit else ""
+    return ", ".join(map(str, picked[:limit])) + more
+
+
+def check_batch(
+    batch: dict[str, Any], height: int, width: int, dtype: torch.dtype | None = None
+) -> None:
+    """Refuse a collated batch that does not fit a model of input size ``height × width``.
+
+    The batch form of :func:`check_sample`, cheap enough for every step (shape comparisons and a
+    finiteness test of the ``B × 16`` pose and ``B × 4`` intrinsics numbers, and of depth and
+    object flow when present). Non-finite *flow* is not an error: :func:`sanitize_flow` masks it.
+
+    Args:
+        batch: ``default_collate`` of samples (``flow`` ``(B, 2, H, W)``, ``flow_valid``
+            ``(B, H, W)``, ``pose`` ``(B, 4, 4)``, ``intrinsics`` ``(B, 4)``, optional ``depth``
+            ``(B, H, W)``, ``object_mask`` ``(B, H, W)``, ``object_flow`` ``(B, 2, H, W)``,
+            ``rgb`` ``(B, 3, H, W)``, and ``sample_id`` a list of B strings).
+        height, width: the model's input resolution in pixels.
+        dtype: the floating-point type the model computes in (its parameters'); None accepts any
+            floating-point flow.
+
+    Raises:
+        SampleError: naming the samples (all of the batch for a shape error, the offending ones
+            for non-finite values) and the key.
+    """
+    if not isinstance(batch, dict):
+        raise SampleError(f"a batch must be a dict of tensors, got {type(batch).__name__}")
+    for key in ("flow", "flow_valid", "pose", "intrinsics"):
+        if not isinstance(batch.get(key), torch.Tensor):
+            raise SampleError(f"{_batch_ids(batch)}: missing tensor '{key}'")
+    b = batch["flow"].shape[0] if batch["flow"].ndim else 0
+    expected = {
+        "flow": (b, 2, height, width),
+        "flow_valid": (b, height, width),
+        "pose": (b, 4, 4),
+        "intrinsics": (b, 4),
+        "depth": (b, height, width),
+        "object_mask": (b, height, width),
+        "object_flow": (b, 2, height, width),
+        "rgb": (b, 3, height, width),
+    }
+    for key, shape in expected.items():
+        value = batch.get(key)
+        if value is not None and tuple(value.shape) != shape:
+            raise SampleError(
+                f"{_batch_ids(batch)}: '{key}' has shape {tuple(value.shape)}, expected {shape} "
+                f"(batch, then the model's {height}×{width} input)"
+            )
+    flow_dtype = batch["flow"].dtype
+    if not flow_dtype.is_floating_point or (dtype is not None and flow_dtype != dtype):
+        wanted = dtype or "floating point"
+        raise SampleError(f"{_batch_ids(batch)}: 'flow' is {flow_dtype}, the model needs {wanted}")
+    if batch["flow_valid"].dtype != torch.bool:
+        raise SampleError(
+            f"{_batch_ids(batch)}: 'flow_valid' is {batch['flow_valid'].dtype}, expected bool"
+        )
+    for key in ("pose", "intrinsics", "depth", "object_flow"):
+        value = batch.get(key)
+        if value is not None and not value.dtype.is_floating_point:
+            raise SampleError(f"{_batch_ids(batch)}: '{key}' is {value.dtype}, expected float")
+    for key in ("pose", "intrinsics", "depth", "object_flow"):
+        value = batch.get(key)
+        if value is None:
+            continue
+        bad = ~torch.isfinite(value.reshape(b, -1)).all(dim=1)
+        if bad.any():
+            rows = bad.nonzero().flatten()
+            raise SampleError(f"{_batch_ids(batch, rows)}: '{key}' has non-finite values")
+    focal = batch["intrinsics"][:, :2]
+    bad = (focal <= 0).any(dim=1)
+    if bad.any():
+        rows = bad.nonzero().flatten()
+        raise SampleError(f"{_batch_ids(batch, rows)}: focal lengths must be positive")

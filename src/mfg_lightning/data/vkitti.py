@@ -138,17 +138,24 @@ def normalize_world(world: Any) -> str:
 def _numeric_rows(path: Path, width: int) -> np.ndarray:
     """The rows after the header line of a whitespace-separated table, as float64 ``(N, width)``."""
     try:
-        lines = path.read_text().splitlines()
+        lines = path.read_bytes().decode("utf-8").splitlines()
     except FileNotFoundError:
         raise DataFileError(f"{path}: file not found") from None
+    except OSError as err:
+        raise DataFileError(f"{path}: cannot read ({err.strerror or err})") from None
+    except UnicodeDecodeError:
+        raise DataFileError(f"{path}: not a text file (not UTF-8)") from None
     rows = [line.split() for line in lines[1:] if line.strip()]
     for i, row in enumerate(rows):
         if len(row) != width:
             raise DataFileError(f"{path}: line {i + 2} has {len(row)} fields, expected {width}")
     try:
-        return np.array(rows, np.float64).reshape(-1, width)
+        table = np.array(rows, np.float64).reshape(-1, width)
     except ValueError:
         raise DataFileError(f"{path}: non-numeric entries") from None
+    if not np.isfinite(table).all():
+        raise DataFileError(f"{path}: non-finite entries (nan, inf or out of range)")
+    return table
 
 
 def read_vkitti_extrinsics(path: str | os.PathLike, version: int = 1) -> dict[int, np.ndarray]:
