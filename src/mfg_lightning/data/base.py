@@ -7,6 +7,7 @@ the datasets implement :class:`MotionDataset`. The common work lives here once.
 from __future__ import annotations
 
 import logging
+import warnings
 from collections.abc import Sequence
 from typing import Any
 
@@ -49,6 +50,42 @@ class MotionDataset(Dataset):
     def sequences(self) -> dict[str, list[int]]:
         """Sample indices grouped by sequence, each list in frame order (for trajectories)."""
         raise NotImplementedError
+
+
+class FileMotionDataset(MotionDataset):
+    """A dataset read from files: samples are ``(sequence, source, target)`` triples.
+
+    Subclasses fill ``samples``, ``name``, ``split``, ``skip_bad_samples`` and ``skipped`` (a
+    :class:`~mfg_lightning.data.flow_io.SkipCounter`) and implement :meth:`_load`. A file error
+    is re-raised naming the sample, or, with ``skip_bad_samples``, warned about, counted, and the
+    sample dropped (``None``; :func:`collate_samples` leaves it out).
+    """
+
+    samples: list[tuple[str, int, int]]
+    split: str
+    skip_bad_samples: bool
+
+    def __len__(self) -> int:
+        return len(self.samples)
+
+    def sample_id(self, index: int) -> str:
+        seq, src, tgt = self.samples[index]
+        return f"{self.name}/{self.split}/{seq}/{src}->{tgt}"
+
+    def _load(self, index: int) -> dict[str, Any]:
+        raise NotImplementedError
+
+    def __getitem__(self, index: int) -> dict[str, Any] | None:
+        from mfg_lightning.data.flow_io import DataFileError
+
+        try:
+            return self._load(index)
+        except DataFileError as err:
+            if not self.skip_bad_samples:
+                raise DataFileError(f"{self.sample_id(index)}: {err}") from err
+            self.skipped.add()
+            warnings.warn(f"skipping {self.sample_id(index)}: {err}", stacklevel=2)
+            return None
 
 
 def collate_samples(batch: Sequence[dict[str, Any] | None]) -> dict[str, Any] | None:

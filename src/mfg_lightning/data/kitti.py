@@ -60,7 +60,7 @@ from tqdm.auto import tqdm
 
 from mfg_lightning import geometry, pose_io
 from mfg_lightning.data import flow_io, transforms
-from mfg_lightning.data.base import MFGDataModule, MotionDataset
+from mfg_lightning.data.base import FileMotionDataset, MFGDataModule
 from mfg_lightning.data.flow_estimation import DIS_PRESETS, DISFlowEstimator, FlowCache
 from mfg_lightning.data.flow_io import DataFileError, DataRootError, SkipCounter, report_skipped
 from mfg_lightning.data.sample import sanitize_flow
@@ -229,7 +229,7 @@ def check_kitti_root(data_root: str | os.PathLike | None, sequences: Iterable[st
     return root.resolve()
 
 
-class KittiOdometryDataset(MotionDataset):
+class KittiOdometryDataset(FileMotionDataset):
     """Samples ``t → t + o`` of KITTI odometry sequences (see the module docstring).
 
     Args:
@@ -405,9 +405,6 @@ class KittiOdometryDataset(MotionDataset):
 
     # -- MotionDataset -----------------------------------------------------------------------
 
-    def __len__(self) -> int:
-        return len(self.samples)
-
     def relative_poses(self) -> torch.Tensor:
         """``(N, 4, 4)`` float32 ``T_src,tgt`` of every sample, from the pose files only."""
         if not self.samples:
@@ -452,20 +449,6 @@ class KittiOdometryDataset(MotionDataset):
 
     def image_path(self, seq: str, frame: int) -> Path:
         return self._sequences[seq].image_dir / f"{frame:06d}.png"
-
-    def sample_id(self, index: int) -> str:
-        seq, src, tgt = self.samples[index]
-        return f"{self.name}/{self.split}/{seq}/{src}->{tgt}"
-
-    def __getitem__(self, index: int) -> dict[str, Any] | None:
-        try:
-            return self._load(index)
-        except DataFileError as err:
-            if not self.skip_bad_samples:
-                raise DataFileError(f"{self.sample_id(index)}: {err}") from err
-            self.skipped.add()
-            warnings.warn(f"skipping {self.sample_id(index)}: {err}", stacklevel=2)
-            return None
 
     def _load(self, index: int) -> dict[str, Any]:
         seq, src, tgt = self.samples[index]

@@ -61,7 +61,7 @@ import torch
 
 from mfg_lightning import geometry
 from mfg_lightning.data import flow_io, transforms
-from mfg_lightning.data.base import MFGDataModule, MotionDataset
+from mfg_lightning.data.base import FileMotionDataset, MFGDataModule
 from mfg_lightning.data.flow_io import DataFileError, DataRootError, SkipCounter, report_skipped
 from mfg_lightning.data.sample import sanitize_flow
 
@@ -328,7 +328,7 @@ class _World:
     intrinsics: dict[int, np.ndarray] | None  # frame → (fx, fy, cx, cy) native (2.0.3)
 
 
-class VirtualKittiDataset(MotionDataset):
+class VirtualKittiDataset(FileMotionDataset):
     """Pairs ``t → t + 1`` of Virtual KITTI worlds (see the module docstring).
 
     Args:
@@ -455,9 +455,6 @@ class VirtualKittiDataset(MotionDataset):
 
     # -- MotionDataset -----------------------------------------------------------------------
 
-    def __len__(self) -> int:
-        return len(self.samples)
-
     def _T_world_cam(self, world: str, frame: int) -> torch.Tensor:
         return geometry.invert_pose(torch.from_numpy(self._worlds[world].extrinsics[frame]))
 
@@ -504,20 +501,6 @@ class VirtualKittiDataset(MotionDataset):
                 "intrinsics_input": [round(float(v), 4) for v in K_in],
             }
         return out
-
-    def sample_id(self, index: int) -> str:
-        world, src, tgt = self.samples[index]
-        return f"{self.name}/{self.split}/{world}/{src}->{tgt}"
-
-    def __getitem__(self, index: int) -> dict[str, Any] | None:
-        try:
-            return self._load(index)
-        except DataFileError as err:
-            if not self.skip_bad_samples:
-                raise DataFileError(f"{self.sample_id(index)}: {err}") from err
-            self.skipped.add()
-            warnings.warn(f"skipping {self.sample_id(index)}: {err}", stacklevel=2)
-            return None
 
     def _load(self, index: int) -> dict[str, Any]:
         world, src, tgt = self.samples[index]
