@@ -14,7 +14,8 @@ from typing import Any
 import lightning as L
 import numpy as np
 import torch
-from torch.utils.data import DataLoader, Dataset, default_collate
+import torch.distributed as dist
+from torch.utils.data import DataLoader, Dataset, DistributedSampler, default_collate
 
 from mfg_lightning import geometry
 from mfg_lightning.data.resumable_loader import ResumableDataLoader
@@ -108,6 +109,28 @@ def seed_worker(worker_id: int) -> None:
     random.seed(seed)
 
 
+class UnpaddedDistributedSampler(DistributedSampler):
+    """Evaluation sharding without padding: rank ``r`` of ``W`` gets indices ``r, r + W, …``.
+
+    torch's ``DistributedSampler`` pads the last round with repeated samples so that every rank
+    has as many; a repeated sample is then counted twice by every mean and sum, and DDP metrics
+    differ from a single process's. Evaluation needs no equal shards (no gradients are
+    synchronised), so this sampler gives every sample to exactly one rank. Being a
+    ``DistributedSampler``, Lightning keeps it instead of injecting its own.
+    """
+
+    def __init__(self, dataset: Dataset, num_replicas: int, rank: int) -> None:
+        super().__init__(dataset, num_replicas=num_replicas, rank=rank, shuffle=False)
+        self.num_samples = len(range(rank, len(dataset), num_replicas))  # type: ignore[arg-type]
+        self.total_size = len(dataset)  # type: ignore[arg-type]
+
+    def __iter__(self):
+        return iter(range(self.rank, self.total_size, self.num_replicas))
+
+    def __len__(self) -> int:
+        return self.num_samples
+
+
 class MFGDataModule(L.LightningDataModule):
     """Base DataModule.
 
@@ -182,10 +205,16 @@ class MFGDataModule(L.LightningDataModule):
 
     def _loader(self, split: str, shuffle: bool, batch_size: int) -> DataLoader:
         generator = torch.Generator().manual_seed(self.seed) if shuffle else None
+        dataset = self.dataset(split)
+        sampler = None
+        if not shuffle and dist.is_available() and dist.is_initialized():
+            # Every evaluation sample on exactly one process: DDP metrics equal one process's.
+            sampler = UnpaddedDistributedSampler(dataset, dist.get_world_size(), dist.get_rank())
         return DataLoader(
-            self.dataset(split),
+            dataset,
             batch_size=batch_size,
             shuffle=shuffle,
+            sampler=sampler,
             num_workers=self.num_workers,
             collate_fn=collate_samples,
             worker_init_fn=seed_worker,

@@ -209,8 +209,10 @@ class MFGLitModule(L.LightningModule):
         m = self.eval_metrics[stage]
         m["trans_err"].update(trans_err)
         m["rot_err"].update(rot_err)
-        m["loss"].update(terms.total)
-        m["active_fraction"].update(_active_fraction(out.hidden))
+        # Weighted by batch size: per-sample means, whatever the batches (or DDP shards) are.
+        bs = flow.shape[0]
+        m["loss"].update(terms.total, weight=bs)
+        m["active_fraction"].update(_active_fraction(out.hidden), weight=bs)
         m["nonfinite_flow_pixels"].update(n_bad)
         if bool(self.has_mean_motion):
             b_t, b_r = constant_motion_errors(self.mean_t, self.mean_omega, batch["pose"])
