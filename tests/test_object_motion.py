@@ -146,8 +146,10 @@ def test_oracle_fields_recover_every_moving_object_at_urban_speed() -> None:
             assert on.sum() >= 10, name  # the object is visible at this resolution
             assert result.mask[on].float().mean() >= 0.9, name
     # The object field is the residual on the mask and zero elsewhere.
-    assert torch.equal(result.object_flow[:, :, ~result.mask[0]], torch.zeros_like(
-        result.object_flow[:, :, ~result.mask[0]]))
+    assert torch.equal(
+        result.object_flow[:, :, ~result.mask[0]],
+        torch.zeros_like(result.object_flow[:, :, ~result.mask[0]]),
+    )
 
 
 def test_threshold_baseline_loses_the_slow_object_that_the_filters_keep() -> None:
@@ -213,7 +215,11 @@ def test_oracle_on_synthetic_driving_dataset() -> None:
     from mfg_lightning.metrics.object_motion import ObjectMotionScores
 
     dm = synthetic.SyntheticDataModule(
-        height=48, width=128, sequence_length=60, test_sequences=1, noise_std=0.0,
+        height=48,
+        width=128,
+        sequence_length=60,
+        test_sequences=1,
+        noise_std=0.0,
         outlier_fraction=0.0,
     )
     dataset = dm.dataset("test")
@@ -227,8 +233,12 @@ def test_oracle_on_synthetic_driving_dataset() -> None:
     )
     scores = ObjectMotionScores()
     scores.update(
-        result.mask, result.object_flow, batch["object_mask"], batch["object_flow"],
-        batch["depth"], batch["flow_valid"],
+        result.mask,
+        result.object_flow,
+        batch["object_mask"],
+        batch["object_flow"],
+        batch["depth"],
+        batch["flow_valid"],
     )
     s = {k: float(v) for k, v in scores.compute().items()}
     assert s["gt_pixels"] > 0
@@ -342,8 +352,10 @@ def test_batch_and_single_sample_agree() -> None:
     depth_b = torch.cat([f.depth for f in frames])
     depth_b[1, :4] = 0.0  # invalid depth in one sample must not touch the other
     batched = extract_object_motion(
-        torch.cat([f.flow for f in frames]), torch.cat([f.v_t for f in frames]),
-        torch.cat([f.v_w for f in frames]), depth_b,
+        torch.cat([f.flow for f in frames]),
+        torch.cat([f.v_t for f in frames]),
+        torch.cat([f.v_w for f in frames]),
+        depth_b,
     )
     for i, f in enumerate(frames):
         single = extract_object_motion(f.flow, f.v_t, f.v_w, depth_b[i : i + 1])
@@ -444,7 +456,10 @@ def test_per_frame_normalisation_changes_the_depth_cut_only_without_a_far_plane(
     frame = make_frame(speed=0.5, height=48, width=128)
     fixed = extract_object_motion(frame.flow, frame.v_t, frame.v_w, frame.depth)
     per_frame = extract_object_motion(
-        frame.flow, frame.v_t, frame.v_w, frame.depth,
+        frame.flow,
+        frame.v_t,
+        frame.v_w,
+        frame.depth,
         ObjectMotionConfig(depth_normalisation="per_frame"),
     )
     assert torch.equal(fixed.mask, per_frame.mask)  # the frame has sky at 655.35 m
@@ -454,12 +469,19 @@ def test_per_frame_normalisation_changes_the_depth_cut_only_without_a_far_plane(
     # Invalid flow alone does not change the normalisation (VKITTI's sky: invalid flow, 655.35 m).
     sky = frame.surface == SKY
     per_frame_sky_flow_invalid = extract_object_motion(
-        frame.flow, frame.v_t, frame.v_w, frame.depth,
-        ObjectMotionConfig(depth_normalisation="per_frame"), valid=~sky,
+        frame.flow,
+        frame.v_t,
+        frame.v_w,
+        frame.depth,
+        ObjectMotionConfig(depth_normalisation="per_frame"),
+        valid=~sky,
     )
     assert torch.equal(per_frame_sky_flow_invalid.depth_norm, fixed.depth_norm)
     per_frame = extract_object_motion(
-        frame.flow, frame.v_t, frame.v_w, torch.where(sky, 0.0, frame.depth),
+        frame.flow,
+        frame.v_t,
+        frame.v_w,
+        torch.where(sky, 0.0, frame.depth),
         ObjectMotionConfig(depth_normalisation="per_frame"),
     )
     assert float(per_frame.depth_norm.amax()) == 1.0
@@ -485,7 +507,11 @@ def test_picture_grid_single_and_batch(tmp_path: Path) -> None:
     )
     panels = object_motion_panels(result, flow, 0, gt_mask=torch.cat([frame.gt_mask] * 2))
     assert [title.split(" (")[0] for title, _ in panels] == [
-        "inverse depth", "input flow", "predicted egomotion field", "residual", "object mask",
+        "inverse depth",
+        "input flow",
+        "predicted egomotion field",
+        "residual",
+        "object mask",
         "object motion field",
     ]
     for _, image in panels:

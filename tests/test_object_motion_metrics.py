@@ -91,8 +91,15 @@ def test_valid_mask_excludes_pixels() -> None:
 def test_one_batch_equals_many_identical_updates_and_pools_pixels() -> None:
     pred_flow, gt_flow = flows()
     once = scores_of((PRED, pred_flow, GT, gt_flow, DEPTH))
-    batch = scores_of((PRED.repeat(3, 1, 1), pred_flow.repeat(3, 1, 1, 1), GT.repeat(3, 1, 1),
-                       gt_flow.repeat(3, 1, 1, 1), DEPTH.repeat(3, 1, 1)))
+    batch = scores_of(
+        (
+            PRED.repeat(3, 1, 1),
+            pred_flow.repeat(3, 1, 1, 1),
+            GT.repeat(3, 1, 1),
+            gt_flow.repeat(3, 1, 1, 1),
+            DEPTH.repeat(3, 1, 1),
+        )
+    )
     many = scores_of(*[(PRED, pred_flow, GT, gt_flow, DEPTH)] * 3)
     for key, value in once.items():
         factor = 3 if key.endswith("gt_pixels") else 1

@@ -32,6 +32,8 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
         os.replace(tmp, path)
     except OSError as err:
         tmp.unlink(missing_ok=True)
+        if err.errno is None or err.filename is not None:
+            raise
         # A failed write() names no file: name the destination (e.g. "No space left on device").
         raise OSError(err.errno, err.strerror, str(path)) from err
     except BaseException:

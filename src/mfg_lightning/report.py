@@ -41,11 +41,14 @@ import sys
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import yaml
 
 from mfg_lightning.atomic import atomic_write_bytes, atomic_write_text
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 #: the main metrics: report column → key in ``metrics.json["metrics"]``
 MAIN_METRICS: dict[str, str] = {
@@ -198,19 +201,28 @@ def parse_override(text: str) -> tuple[str, str]:
     return key, value
 
 
-def _error_in_logs(job_dir: Path) -> str | None:
-    """The last line naming an exception in a log file of the job directory, if it holds a
-    traceback or a Hydra 'Error executing job' line (a job that crashed and said so)."""
+def _error_in_logs(job_dir: Path, tracebacks_only: bool = False) -> str | None:
+    """Why a job failed, from the log files of its directory (``*.log``, ``*.err``).
+
+    The last line naming an exception of a Python traceback or of Hydra's "Error executing job";
+    unless ``tracebacks_only``, also the message of the last ``[ERROR]`` record of a Hydra job
+    log (``[time][logger][ERROR] - message``). None when the logs say nothing.
+    """
     found = None
     for log in sorted(job_dir.glob("*.log")) + sorted(job_dir.glob("*.err")):
         try:
             text = log.read_text(errors="replace")
         except OSError:
             continue
-        if "Traceback (most recent call last)" not in text and "Error executing job" not in text:
-            continue
-        lines = [ln.strip() for ln in text.splitlines() if _ERROR_LINE.search(ln)]
-        found = f"{log.name}: {lines[-1] if lines else 'traceback'}"
+        lines = text.splitlines()
+        errors = []
+        if not tracebacks_only:
+            errors += [ln.split("] - ", 1)[-1].strip() for ln in lines if "[ERROR]" in ln]
+        if "Traceback (most recent call last)" in text or "Error executing job" in text:
+            named = [ln.strip() for ln in lines if _ERROR_LINE.search(ln)]
+            errors.append(named[-1] if named else "traceback")
+        if errors:
+            found = f"{log.name}: {errors[-1]}"
     return found
 
 
@@ -237,8 +249,11 @@ def read_job(job_dir: Path, multirun_dir: Path) -> JobRecord:
                 problems.append(f"unreadable {cfg_path.relative_to(job_dir)} ({err})")
 
     metrics_path = job_dir / "metrics.json"
-    error = _error_in_logs(job_dir)
-    if not metrics_path.is_file():
+    finished = metrics_path.is_file()
+    # metrics.json is written last: a finished job failed only if it crashed with a traceback
+    # afterwards, not because something logged an error on the way
+    error = _error_in_logs(job_dir, tracebacks_only=finished)
+    if not finished:
         job.status = "failed"
         job.reason = error or "no metrics.json: the job crashed, was killed or is still running"
         if error is None and (multirun_dir / ".submitit").is_dir():
@@ -485,12 +500,9 @@ def _plot(
     panels: Sequence[tuple[str, str | None, str]],
     x_scale: str,
     title: str,
-) -> bytes:
+) -> Figure:
     """One figure of panels (metric against x), one line per value of the other swept keys."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     group_keys = [k for k in swept if k != x_key]
     groups: dict[str, list[JobRecord]] = {}
@@ -500,7 +512,8 @@ def _plot(
 
     xs_all = sorted({x for x in (x_of(j) for j in jobs) if x is not None})
     width = max(5.0, 4.2 * len(panels))
-    fig, axes = plt.subplots(1, len(panels), figsize=(width, 3.6), dpi=110, squeeze=False)
+    fig = Figure(figsize=(width, 3.6), dpi=110)
+    axes = fig.subplots(1, len(panels), squeeze=False)
     for ax, (column, std_column, label) in zip(axes[0], panels, strict=True):
         for name, members in groups.items():
             pts = sorted(
@@ -532,21 +545,25 @@ def _plot(
         axes[0][-1].legend(handles, labels, fontsize="small")
     fig.suptitle(title, fontsize="medium")
     fig.tight_layout()
+    return fig
+
+
+def figure_png(fig: Figure) -> bytes:
+    """A matplotlib figure as PNG bytes (Agg canvas; no display, no pyplot state)."""
     buf = io.BytesIO()
     fig.savefig(buf, format="png")
-    plt.close(fig)
     return buf.getvalue()
 
 
 def draw_plots(
     jobs: Sequence[JobRecord], swept: Sequence[str]
-) -> tuple[dict[str, bytes], dict[str, str]]:
-    """The three PNGs of the sparsity study, as bytes, and why any of them was not drawn.
+) -> tuple[dict[str, Figure], dict[str, str]]:
+    """The three plots of the sparsity study (file name → figure), and why any was not drawn.
 
     Only finished jobs are drawn. A plot needs at least two distinct values of its x variable.
     """
     done = [j for j in jobs if j.ok]
-    images: dict[str, bytes] = {}
+    images: dict[str, Figure] = {}
     skipped: dict[str, str] = {}
     top_ks = {j.top_k_percent() for j in done} - {None}
     w_ss = {_w_s_of(j) for j in done} - {None}
@@ -612,9 +629,10 @@ def write_report(
     title = f"Sweep report: {root.resolve().name} ({n_ok} of {len(jobs)} jobs finished)"
     markdown = to_markdown(jobs, swept, title=title, notes=notes)
     csv_path, md_path = out / "report.csv", out / "report.md"
+    pngs = {name: figure_png(fig) for name, fig in images.items()}
     atomic_write_text(csv_path, to_csv(jobs, swept))
     atomic_write_text(md_path, markdown)
-    plots = {name: atomic_write_bytes(out / name, data) for name, data in images.items()}
+    plots = {name: atomic_write_bytes(out / name, data) for name, data in pngs.items()}
     return Report(root, out, jobs, swept, csv_path, md_path, markdown, plots, skipped)
 
 

@@ -105,9 +105,23 @@ def user_error_message(err: BaseException) -> str | None:
     return None
 
 
+def in_multirun() -> bool:
+    """Whether the calling code runs as one job of a Hydra multirun (``-m``)."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    return HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+
+
 def exit_on_user_error(fn):
     """Decorator for entry points: input errors print ``error: …`` and exit with status 2;
-    anything else (a bug) propagates with its traceback."""
+    anything else (a bug) propagates with its traceback.
+
+    Inside a multirun the error is logged (into the job's ``<job>/<task>.log``, where
+    ``mfg_lightning.report`` finds the reason) and re-raised instead: exiting would kill the
+    whole sweep, while Hydra records a raised error as this job's failure, runs the remaining
+    jobs and fails the sweep at the end.
+    """
     import functools
     import sys
 
@@ -118,6 +132,11 @@ def exit_on_user_error(fn):
         except Exception as err:
             message = user_error_message(err)
             if message is None:
+                if in_multirun():
+                    log.exception("job failed: %s: %s", type(err).__name__, err)
+                raise
+            if in_multirun():
+                log.error("error: %s", message)
                 raise
             print(f"error: {message}", file=sys.stderr)
             sys.exit(2)

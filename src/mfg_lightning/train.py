@@ -17,6 +17,7 @@ import contextlib
 import errno
 import json
 import logging
+import math
 import signal
 import time
 import zipfile
@@ -189,7 +190,20 @@ def main(cfg: DictConfig) -> float | None:
         ]
         hint = "this run writes to " + " and ".join(str(w) for w in where if w)
         raise storage_error(err.filename, err, hint=hint) from err
-    return metrics.get(cfg.get("optimized_metric") or "")
+    name = cfg.get("optimized_metric")
+    if not name:
+        return None
+    value = metrics.get(name)
+    if value is None or not math.isfinite(value):
+        # a sweeper (Optuna) records the trial as failed; say why in the job's log
+        log.warning(
+            "optimized_metric %r is %s after this run (e.g. validation sequences shorter than "
+            "one 5-frame ATE snippet); logged metrics: %s",
+            name,
+            "missing" if value is None else value,
+            ", ".join(sorted(k for k in metrics if k.startswith("val/"))) or "none",
+        )
+    return value
 
 
 if __name__ == "__main__":

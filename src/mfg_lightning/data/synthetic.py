@@ -179,11 +179,18 @@ def _sample_boxes(
     )
 
 
+def _reciprocal(r: torch.Tensor) -> torch.Tensor:
+    """``1 / r``, components below 1e-12 in magnitude taken as 1e-12 (a ray parallel to a slab
+    then gets a huge but finite parameter instead of a division by zero)."""
+    return 1.0 / torch.where(r.abs() < 1e-12, torch.full_like(r, 1e-12), r)
+
+
 def ray_cast(rays: torch.Tensor, boxes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """First hit of every ray against a ground plane and axis-aligned boxes (slab method).
 
     Rays are ``(x, y, 1)`` through normalised image coordinates, so the ray parameter of a hit
-    *is* its depth along z.
+    *is* its depth along z. This is the general form for any set of rays; the renderer uses
+    :func:`ray_cast_grid`, which gives the same result for the rays of a pixel grid.
 
     Args:
         rays: ``(N, 3)`` ray directions with z = 1.
@@ -204,14 +211,84 @@ def ray_cast(rays: torch.Tensor, boxes: torch.Tensor) -> tuple[torch.Tensor, tor
     depth = torch.where(on_ground, ground, depth)
     hit[on_ground] = -1
     if boxes.shape[0]:
-        inv = 1.0 / torch.where(rays.abs() < 1e-12, torch.full_like(rays, 1e-12), rays)
-        t0 = boxes[None, :, 0, :] * inv[:, None, :]
-        t1 = boxes[None, :, 1, :] * inv[:, None, :]
-        t_near = torch.minimum(t0, t1).amax(dim=-1)
-        t_far = torch.maximum(t0, t1).amin(dim=-1)
-        valid = (t_near <= t_far) & (t_near > 0.1)
-        t_near = torch.where(valid, t_near, torch.full_like(t_near, np.inf))
-        best, idx = t_near.min(dim=1)
+        inv = _reciprocal(rays)
+        # One (N, K) slab interval per axis; the entry and exit are their max and min. Taking
+        # them axis by axis (rather than reducing a (N, K, 3) tensor over its short last
+        # dimension) is several times faster and gives the same numbers (max/min are exact).
+        bounds = boxes.permute(1, 2, 0)  # (2, 3, K): min/max, axis, box
+        near, far = _slab(inv[:, 0, None], bounds[:, 0])  # (N, K)
+        for axis in (1, 2):
+            lo, hi = _slab(inv[:, axis, None], bounds[:, axis])
+            near, far = torch.maximum(near, lo), torch.minimum(far, hi)
+        best, idx = _first_hit(near, far, dim=1)
+        closer = best < depth
+        depth = torch.where(closer, best, depth)
+        hit = torch.where(closer, idx, hit)
+    return depth, hit
+
+
+def _slab(inv: torch.Tensor, bounds: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Entry and exit ray parameters of every box's slab along one axis.
+
+    Args:
+        inv: reciprocal ray components along the axis, shaped to broadcast against the bounds.
+        bounds: ``(2, ...)`` the boxes' min and max coordinates along the axis.
+
+    Returns:
+        ``(near, far)``, the broadcast shape of ``inv`` and one bound.
+    """
+    t0 = bounds[0] * inv
+    t1 = bounds[1] * inv
+    return torch.minimum(t0, t1), torch.maximum(t0, t1)
+
+
+def _first_hit(
+    near: torch.Tensor, far: torch.Tensor, dim: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Nearest box hit in front of the camera from slab entries and exits with the boxes along
+    ``dim``: the depth (inf where no box is hit) and the box index (the first box on a tie, as
+    ``torch.min`` documents, whichever dimension the boxes are on)."""
+    valid = (near <= far) & (near > 0.1)
+    near = torch.where(valid, near, torch.full_like(near, np.inf))
+    return near.min(dim=dim)
+
+
+def ray_cast_grid(
+    x: torch.Tensor, y: torch.Tensor, boxes: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`ray_cast` for the rays of a pixel grid, exploiting that they are separable.
+
+    The ray through pixel ``(v, u)`` is ``(x_u, y_v, 1)``: its x slab interval depends on the
+    column only and its y interval on the row only, so they are computed on ``(K, W)`` and
+    ``(K, H)`` and only their combination runs over ``(K, H, W)``, with the boxes on the outer
+    dimension so that every op is elementwise over contiguous image planes. The result equals
+    ``ray_cast`` on the flattened grid exactly (the same products; max and min are exact;
+    tested).
+
+    Args:
+        x: ``(W,)`` normalised x coordinate of every column.
+        y: ``(H,)`` normalised y coordinate of every row.
+        boxes: ``(K, 2, 3)`` min/max corners in camera coordinates (metres).
+
+    Returns:
+        ``(depth, hit)``: ``(H, W)`` depth in metres (the far plane where nothing is hit) and
+        ``(H, W)`` surface index (−2 sky, −1 ground, k ≥ 0 box k).
+    """
+    height, width = y.shape[0], x.shape[0]
+    # The ground is hit at a depth that depends on the row only.
+    ground = torch.where(y > 1e-9, CAMERA_HEIGHT / y.clamp_min(1e-9), torch.full_like(y, np.inf))
+    on_ground = (ground < FAR_PLANE)[:, None].expand(height, width)
+    depth = torch.where(on_ground, ground[:, None], torch.full_like(ground, FAR_PLANE)[:, None])
+    hit = torch.where(on_ground, -1, -2).to(torch.long)
+    if boxes.shape[0]:
+        bounds = boxes.permute(1, 2, 0)  # (2, 3, K): min/max, axis, box
+        near_x, far_x = _slab(_reciprocal(x), bounds[:, 0, :, None])  # (K, W)
+        near_y, far_y = _slab(_reciprocal(y), bounds[:, 1, :, None])  # (K, H)
+        # z = 1 for every ray: the z slab is the box's own z range (times 1/1, as ray_cast).
+        near_z, far_z = _slab(torch.ones(1, dtype=x.dtype), bounds[:, 2, :, None, None])
+        near = torch.maximum(torch.maximum(near_x[:, None, :], near_y[:, :, None]), near_z)
+        far = torch.minimum(torch.minimum(far_x[:, None, :], far_y[:, :, None]), far_z)
+        best, idx = _first_hit(near, far, dim=0)
         closer = best < depth
         depth = torch.where(closer, best, depth)
         hit = torch.where(closer, idx, hit)
@@ -242,22 +319,23 @@ def render_sample(
     boxes, kinds, motion = _sample_boxes(rng, scene)
     K = intrinsics[None]
     xy = geometry.normalized_grid(K, height, width)[0]
-    rays = torch.stack(
-        [xy[0].flatten(), xy[1].flatten(), torch.ones(height * width, dtype=xy.dtype)], -1
-    )
-    depth, hit = ray_cast(rays, torch.from_numpy(boxes))
-    depth = depth.view(1, height, width)
-    hit = hit.view(height, width)
+    depth, hit = ray_cast_grid(xy[0, 0], xy[1, :, 0], torch.from_numpy(boxes))
+    depth = depth[None]
+    # Per-surface lookup tables indexed by ``surface``: box k at row k, then one row for the
+    # ground and one for the sky. One gather per table replaces boolean-mask indexing.
+    n_box = boxes.shape[0]
+    surface = torch.where(hit >= 0, hit, n_box + (hit == -2).long())  # (H, W)
     box_motion = torch.from_numpy(motion)
-    on_box = hit >= 0
-    displacement = torch.zeros(height, width, 3, dtype=torch.float64)
-    if box_motion.shape[0]:
-        displacement[on_box] = box_motion[hit[on_box]]
+    displacement = torch.cat([box_motion, box_motion.new_zeros(2, 3)])[surface]  # (H, W, 3)
+    moving = torch.cat([box_motion.norm(dim=-1) > 0, torch.zeros(2, dtype=torch.bool)])
+    object_mask = moving[surface]
     rigid = geometry.reprojection_flow(depth, rel_pose[None], K)[0]
-    flow = geometry.reprojection_flow(depth, rel_pose[None], K, displacement[None])[0]
-    object_mask = (
-        on_box & (box_motion.norm(dim=-1)[hit.clamp_min(0)] > 0) if box_motion.shape[0] else on_box
-    )
+    if bool(object_mask.any()):
+        flow = geometry.reprojection_flow(depth, rel_pose[None], K, displacement[None])[0]
+    else:
+        # Nothing moves in view: the displacement is zero everywhere and the flow is the rigid
+        # one (the same numbers; the reprojection is the costliest step left).
+        flow = rigid
     object_flow = torch.where(object_mask[None], flow - rigid, torch.zeros_like(flow))
 
     # Points that end up behind the target camera have no meaningful flow.
@@ -272,10 +350,7 @@ def render_sample(
         noisy = torch.where(outliers[None], random_flow, noisy)
     noisy = torch.where(valid[None], noisy, torch.zeros_like(noisy))
 
-    kind = torch.full((height, width), SKY, dtype=torch.long)
-    kind[hit == -1] = GROUND
-    if kinds.size:
-        kind[on_box] = torch.from_numpy(kinds)[hit[on_box]]
+    kind = torch.cat([torch.from_numpy(kinds).long(), torch.tensor([GROUND, SKY])])[surface]
     shade = (1.0 - 0.6 * (depth[0].clamp(max=80.0) / 80.0)).numpy()[..., None]
     shade[kind.numpy() == SKY] = 1.0
     rgb = (_COLOURS[kind.numpy()] * shade).clip(0, 255).astype(np.uint8)

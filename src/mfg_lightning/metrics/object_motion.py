@@ -70,7 +70,8 @@ class ObjectMotionScores(Metric):
         for region in _REGIONS:
             for name in ("tp", "fp", "fn", "epe_count"):
                 self.add_state(
-                    f"{region}_{name}", default=torch.tensor(0, dtype=torch.long),
+                    f"{region}_{name}",
+                    default=torch.tensor(0, dtype=torch.long),
                     dist_reduce_fx="sum",
                 )
             # float32, not float64, so the metric also runs on devices without float64 (MPS).

@@ -220,8 +220,11 @@ class MFGLitModule(L.LightningModule):
             m["baseline_rot_err"].update(b_r)
         self._score_object_motion(batch, flow, out, stage)
         self.trajectory_evaluators[stage].update(
-            batch["sequence"], batch["frame"], batch["target"],
-            geometry.motion_to_pose(t.double(), w.double()), batch["pose"],
+            batch["sequence"],
+            batch["frame"],
+            batch["target"],
+            geometry.motion_to_pose(t.double(), w.double()),
+            batch["pose"],
         )
         return {"t": t, "omega": w, "out": out, "flow": flow, "v_t": v_t, "v_omega": v_w}
 

@@ -1,0 +1,38 @@
+"""Regenerate every benchmark table (``make bench``): accuracy, throughput, scale-out.
+
+Runs the scripts one after the other (each needs the whole machine), each in its own process,
+and writes ``bench/results/<name>.md``. Extra arguments (``--tiny``, ``--out DIR``,
+``--threads N``) are passed to every script. Exits non-zero if any script fails.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+BENCH = Path(__file__).resolve().parent
+SCRIPTS = ("accuracy.py", "throughput.py", "scaleout.py")
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = sys.argv[1:] if argv is None else argv
+    start = time.perf_counter()
+    failed = []
+    for script in SCRIPTS:
+        t0 = time.perf_counter()
+        print(f"== {script} {' '.join(args)}", flush=True)
+        code = subprocess.run([sys.executable, str(BENCH / script), *args], check=False).returncode
+        print(f"== {script}: exit {code} after {time.perf_counter() - t0:.0f} s", flush=True)
+        if code:
+            failed.append(script)
+    print(f"== all benchmarks: {time.perf_counter() - start:.0f} s", flush=True)
+    if failed:
+        print(f"error: failed: {', '.join(failed)}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

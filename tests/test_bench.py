@@ -1,0 +1,155 @@
+"""The benchmark scripts keep working: each runs once in its tiny setting.
+
+The numbers of a tiny run mean nothing (a tiny model, a few steps, a shared machine); these tests
+check that every script runs end to end and writes a complete table with the environment.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import REPO
+
+BENCH = REPO / "bench"
+
+pytestmark = pytest.mark.slow
+
+
+def _run_bench(script: str, out: Path, *args: str) -> str:
+    """Run ``bench/<script> --tiny`` on one thread; return the Markdown file it wrote."""
+    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", MFG_CACHE_DIR=str(out))
+    proc = subprocess.run(
+        [sys.executable, str(BENCH / script), "--tiny", "--out", str(out), *args],
+        cwd=out,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert proc.returncode == 0, f"{script} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
+    path = out / f"{Path(script).stem}.md"
+    text = path.read_text()
+    # Printed as written, with the command, the cores and the versions.
+    assert text.splitlines()[0] in proc.stdout or text.splitlines()[2] in proc.stdout
+    for needle in ("## Environment", f"bench/{script}", "cores (usable / total)", "| torch |"):
+        assert needle in text, needle
+    return text
+
+
+def _table_rows(text: str, heading: str) -> list[list[str]]:
+    """The body rows of the first table after ``heading``, as lists of cells."""
+    lines = text.split(heading, 1)[1].splitlines()
+    start = next(i for i, ln in enumerate(lines) if ln.startswith("|"))
+    table = []
+    for ln in lines[start:]:
+        if not ln.startswith("|"):
+            break
+        table.append([c.strip() for c in ln.strip().strip("|").split("|")])
+    return table[2:]  # without the header and the |---| line
+
+
+def _number(cell: str) -> float:
+    return float(cell.replace(" %", "").replace("+", ""))
+
+
+def test_accuracy_benchmark(tmp_path: Path, shared_poses: Path) -> None:
+    text = _run_bench("accuracy.py", tmp_path, "--poses-dir", str(shared_poses), "--threads", "1")
+    rows = {r[0]: r for r in _table_rows(text, "## ATE over 5-frame snippets")}
+    expected = (
+        "MFG (all units)",
+        "MFG top-k 5 %",
+        "MFG top-k 2 %",
+        "essential matrix + RANSAC (OpenCV)",
+        "continuous least squares (§3, Bruss–Horn)",
+        "oracle: exact fields → recover_motion",
+    )
+    for name in expected:
+        assert name in rows, name
+        ate09, ate10 = (re.match(r"([\d.e-]+) ± ([\d.e-]+)", rows[name][i]) for i in (1, 2))
+        assert ate09 and ate10, rows[name]
+        assert all(math.isfinite(float(x)) for x in (*ate09.groups(), *ate10.groups()))
+    # The oracle is the floor: the closed form itself, float32 rounding only.
+    assert float(rows["oracle: exact fields → recover_motion"][1].split(" ± ")[0]) < 1e-5
+    # The paper's numbers are quoted beside MFG, labelled as on real KITTI images.
+    assert rows["MFG (all units)"][6] == "0.012 ± 0.006"
+    assert "real KITTI images" in text
+
+
+def test_throughput_benchmark(tmp_path: Path) -> None:
+    text = _run_bench("throughput.py", tmp_path, "--threads", "1")
+    training = _table_rows(text, "## Training: Lightning Trainer against a bare PyTorch loop")
+    assert {(r[0], r[1]) for r in training} == {
+        (b, v) for b in ("1", "4") for v in ("before (for-loop Adam)", "after (fused Adam)")
+    }
+    for row in training:
+        # Rates, "ratio (min–max)", ms/step.
+        assert all(_number(c.split()[0]) > 0 for c in row[2:]), row
+    inference = _table_rows(text, "## Inference")
+    assert [r[0] for r in inference] == ["1", "4"]
+    assert all(_number(r[1]) > 0 and _number(r[2]) > 0 for r in inference)
+    assert _table_rows(text, "## Synthetic generator")[0][1].isdigit()
+    assert _number(_table_rows(text, "## Peak resident memory")[0][1]) > 50
+    assert "aten::" in text  # the profile
+    candidates = {r[1] for r in _table_rows(text, "## Candidate speed-ups")}
+    assert "fused Adam + channels-last" in candidates
+
+
+def test_scaleout_benchmark(tmp_path: Path) -> None:
+    text = _run_bench("scaleout.py", tmp_path, "--threads", "1")
+    rates = _table_rows(text, "## Training throughput")
+    assert [r[0] for r in rates] == ["2"]  # the tiny run: DDP only
+    reduction = _table_rows(text, "## Metric reduction")
+    assert reduction[0][0] == "`test/trans_err`"
+    worst = re.search(r"largest relative difference is ([\d.e+-]+)", text)
+    assert worst and float(worst.group(1)) <= 1e-5
+
+
+def test_run_all_runs_every_script_and_fails_loudly(tmp_path: Path) -> None:
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("run_all", BENCH / "run_all.py")
+    assert spec and spec.loader
+    run_all = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(run_all)
+    assert set(run_all.SCRIPTS) == {p.name for p in BENCH.glob("*.py")} - {
+        "run_all.py",
+        "_common.py",
+    }
+    # An unknown argument makes every script fail: run_all reports it with a non-zero status.
+    assert run_all.main(["--no-such-option"]) == 1
+
+
+def test_grid_ray_cast_equals_the_general_ray_cast() -> None:
+    """The generator's fast path (``ray_cast_grid``, timed by bench/throughput.py) renders
+    exactly what the general ray caster gives for the same rays."""
+    from mfg_lightning import geometry
+    from mfg_lightning.data import synthetic
+
+    K = synthetic.kitti_like_intrinsics(40, 96)
+    xy = geometry.normalized_grid(K[None], 40, 96)[0]
+    rays = torch.stack([xy[0].flatten(), xy[1].flatten(), torch.ones(40 * 96, dtype=xy.dtype)], -1)
+    rng = np.random.default_rng(0)
+    hits = set()
+    for _ in range(30):
+        boxes = torch.from_numpy(synthetic._sample_boxes(rng, synthetic.SceneConfig())[0])
+        depth, hit = synthetic.ray_cast(rays, boxes)
+        depth_g, hit_g = synthetic.ray_cast_grid(xy[0, 0], xy[1, :, 0], boxes)
+        assert torch.equal(depth_g.flatten(), depth)
+        assert torch.equal(hit_g.flatten(), hit)
+        hits |= set(hit.unique().tolist())
+    # Sky, ground and boxes were all hit: every branch was compared.
+    assert {-2, -1} <= hits and max(hits) >= 0
+    # No boxes at all: sky and ground only.
+    depth_0, hit_0 = synthetic.ray_cast_grid(xy[0, 0], xy[1, :, 0], torch.zeros(0, 2, 3))
+    assert torch.equal(hit_0.flatten(), synthetic.ray_cast(rays, torch.zeros(0, 2, 3))[1])
+    assert torch.equal(depth_0.flatten(), synthetic.ray_cast(rays, torch.zeros(0, 2, 3))[0])
