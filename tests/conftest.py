@@ -13,6 +13,20 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 # Two test workers share two cores: one thread each keeps them from fighting.
 torch.set_num_threads(1)
 
+
+@pytest.fixture(autouse=True)
+def _seed_global_generators() -> None:
+    """Every test starts from the same global random state, whichever worker runs it and in
+    whatever order, so a test that draws unseeded random numbers still sees the same ones."""
+    import random
+
+    import numpy as np
+
+    random.seed(0)
+    np.random.seed(0)
+    torch.manual_seed(0)
+
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
 

@@ -153,8 +153,14 @@ def test_fibonacci_hemisphere_covers_the_half_sphere_evenly() -> None:
     pts = baselines.fibonacci_hemisphere(400)
     torch.testing.assert_close(pts.norm(dim=1), torch.ones(400, dtype=torch.float64))
     assert bool((pts[:, 2] >= 0).all())
-    # Every direction of the half sphere is within about one spacing of a grid point.
-    probe = torch.nn.functional.normalize(torch.randn(2000, 3, dtype=torch.float64), dim=1)
+    # Every direction of the half sphere is within about one spacing of a grid point: over 10^5
+    # seeded probes the farthest is 1.03 spacings away (the spiral's covering radius), the mean
+    # 0.39 spacings.
+    gen = torch.Generator().manual_seed(0)
+    probe = torch.randn(100_000, 3, dtype=torch.float64, generator=gen)
+    probe = torch.nn.functional.normalize(probe, dim=1)
     probe[:, 2] = probe[:, 2].abs()
     nearest = (probe @ pts.T).clamp(-1, 1).acos().min(dim=1).values
-    assert float(nearest.max()) < math.sqrt(2 * math.pi / 400)
+    spacing = math.sqrt(2 * math.pi / 400)
+    assert float(nearest.max()) < 1.1 * spacing
+    assert float(nearest.mean()) < 0.45 * spacing

@@ -62,6 +62,8 @@ def _dm(cls=SyntheticDataModule) -> SyntheticDataModule:
 def _trainer(tmp_path, steps: int = 3) -> L.Trainer:
     return L.Trainer(
         max_steps=steps,
+        # the module logs its step diagnostics on the steps the loggers write
+        log_every_n_steps=1,
         logger=False,
         enable_checkpointing=False,
         enable_progress_bar=False,

@@ -159,6 +159,14 @@ class MFGLitModule(L.LightningModule):
 
     # -- training ----------------------------------------------------------------------------
 
+    def _writes_logs_this_step(self) -> bool:
+        """Whether the loggers write this training step's values (every
+        ``trainer.log_every_n_steps``): the step-only diagnostics are logged just then, since
+        each ``self.log`` costs Python time that shows at batch 1 (bench/results/throughput.md)
+        and the values of the other steps would never be written."""
+        connector = getattr(self._trainer, "_logger_connector", None)
+        return bool(getattr(connector, "should_update_logs", True))
+
     def training_step(self, batch: dict[str, Any] | None, batch_idx: int) -> Tensor | None:
         if batch is None:  # every sample of the batch was skipped as unreadable
             return None
@@ -180,18 +188,19 @@ class MFGLitModule(L.LightningModule):
         self._consecutive_nonfinite = 0
         bs = flow.shape[0]
         self.log("train/loss", terms.total, prog_bar=True, batch_size=bs)
-        self.log_dict(
-            {
-                "train/l_t": terms.l_t.mean(),
-                "train/l_omega": terms.l_omega.mean(),
-                "train/l_s": terms.l_s.mean(),
-                "train/w_t": terms.w_t.mean(),
-                "train/w_omega": terms.w_omega.mean(),
-                "train/active_fraction": _active_fraction(out.hidden),
-            },
-            batch_size=bs,
-        )
-        self.log("train/nonfinite_flow_pixels", float(self.nonfinite_flow_pixels), batch_size=bs)
+        if self._writes_logs_this_step():
+            self.log_dict(
+                {
+                    "train/l_t": terms.l_t.mean(),
+                    "train/l_omega": terms.l_omega.mean(),
+                    "train/l_s": terms.l_s.mean(),
+                    "train/w_t": terms.w_t.mean(),
+                    "train/w_omega": terms.w_omega.mean(),
+                    "train/active_fraction": _active_fraction(out.hidden),
+                    "train/nonfinite_flow_pixels": float(self.nonfinite_flow_pixels),
+                },
+                batch_size=bs,
+            )
         if self.image_log_every_n_steps and self.global_step % self.image_log_every_n_steps == 0:
             self._log_images("train", flow, v_t, v_w, out)
         return terms.total
