@@ -19,6 +19,13 @@ REPO = Path(__file__).resolve().parents[1]
 RESULTS_DIR = REPO / "bench" / "results"
 #: KITTI odometry ground-truth poses, beside the repository (``../shared``).
 DEFAULT_POSES_DIR = REPO.parent / "shared" / "data" / "kitti_odometry" / "poses"
+#: ``--tiny``: the model and input size of ``conf/debug/tiny.yaml``, for seconds-long smoke runs.
+TINY_OVERRIDES = (
+    "dataset.height=32",
+    "dataset.width=64",
+    "model.net.hidden_units=64",
+    "model.net.channels=[8,8,16,16,32]",
+)
 
 
 def load_average() -> str:

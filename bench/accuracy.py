@@ -33,7 +33,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import DEFAULT_POSES_DIR, Report, fmt, markdown_table
+from _common import DEFAULT_POSES_DIR, TINY_OVERRIDES, Report, fmt, markdown_table
 
 #: The paper's Table 1 (ATE mean ± std, metres, frame-by-frame snippets †) on real KITTI images.
 PAPER_TABLE_1 = {
@@ -106,12 +106,7 @@ def overrides(args: argparse.Namespace, output_dir: Path) -> list[str]:
     if args.max_frames:
         ov.append(f"dataset.max_frames={args.max_frames}")
     if args.tiny:
-        ov += [
-            "dataset.height=32",
-            "dataset.width=64",
-            "model.net.hidden_units=64",
-            "model.net.channels=[8,8,16,16,32]",
-        ]
+        ov += TINY_OVERRIDES
     return ov
 
 

@@ -38,7 +38,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import Report, fmt, markdown_table
+from _common import TINY_OVERRIDES, Report, fmt, markdown_table
 
 #: The optimiser settings compared: the default build and the faster one.
 VARIANTS = {
@@ -68,12 +68,7 @@ def base_overrides(tiny: bool) -> list[str]:
     """The quick-start model (or the tiny test model) with nothing logged per step."""
     ov = ["paths.output_dir=.", "model.image_log_every_n_steps=0"]
     if tiny:
-        ov += [
-            "dataset.height=32",
-            "dataset.width=64",
-            "model.net.hidden_units=64",
-            "model.net.channels=[8,8,16,16,32]",
-        ]
+        ov += TINY_OVERRIDES
     return ov
 
 
