@@ -1,4 +1,5 @@
-"""Regenerate every benchmark table (``make bench``): accuracy, throughput, scale-out.
+"""Regenerate every benchmark table (``make bench``): accuracy, throughput, scale-out,
+the KITTI flow cache.
 
 Runs the scripts one after the other (each needs the whole machine), each in its own process,
 and writes ``bench/results/<name>.md``. Extra arguments (``--tiny``, ``--out DIR``,
@@ -13,7 +14,7 @@ import time
 from pathlib import Path
 
 BENCH = Path(__file__).resolve().parent
-SCRIPTS = ("accuracy.py", "throughput.py", "scaleout.py")
+SCRIPTS = ("accuracy.py", "throughput.py", "scaleout.py", "flow_cache.py")
 
 
 def main(argv: list[str] | None = None) -> int:

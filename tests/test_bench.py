@@ -92,8 +92,9 @@ def test_throughput_benchmark(tmp_path: Path) -> None:
         (b, v) for b in ("1", "4") for v in ("before (for-loop Adam)", "after (fused Adam)")
     }
     for row in training:
-        # Rates, "ratio (min–max)", ms/step.
-        assert all(_number(c.split()[0]) > 0 for c in row[2:]), row
+        # Rates, "ratio (min–max)", ms/step; then the difference in ms/step (either sign).
+        assert all(_number(c.split()[0]) > 0 for c in row[2:6]), row
+        assert math.isfinite(float(row[6])), row
     inference = _table_rows(text, "## Inference")
     assert [r[0] for r in inference] == ["1", "4"]
     assert all(_number(r[1]) > 0 and _number(r[2]) > 0 for r in inference)
@@ -112,6 +113,16 @@ def test_scaleout_benchmark(tmp_path: Path) -> None:
     assert reduction[0][0] == "`test/trans_err`"
     worst = re.search(r"largest relative difference is ([\d.e+-]+)", text)
     assert worst and float(worst.group(1)) <= 1e-5
+
+
+def test_flow_cache_benchmark(tmp_path: Path) -> None:
+    text = _run_bench("flow_cache.py", tmp_path, "--threads", "1")
+    rows = {r[0]: r for r in _table_rows(text, "frame pairs of a")}
+    assert len(rows) == 4
+    cold = rows["epoch 1 (cold cache: decode, DIS, write)"]
+    warm = rows["epoch 2 (same dataset, cache hits)"]
+    assert float(cold[1]) > 0 and float(warm[1]) > 0
+    assert float(rows["a later run (new dataset, same cache)"][3].rstrip("×")) > 0
 
 
 def test_run_all_runs_every_script_and_fails_loudly(tmp_path: Path) -> None:

@@ -48,6 +48,17 @@ def test_top_k_sweep_writes_table_plot_and_pose_files(trained: Path, tmp_path: P
     assert kitti.num_poses == tum.num_poses == gt.num_poses == 16
     np.testing.assert_allclose(kitti.positions_xyz, tum.positions_xyz, atol=1e-9)
     np.testing.assert_allclose(kitti.poses_se3[0], np.eye(4), atol=1e-12)
+    # The files hold the trajectory metrics.json reports (k = 100 %), not the sweep's last k.
+    import torch
+
+    from mfg_lightning.metrics.rpe import relative_pose_error
+
+    rpe = relative_pose_error(
+        torch.from_numpy(np.stack(kitti.poses_se3)), torch.from_numpy(np.stack(gt.poses_se3))
+    )
+    for k, name in (("1", "test/test00/rpe_trans"), ("0.02", "test/test00/rpe_trans")):
+        close = float(rpe["trans"]) == pytest.approx(payload["top_k_sweep"][k][name], rel=1e-4)
+        assert close == (k == "1"), (k, float(rpe["trans"]), payload["top_k_sweep"][k][name])
 
 
 def test_object_motion_task_scores_ours_and_the_baseline(trained: Path, tmp_path: Path) -> None:

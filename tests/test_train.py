@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 from pathlib import Path
 
@@ -52,8 +53,13 @@ def test_short_training_writes_a_complete_run_directory(tmp_path: Path) -> None:
         "train/active_fraction",
         "val/trans_err",
         "val/rot_err",
+        "train/lr",
     ):
         assert tag in scalars, tag
+    # The default schedule: cosine from Adam's 1e-3 towards 0 over trainer.max_steps (4 here).
+    lrs = [e.value for e in acc.Scalars("train/lr")]
+    assert len(lrs) == 4 and lrs[0] == pytest.approx(1e-3)
+    assert all(a > b for a, b in itertools.pairwise(lrs)) and lrs[-1] < 2e-4
     images = set(acc.Tags()["images"])
     for tag in (
         "train/flow",
@@ -95,6 +101,8 @@ def test_help_lists_the_config_groups(tmp_path: Path) -> None:
         ("model.top_k=0", "model.top_k"),
         ("model.top_k=-0.1", "model.top_k"),
         ("model.loss.w_s=-1", "model.loss.w_s must be non-negative"),
+        # The default cosine schedule follows max_steps; an epoch-counted run must say how long.
+        ("trainer.max_steps=-1", "model.scheduler.T_max must be a positive number of steps"),
     ],
 )
 def test_bad_configuration_gives_a_clear_error(tmp_path: Path, override: str, message: str) -> None:

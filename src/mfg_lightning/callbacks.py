@@ -220,7 +220,7 @@ class LastCheckpoint(Checkpoint):
                 stale.unlink(missing_ok=True)
 
     def _save(self, trainer: L.Trainer) -> None:
-        trainer.save_checkpoint(self.path)
+        trainer.save_checkpoint(self.path, weights_only=False)  # full state: resumable
         self._saved_step = trainer.global_step
 
     def _fitting(self, trainer: L.Trainer) -> bool:

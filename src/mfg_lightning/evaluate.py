@@ -34,6 +34,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from mfg_lightning.atomic import atomic_write_bytes, atomic_write_text
 from mfg_lightning.config import CONFIG_DIR
+from mfg_lightning.evaluation import EvaluationResult
 from mfg_lightning.models.mfg import validate_top_k
 from mfg_lightning.models.mfg_module import MFGLitModule, module_from_checkpoint
 from mfg_lightning.runs import exit_on_user_error, run_info, to_float, write_metrics
@@ -164,12 +165,12 @@ def build(cfg: DictConfig) -> tuple[MFGLitModule, L.LightningDataModule, L.Train
     return model, datamodule, trainer
 
 
-def write_trajectories(model: MFGLitModule, out: Path, frame_rate: float) -> list[Path]:
-    """Predicted and ground-truth trajectories of the last test run, KITTI and TUM formats."""
+def write_trajectories(evaluation: EvaluationResult, out: Path, frame_rate: float) -> list[Path]:
+    """Predicted and ground-truth trajectories of one test run, KITTI and TUM formats."""
     from mfg_lightning.pose_io import write_kitti_poses, write_tum_poses
 
     written = []
-    for seq, sp in model.last_evaluation["test"].sequences.items():
+    for seq, sp in evaluation.sequences.items():
         times = sp.frames.double().numpy() / frame_rate
         for suffix, poses in (("", sp.pred), ("_gt", sp.gt)):
             kitti = out / "poses" / "kitti" / f"{seq}{suffix}.txt"
@@ -185,6 +186,7 @@ def evaluate_egomotion(cfg: DictConfig) -> dict[str, Any]:
     out = Path(cfg.paths.output_dir)
     sweep = list(cfg.eval.top_k_sweep) if cfg.eval.get("top_k_sweep") else [model.net.top_k]
     results: dict[float, dict[str, Any]] = {}
+    evaluations: dict[float, EvaluationResult | None] = {}
     for k in sweep:
         model.net.top_k = validate_top_k(k)
         trainer.test(model, datamodule=datamodule, verbose=len(sweep) == 1)
@@ -194,14 +196,16 @@ def evaluate_egomotion(cfg: DictConfig) -> dict[str, Any]:
             for name, v in trainer.callback_metrics.items()
             if name.startswith("test/")
         }
+        evaluations[key] = model.last_evaluation.get("test")
         log.info("top_k=%s: ATE %s", k, _pm(_scoped(results[key], "test/"), "ate"))
-    # Everything is computed; only now are files written (each atomically).
-    evaluation = model.last_evaluation.get("test")
+    # Everything is computed; only now are files written (each atomically). metrics.json, the
+    # sequence table and the pose files all describe the full model (k = 1) when the sweep has
+    # it, else its largest k: never whichever k happened to run last.
+    final_k = 1.0 if 1.0 in results else max(results)
+    final, evaluation = results[final_k], evaluations[final_k]
     sequences = sorted(evaluation.sequences) if evaluation else []
-    # metrics.json's main entry is the full model (k = 1) when the sweep has it.
-    final = results.get(1.0, results[max(results)])
-    if cfg.eval.write_poses and sequences:
-        write_trajectories(model, out, cfg.eval.frame_rate)
+    if cfg.eval.write_poses and evaluation is not None and sequences:
+        write_trajectories(evaluation, out, cfg.eval.frame_rate)
     md, csv_text = sequence_table(final, sequences)
     atomic_write_text(out / "sequences.md", md)
     atomic_write_text(out / "sequences.csv", csv_text)
