@@ -196,7 +196,7 @@ class MFGLitModule(L.LightningModule):
         bs = flow.shape[0]
         if self._writes_logs_this_step():
             # Only on the steps the loggers write (the progress bar's loss refreshes then too):
-            # a self.log costs ~0.5 ms, 2-4 % of a batch-1 step on a CPU (bench/throughput.py).
+            # a logged value costs ~0.7 ms, 2-3 % of a batch-1 step on a CPU (bench/throughput.py).
             self.log("train/loss", terms.total, prog_bar=True, batch_size=bs)
             self.log_dict(
                 {
