@@ -134,3 +134,14 @@ def test_predict_motion_matches_closed_form_recovery() -> None:
         t, w, out = model.predict_motion(batch["flow"][None], batch["intrinsics"][None])
     assert t.shape == w.shape == (1, 3)
     assert out.v_t.shape == (1, 2, 32, 64)
+
+
+def test_batch_transfer_is_skipped_on_a_cpu_only() -> None:
+    """On a CPU the batch is handed through untouched (the transfer would be a no-op costing a
+    recursive walk per step); any other device still gets Lightning's transfer."""
+    module = _module()
+    batch = {"flow": torch.zeros(1, 2, 4, 4), "sequence": ["00"], "frame": torch.tensor([3])}
+    assert module.transfer_batch_to_device(batch, torch.device("cpu"), 0) is batch
+    moved = module.transfer_batch_to_device(batch, torch.device("meta"), 0)
+    assert moved["flow"].device.type == "meta" and moved["frame"].device.type == "meta"
+    assert moved["sequence"] == ["00"]

@@ -329,13 +329,18 @@ def render_sample(
     displacement = torch.cat([box_motion, box_motion.new_zeros(2, 3)])[surface]  # (H, W, 3)
     moving = torch.cat([box_motion.norm(dim=-1) > 0, torch.zeros(2, dtype=torch.bool)])
     object_mask = moving[surface]
-    rigid = geometry.reprojection_flow(depth, rel_pose[None], K)[0]
     if bool(object_mask.any()):
-        flow = geometry.reprojection_flow(depth, rel_pose[None], K, displacement[None])[0]
+        # The rigid flow and the flow with the objects' displacement in one batched call (the
+        # same numbers as two calls, bit for bit; the reprojection is the costliest step left).
+        rigid, flow = geometry.reprojection_flow(
+            depth.expand(2, -1, -1),
+            rel_pose[None].expand(2, -1, -1),
+            K.expand(2, -1),
+            torch.stack([torch.zeros_like(displacement), displacement]),
+        )
     else:
-        # Nothing moves in view: the displacement is zero everywhere and the flow is the rigid
-        # one (the same numbers; the reprojection is the costliest step left).
-        flow = rigid
+        # Nothing moves in view: the displacement is zero everywhere and the flow is the rigid one.
+        rigid = flow = geometry.reprojection_flow(depth, rel_pose[None], K)[0]
     object_flow = torch.where(object_mask[None], flow - rigid, torch.zeros_like(flow))
 
     # Points that end up behind the target camera have no meaningful flow.
