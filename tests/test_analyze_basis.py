@@ -15,19 +15,13 @@ from conftest import run_module
 from mfg_lightning import geometry
 from mfg_lightning.analyze_basis import (
     SELECTIVITY_COLUMNS,
-    CheckpointSizeError,
-    ModelSize,
     decoder_norms,
     example_indices,
-    load_module,
     population_statistics,
     preferred_motions,
     selectivity_rows,
 )
-from mfg_lightning.config import compose
 from mfg_lightning.models.mfg import MFG
-from mfg_lightning.models.mfg_module import CheckpointError
-from mfg_lightning.runs import build_model
 
 PNGS = (
     "basis_translational.png",
@@ -126,50 +120,6 @@ def test_example_indices_are_spread_over_the_split() -> None:
     assert example_indices(11, 4) == [0, 3, 7, 10]
     assert example_indices(2, 4) == [0, 1]
     assert example_indices(0, 4) == []
-
-
-def _tiny_checkpoint(path: Path) -> dict:
-    """A checkpoint as train writes it (weights and resolved model config), without training."""
-    cfg = compose("train", ["debug=tiny", f"paths.output_dir={path.parent}"])
-    module = build_model(cfg)
-    ckpt = {"state_dict": module.state_dict(), "mfg_model_config": module.model_config}
-    torch.save(ckpt, path)
-    return ckpt
-
-
-def test_load_module_rebuilds_the_checkpoint(tmp_path: Path) -> None:
-    ckpt = _tiny_checkpoint(tmp_path / "tiny.ckpt")
-    module = load_module(tmp_path / "tiny.ckpt", expected=ModelSize(64, 32, 64))
-    assert not module.training
-    for key, value in ckpt["state_dict"].items():
-        torch.testing.assert_close(module.state_dict()[key], value)
-
-
-def test_checkpoint_of_another_model_size_is_a_clear_error(tmp_path: Path) -> None:
-    path = tmp_path / "tiny.ckpt"
-    ckpt = _tiny_checkpoint(path)
-    # the caller expects the quick-start size
-    with pytest.raises(CheckpointSizeError) as err:
-        load_module(path, expected=ModelSize(1000, 48, 128))
-    message = str(err.value)
-    assert str(path) in message
-    assert (
-        "hidden_units=64, input 32×64" in message and "hidden_units=1000, input 48×128" in message
-    )
-    # weights that do not fit the checkpoint's own config (a config from another run)
-    ckpt["mfg_model_config"]["net"]["hidden_units"] = 32
-    torch.save(ckpt, path)
-    with pytest.raises(CheckpointSizeError) as err:
-        load_module(path)
-    message = str(err.value)
-    assert str(path) in message
-    assert "hidden_units=32" in message and "weights with hidden_units=64" in message
-    # not a checkpoint of this project at all
-    torch.save({"state_dict": {}}, tmp_path / "other.ckpt")
-    with pytest.raises(CheckpointError, match="not written by mfg_lightning.train"):
-        load_module(tmp_path / "other.ckpt")
-    with pytest.raises(CheckpointError, match="checkpoint not found"):
-        load_module(tmp_path / "missing.ckpt")
 
 
 @pytest.fixture(scope="module")

@@ -52,9 +52,16 @@ from torch import Tensor
 
 from mfg_lightning import geometry
 from mfg_lightning.atomic import atomic_write_bytes, atomic_write_text
+from mfg_lightning.checkpoints import (
+    CheckpointSizeError,
+    build_module,
+    dataset_config,
+    load_checkpoint,
+    model_size,
+)
 from mfg_lightning.config import CONFIG_DIR
 from mfg_lightning.data.sample import sanitize_flow
-from mfg_lightning.models.mfg_module import CheckpointError, load_checkpoint
+from mfg_lightning.runs import exit_on_user_error
 from mfg_lightning.visualization import flow_to_rgb, scalar_to_rgb
 
 if TYPE_CHECKING:
@@ -67,107 +74,6 @@ if TYPE_CHECKING:
 log = logging.getLogger("mfg_lightning.analyze_basis")
 
 SELECTIVITY_COLUMNS = ("unit", "norm", "tx", "ty", "tz", "wx", "wy", "wz")
-
-
-# --------------------------------------------------------------------------------------------
-# Loading a checkpoint
-# --------------------------------------------------------------------------------------------
-
-
-class CheckpointSizeError(CheckpointError):
-    """A checkpoint's weights do not fit the model size its config or the caller expects."""
-
-
-@dataclass(frozen=True)
-class ModelSize:
-    """The sizes that decide whether MFG weights fit: ``M`` hidden units and the input grid."""
-
-    hidden_units: int
-    height: int
-    width: int
-
-    def __str__(self) -> str:
-        return f"hidden_units={self.hidden_units}, input {self.height}×{self.width}"
-
-
-def model_size(model_config: dict[str, Any]) -> ModelSize:
-    """The :class:`ModelSize` of a resolved model config (``mfg_model_config``)."""
-    net = model_config.get("net", {})
-    return ModelSize(int(net["hidden_units"]), int(net["height"]), int(net["width"]))
-
-
-def _weights_description(state_dict: dict[str, Tensor]) -> str:
-    """What the weights themselves say about the size (the decoders are ``(2·h·w, M)``)."""
-    w = state_dict.get("net.decoder_t.weight")
-    if w is None or w.dim() != 2:
-        return "weights without an MFG decoder"
-    return f"weights with hidden_units={w.shape[1]} and {w.shape[0] // 2}-pixel decoder fields"
-
-
-def read_checkpoint(ckpt_path: str | Path) -> dict[str, Any]:
-    """Read a checkpoint of :mod:`mfg_lightning.train` onto the CPU.
-
-    Raises:
-        CheckpointError: missing or unreadable file, or not a checkpoint of this project (no
-            ``state_dict`` or ``mfg_model_config``).
-    """
-    return load_checkpoint(ckpt_path)
-
-
-def load_module(
-    ckpt_path: str | Path,
-    expected: ModelSize | None = None,
-    ckpt: dict[str, Any] | None = None,
-) -> MFGLitModule:
-    """Rebuild the LightningModule from the checkpoint's own model config and load its weights.
-
-    Args:
-        ckpt_path: a ``.ckpt`` of :mod:`mfg_lightning.train` (its dict holds ``mfg_model_config``,
-            the resolved model config, and ``state_dict``).
-        expected: the size the caller needs (e.g. the dataset's resolution); None: any.
-        ckpt: the already-read checkpoint dict (to avoid reading the file twice).
-
-    Returns:
-        The module in evaluation mode, on the CPU.
-
-    Raises:
-        CheckpointSizeError: the checkpoint's size differs from ``expected``, or its weights do
-            not fit the architecture of its own config. The message names the checkpoint and
-            both sizes.
-    """
-    from hydra.utils import instantiate
-
-    ckpt = ckpt if ckpt is not None else read_checkpoint(ckpt_path)
-    cfg = ckpt["mfg_model_config"]
-    size = model_size(cfg)
-    if expected is not None and size != expected:
-        raise CheckpointSizeError(
-            f"checkpoint {ckpt_path} holds an MFG with {size}, but {expected} is expected"
-        )
-    module = instantiate(cfg)
-    try:
-        module.load_state_dict(ckpt["state_dict"])
-    except RuntimeError as err:
-        first = str(err).strip().splitlines()
-        raise CheckpointSizeError(
-            f"checkpoint {ckpt_path}: its config describes an MFG with {size}, but it holds "
-            f"{_weights_description(ckpt['state_dict'])} ({first[-1].strip() if first else err})"
-        ) from err
-    module.model_config = cfg
-    return module.eval()
-
-
-def checkpoint_dataset_config(ckpt: dict[str, Any], ckpt_path: str | Path) -> dict | None:
-    """The dataset config a checkpoint was trained with: stored in the checkpoint
-    (``mfg_dataset_config``) or in the run directory's ``config.yaml`` (``<run>/checkpoints/x``)."""
-    if ckpt.get("mfg_dataset_config"):
-        return dict(ckpt["mfg_dataset_config"])
-    run_config = Path(ckpt_path).expanduser().resolve().parent.parent / "config.yaml"
-    if run_config.is_file():
-        cfg = OmegaConf.load(run_config)
-        if "dataset" in cfg:
-            return OmegaConf.to_container(cfg.dataset, resolve=True)
-    return None
 
 
 # --------------------------------------------------------------------------------------------
@@ -661,7 +567,7 @@ def build_datamodule(cfg: DictConfig, ckpt: dict[str, Any]) -> L.LightningDataMo
                 f"dataset.width={size.width}, or omit dataset= to use the checkpoint's own"
             )
     else:
-        stored = checkpoint_dataset_config(ckpt, cfg.ckpt_path)
+        stored = dataset_config(ckpt, cfg.ckpt_path)
         if stored is None:
             raise ValueError(
                 f"{cfg.ckpt_path} stores no dataset config and has no run directory config.yaml "
@@ -672,15 +578,16 @@ def build_datamodule(cfg: DictConfig, ckpt: dict[str, Any]) -> L.LightningDataMo
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="analyze_basis")
+@exit_on_user_error
 def main(cfg: DictConfig) -> None:
     if OmegaConf.is_missing(cfg, "ckpt_path"):
         raise ValueError(
             "ckpt_path is required: python -m mfg_lightning.analyze_basis "
             "ckpt_path=<run dir>/checkpoints/last.ckpt"
         )
-    ckpt = read_checkpoint(cfg.ckpt_path)
+    ckpt = load_checkpoint(cfg.ckpt_path)
     datamodule = build_datamodule(cfg, ckpt)
-    module = load_module(cfg.ckpt_path, ckpt=ckpt)
+    module = build_module(ckpt, cfg.ckpt_path)
     summary = analyze(
         module,
         datamodule,

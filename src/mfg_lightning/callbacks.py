@@ -5,7 +5,8 @@
 * :class:`AtomicCheckpointIO`: writes checkpoints through :mod:`mfg_lightning.atomic` (temporary
   file, fsync, ``os.replace``): a kill or a full disk during a save leaves the previous file
   intact; a failed write is one :class:`StorageError` naming the file; an unreadable checkpoint
-  is a :class:`~mfg_lightning.models.mfg_module.CheckpointError`.
+  is a :class:`~mfg_lightning.checkpoints.CheckpointError`, and so is one that holds anything but
+  tensors and plain data (it is never unpickled: :mod:`mfg_lightning.checkpoints`).
 * :class:`LastCheckpoint`: ``checkpoints/last.ckpt`` every N steps, at the end, and on SIGTERM
   (what SLURM sends at the time limit: the current step finishes, the checkpoint is saved, the
   run stops); ``ckpt_path=last`` or ``resume=true`` continues from it. It is saved where
@@ -114,8 +115,11 @@ class AtomicCheckpointIO(TorchCheckpointIO):
     fsynced and renamed over it (:func:`mfg_lightning.atomic.atomic_write_bytes`): a process
     killed during the save, or a disk that fills up, leaves the previous file as it was. A failed
     write raises :class:`StorageError` naming the checkpoint; a checkpoint that cannot be read
-    raises :class:`~mfg_lightning.models.mfg_module.CheckpointError`. Remote (``fsspec`` URL)
-    paths fall back to Lightning's own writer.
+    raises :class:`~mfg_lightning.checkpoints.CheckpointError`. Reading is safe by default: unless
+    the caller passes ``weights_only=False`` explicitly, only tensors and plain data are unpickled
+    (:func:`mfg_lightning.checkpoints.safe_unpickling`), so resuming from a checkpoint someone
+    else wrote cannot run their code. Remote (``fsspec`` URL) paths fall back to Lightning's own
+    writer.
     """
 
     def save_checkpoint(
@@ -135,17 +139,20 @@ class AtomicCheckpointIO(TorchCheckpointIO):
     def load_checkpoint(
         self, path: Any, map_location: Any = lambda storage, loc: storage, weights_only: Any = None
     ) -> dict[str, Any]:
-        from mfg_lightning.models.mfg_module import CheckpointError
+        from mfg_lightning.checkpoints import CheckpointError, describe_load_error, safe_unpickling
 
+        weights_only = True if weights_only is None else weights_only
         try:
-            return super().load_checkpoint(
-                path, map_location=map_location, weights_only=weights_only
-            )
+            with safe_unpickling():
+                return super().load_checkpoint(
+                    path, map_location=map_location, weights_only=weights_only
+                )
         except FileNotFoundError:
             raise
-        except Exception as err:  # torch/zip/pickle errors of a truncated or foreign file
-            first = (str(err).strip().splitlines() or [type(err).__name__])[0]
-            raise CheckpointError(f"cannot read checkpoint {path}: {first}") from err
+        except Exception as err:  # torch/zip/pickle errors of a truncated, foreign or unsafe file
+            raise CheckpointError(
+                f"cannot read checkpoint {path}: {describe_load_error(err)}"
+            ) from err
 
 
 # --------------------------------------------------------------------------------------------

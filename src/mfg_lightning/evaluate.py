@@ -33,10 +33,11 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from mfg_lightning.atomic import atomic_write_bytes, atomic_write_text
+from mfg_lightning.checkpoints import module_from_checkpoint
 from mfg_lightning.config import CONFIG_DIR
 from mfg_lightning.evaluation import EvaluationResult
 from mfg_lightning.models.mfg import validate_top_k
-from mfg_lightning.models.mfg_module import MFGLitModule, module_from_checkpoint
+from mfg_lightning.models.mfg_module import MFGLitModule
 from mfg_lightning.runs import exit_on_user_error, run_info, to_float, write_metrics
 
 log = logging.getLogger("mfg_lightning.evaluate")
@@ -151,7 +152,10 @@ def build(cfg: DictConfig) -> tuple[MFGLitModule, L.LightningDataModule, L.Train
     elif model.dataset_config is not None:
         dataset_cfg = OmegaConf.create(model.dataset_config)
     else:
-        raise ValueError(f"{cfg.ckpt_path} stores no dataset config: pass dataset=<name>")
+        raise ValueError(
+            f"{cfg.ckpt_path} stores no dataset config and has no run directory config.yaml "
+            "beside it: pass dataset=<name>"
+        )
     dataset_cfg = OmegaConf.merge(dataset_cfg, {"eval_batch_size": cfg.eval.batch_size})
     datamodule = instantiate(dataset_cfg)
     out = Path(cfg.paths.output_dir)

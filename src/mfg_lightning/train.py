@@ -38,8 +38,8 @@ from mfg_lightning.callbacks import (
     LastCheckpoint,
     storage_error,
 )
+from mfg_lightning.checkpoints import CheckpointError
 from mfg_lightning.config import CONFIG_DIR
-from mfg_lightning.models.mfg_module import CheckpointError
 from mfg_lightning.runs import (
     atomic_write_text,
     build_model,
@@ -144,7 +144,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
 
     start = time.perf_counter()
     with exit_on_sigterm(trainer):
-        trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=False)
+        trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=True)
     train_seconds = time.perf_counter() - start
     # The last validation's metrics; a run resumed after it has them from the checkpoint.
     last = [cb.validation_metrics for cb in callbacks if isinstance(cb, LastCheckpoint)]
@@ -156,7 +156,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         if best is None:
             log.warning("no best checkpoint (no validation ran?): testing the current weights")
         with exit_on_sigterm(trainer):
-            trainer.test(model, datamodule=datamodule, ckpt_path=best, weights_only=False)
+            trainer.test(model, datamodule=datamodule, ckpt_path=best, weights_only=True)
         metrics.update({k: v for k, v in trainer.callback_metrics.items() if k.startswith("test/")})
         for lg in loggers:
             if isinstance(lg, TensorBoardLogger):

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import lightning as L
@@ -70,7 +69,11 @@ class MFGLitModule(L.LightningModule):
         object_motion: ObjectMotionConfig | None = None,
     ) -> None:
         super().__init__()
-        self.save_hyperparameters(ignore=["net", "loss", "object_motion"], logger=False)
+        # Plain values only: the optimiser and scheduler partials would make every checkpoint
+        # need more than tensors and plain data to unpickle (mfg_lightning.checkpoints).
+        self.save_hyperparameters(
+            ignore=["net", "loss", "object_motion", "optimizer", "scheduler"], logger=False
+        )
         self.net = net
         self.loss_fn = loss
         self.net.top_k = validate_top_k(top_k)
@@ -80,7 +83,7 @@ class MFGLitModule(L.LightningModule):
         self.max_consecutive_nonfinite = max_consecutive_nonfinite
         self._consecutive_nonfinite = 0
         #: the model's config, set by the entry point and stored in checkpoints so that
-        #: :func:`load_from_checkpoint` can rebuild the network without the run directory.
+        #: :mod:`mfg_lightning.checkpoints` can rebuild the network without the run directory.
         self.model_config: dict | None = None
         #: the training dataset's config, stored in checkpoints for evaluation defaults
         self.dataset_config: dict | None = None
@@ -403,54 +406,3 @@ def _ids(batch: dict[str, Any], limit: int = 4) -> str:
     ids = list(batch.get("sample_id", []))
     more = f" (+{len(ids) - limit} more)" if len(ids) > limit else ""
     return ", ".join(map(str, ids[:limit])) + more
-
-
-class CheckpointError(ValueError):
-    """A checkpoint is missing, unreadable, or does not fit the model it should restore."""
-
-
-def load_checkpoint(path: str | Path) -> dict[str, Any]:
-    """Read a checkpoint file written by ``mfg_lightning.train`` (CPU tensors)."""
-    path = Path(path).expanduser()
-    if not path.is_file():
-        raise CheckpointError(f"checkpoint not found: {path}")
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as err:  # truncated or not a torch file at all
-        raise CheckpointError(f"cannot read checkpoint {path}: {err}") from err
-    if not isinstance(ckpt, dict) or "state_dict" not in ckpt:
-        raise CheckpointError(f"{path} is not a Lightning checkpoint (no state_dict)")
-    if "mfg_model_config" not in ckpt:
-        raise CheckpointError(
-            f"{path} has no mfg_model_config: it was not written by mfg_lightning.train"
-        )
-    return ckpt
-
-
-def module_from_checkpoint(path: str | Path, **overrides: Any) -> MFGLitModule:
-    """Rebuild the LightningModule of a checkpoint from its stored config and load its weights.
-
-    Args:
-        path: the ``.ckpt`` file.
-        overrides: replace top-level keys of the stored model config (e.g. ``top_k=0.05``).
-
-    Raises:
-        CheckpointError: missing or unreadable file, or weights that do not fit the stored
-            architecture.
-    """
-    from hydra.utils import instantiate
-
-    ckpt = load_checkpoint(path)
-    cfg = {**ckpt["mfg_model_config"], **overrides}
-    model: MFGLitModule = instantiate(cfg)
-    try:
-        model.load_state_dict(ckpt["state_dict"])
-    except RuntimeError as err:
-        net = cfg.get("net", {})
-        raise CheckpointError(
-            f"{path}: weights do not fit an MFG with hidden_units={net.get('hidden_units')}, "
-            f"input {net.get('height')}×{net.get('width')}: {str(err).splitlines()[0]}"
-        ) from err
-    model.model_config = cfg
-    model.dataset_config = ckpt.get("mfg_dataset_config")
-    return model

@@ -1,0 +1,267 @@
+"""Checkpoints: rebuilt from their own config, read safely (no pickle payload runs, no config
+target outside the allow-list is built), for every entry point that reads one."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+from omegaconf import OmegaConf
+
+from conftest import REPO, run_module
+from mfg_lightning.checkpoints import (
+    CheckpointError,
+    CheckpointSizeError,
+    ModelSize,
+    UnsafeConfigError,
+    allowed_targets,
+    check_targets,
+    dataset_config,
+    load_checkpoint,
+    module_from_checkpoint,
+)
+from mfg_lightning.config import compose
+from mfg_lightning.runs import build_model
+
+
+class WritesAFile:
+    """A pickle payload: unpickling it calls ``Path.write_text(marker, ...)``."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        return (Path.write_text, (self.marker, "the checkpoint ran code"))
+
+
+def _tiny_checkpoint(path: Path) -> dict:
+    """A checkpoint as train writes it (weights and resolved model config), without training."""
+    cfg = compose("train", ["debug=tiny", f"paths.output_dir={path.parent}"])
+    module = build_model(cfg)
+    ckpt = {"state_dict": module.state_dict(), "mfg_model_config": module.model_config}
+    torch.save(ckpt, path)
+    return ckpt
+
+
+def test_module_from_checkpoint_rebuilds_it(tmp_path: Path) -> None:
+    ckpt = _tiny_checkpoint(tmp_path / "tiny.ckpt")
+    module = module_from_checkpoint(tmp_path / "tiny.ckpt", expected=ModelSize(64, 32, 64))
+    assert not module.training
+    for key, value in ckpt["state_dict"].items():
+        torch.testing.assert_close(module.state_dict()[key], value)
+
+
+def test_checkpoint_of_another_model_size_is_a_clear_error(tmp_path: Path) -> None:
+    path = tmp_path / "tiny.ckpt"
+    ckpt = _tiny_checkpoint(path)
+    # the caller expects the quick-start size
+    with pytest.raises(CheckpointSizeError) as err:
+        module_from_checkpoint(path, expected=ModelSize(1000, 48, 128))
+    message = str(err.value)
+    assert str(path) in message
+    assert (
+        "hidden_units=64, input 32×64" in message and "hidden_units=1000, input 48×128" in message
+    )
+    # weights that do not fit the checkpoint's own config (a config from another run)
+    ckpt["mfg_model_config"]["net"]["hidden_units"] = 32
+    torch.save(ckpt, path)
+    with pytest.raises(CheckpointSizeError) as err:
+        module_from_checkpoint(path)
+    message = str(err.value)
+    assert str(path) in message
+    assert "hidden_units=32" in message and "weights with hidden_units=64" in message
+    # not a checkpoint of this project at all
+    torch.save({"state_dict": {}}, tmp_path / "other.ckpt")
+    with pytest.raises(CheckpointError, match="not written by mfg_lightning.train"):
+        module_from_checkpoint(tmp_path / "other.ckpt")
+    with pytest.raises(CheckpointError, match="checkpoint not found"):
+        module_from_checkpoint(tmp_path / "missing.ckpt")
+
+
+def test_every_target_of_the_project_configs_is_allowed() -> None:
+    """A config group whose class is missing from the allow-list could not be evaluated."""
+    from hydra.utils import get_object
+
+    groups = ("model", "dataset", "flow", "object_motion")
+    files = [f for g in groups for f in sorted((REPO / "conf" / g).glob("*.yaml"))]
+    assert files
+
+    def targets(node):
+        if isinstance(node, dict):
+            if isinstance(node.get("_target_"), str):
+                yield node["_target_"]
+            for value in node.values():
+                yield from targets(value)
+        elif isinstance(node, list):
+            for value in node:
+                yield from targets(value)
+
+    found = {t for f in files for t in targets(yaml.safe_load(f.read_text()) or {})}
+    assert "mfg_lightning.models.mfg_module.MFGLitModule" in found
+    for target in found:
+        assert get_object(target) in allowed_targets(), target
+    assert get_object("torch.optim.AdamW") in allowed_targets()
+    assert get_object("torch.optim.lr_scheduler.OneCycleLR") in allowed_targets()
+
+
+@pytest.mark.parametrize(
+    "target",
+    ["builtins.open", "subprocess.run", "os.system", "pathlib.Path.write_text", "no.such.thing"],
+)
+def test_targets_outside_the_allow_list_are_refused_at_any_depth(target: str) -> None:
+    cfg = {
+        "_target_": "mfg_lightning.models.mfg_module.MFGLitModule",
+        "loss": {"_target_": "mfg_lightning.losses.MFGLoss", "extra": [{"_target_": target}]},
+    }
+    with pytest.raises(UnsafeConfigError) as err:
+        check_targets(cfg, "somewhere.ckpt")
+    assert "somewhere.ckpt" in str(err.value)
+    assert f"loss.extra[0]._target_ = {target!r}" in str(err.value)
+    # an alias of an allowed class resolves to it and passes
+    check_targets({"_target_": "torch.optim.adam.Adam", "_partial_": True}, "x")
+
+
+def test_a_pickle_payload_is_never_unpickled(tmp_path: Path) -> None:
+    path = tmp_path / "evil.ckpt"
+    marker = tmp_path / "marker.txt"
+    ckpt = _tiny_checkpoint(path)
+    torch.save({**ckpt, "payload": WritesAFile(marker)}, path)
+    with pytest.raises(CheckpointError, match="other than tensors and plain data") as err:
+        load_checkpoint(path)
+    assert str(path) in str(err.value) and "Unsupported global: GLOBAL" in str(err.value)
+    assert not marker.exists()
+
+
+def test_checkpoints_written_by_training_load_safely(tmp_path: Path) -> None:
+    """A real training's checkpoint (Lightning's loops, callbacks, optimiser and scheduler state)
+    holds only tensors and plain data, and its stored configs pass the allow-list."""
+    run = tmp_path / "run"
+    run_module("mfg_lightning.train", "debug=tiny", f"hydra.run.dir={run}", cwd=tmp_path)
+    path = run / "checkpoints" / "last.ckpt"
+    ckpt = torch.load(path, map_location="cpu", weights_only=True)  # no allow-listed types
+    assert ckpt["mfg_model_config"]["net"]["hidden_units"] == 64
+    module = module_from_checkpoint(path)
+    assert module.dataset_config["_target_"].endswith("SyntheticDataModule")
+
+
+def test_the_dataset_config_falls_back_to_the_run_directory(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    path = run / "checkpoints" / "last.ckpt"
+    ckpt = _tiny_checkpoint(path)
+    assert dataset_config(ckpt, path) is None
+    cfg = compose("train", ["debug=tiny", f"paths.output_dir={run}"])
+    dataset = OmegaConf.to_container(cfg.dataset, resolve=True)
+    (run / "config.yaml").write_text(yaml.safe_dump({"dataset": dataset}))
+    assert dataset_config(ckpt, path)["height"] == 32
+
+
+# --------------------------------------------------------------------------------------------
+# Crafted checkpoints against every entry point that reads one
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A real tiny run directory (checkpoints and config.yaml)."""
+    root = tmp_path_factory.mktemp("trained")
+    run_module("mfg_lightning.train", "debug=tiny", f"hydra.run.dir={root / 'run'}", cwd=root)
+    return root / "run"
+
+
+def _crafted(trained: Path, tmp_path: Path, kind: str) -> tuple[Path, Path]:
+    """A copy of the run directory whose checkpoint (or config.yaml) is crafted to write
+    ``marker`` if any of it ran."""
+    run = tmp_path / "shared_run"
+    shutil.copytree(trained, run)
+    path = run / "checkpoints" / "last.ckpt"
+    marker = tmp_path / "marker.txt"
+    ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    opener = {"_target_": "builtins.open", "file": str(marker), "mode": "w"}
+    if kind == "pickle":
+        ckpt["payload"] = WritesAFile(marker)
+    elif kind == "model_target":
+        ckpt["mfg_model_config"]["loss"]["w_t"] = opener
+    elif kind == "run_config_target":
+        del ckpt["mfg_dataset_config"]
+        cfg = yaml.safe_load((run / "config.yaml").read_text())
+        cfg["dataset"]["flow_writer"] = opener
+        (run / "config.yaml").write_text(yaml.safe_dump(cfg))
+    torch.save(ckpt, path)
+    return path, marker
+
+
+ENTRY_POINTS = {
+    "evaluate": ("mfg_lightning.evaluate",),
+    "analyze_basis": ("mfg_lightning.analyze_basis",),
+    "train": ("mfg_lightning.train", "debug=tiny", "trainer.max_steps=6"),
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    ("entry", "kind"),
+    [
+        ("evaluate", "pickle"),
+        ("evaluate", "model_target"),
+        ("evaluate", "run_config_target"),
+        ("analyze_basis", "pickle"),
+        ("analyze_basis", "model_target"),
+        ("analyze_basis", "run_config_target"),
+        ("train", "pickle"),
+    ],
+)
+def test_crafted_checkpoints_end_in_one_error_line(
+    trained: Path, tmp_path: Path, entry: str, kind: str
+) -> None:
+    path, marker = _crafted(trained, tmp_path, kind)
+    module, *extra = ENTRY_POINTS[entry]
+    proc = run_module(
+        module,
+        *extra,
+        f"ckpt_path={path}",
+        f"hydra.run.dir={tmp_path / 'out'}",
+        cwd=tmp_path,
+        check=False,
+    )
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1, proc.stderr[-3000:]
+    assert (
+        str(path if kind != "run_config_target" else path.parents[1] / "config.yaml") in errors[0]
+    )
+    assert "Traceback" not in proc.stderr
+    assert not marker.exists()
+
+
+def test_checkpoints_of_earlier_versions_still_load(tmp_path: Path) -> None:
+    """Before configs were kept plain, ``hyper_parameters`` held Hydra's optimiser and scheduler
+    partials and OmegaConf nodes; those few types stay readable (and none of them is called)."""
+    from hydra.utils import instantiate
+
+    path = tmp_path / "old.ckpt"
+    ckpt = _tiny_checkpoint(path)
+    cfg = OmegaConf.create(
+        {
+            "optimizer": {"_target_": "torch.optim.Adam", "_partial_": True, "betas": [0.9, 0.99]},
+            "scheduler": {
+                "_target_": "torch.optim.lr_scheduler.CosineAnnealingLR",
+                "_partial_": True,
+                "T_max": 4,
+            },
+        }
+    )
+    old = {
+        "optimizer": instantiate(cfg.optimizer, _convert_="none"),
+        "scheduler": instantiate(cfg.scheduler),
+        "betas": cfg.optimizer.betas,
+        "top_k": None,
+    }
+    torch.save({**ckpt, "hyper_parameters": old}, path)
+    loaded = load_checkpoint(path)
+    assert loaded["hyper_parameters"]["optimizer"].func is torch.optim.Adam
+    assert list(loaded["hyper_parameters"]["betas"]) == [0.9, 0.99]
+    module_from_checkpoint(path)
