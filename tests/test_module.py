@@ -12,6 +12,7 @@ from mfg_lightning.data.synthetic import SyntheticDataModule, SyntheticDrivingDa
 from mfg_lightning.losses import MFGLoss
 from mfg_lightning.models.mfg import MFG
 from mfg_lightning.models.mfg_module import MFGLitModule, NonFiniteLossError
+from mfg_lightning.runs import build_model
 
 
 class CorruptFlowDataset(torch.utils.data.Dataset):
@@ -145,3 +146,13 @@ def test_batch_transfer_is_skipped_on_a_cpu_only() -> None:
     moved = module.transfer_batch_to_device(batch, torch.device("meta"), 0)
     assert moved["flow"].device.type == "meta" and moved["frame"].device.type == "meta"
     assert moved["sequence"] == ["00"]
+
+
+def test_top_k_has_one_knob() -> None:
+    """model.top_k is the setting; a top_k given to the network as well is refused, not
+    silently overwritten."""
+    from mfg_lightning.config import compose
+
+    cfg = compose("train", ["debug=tiny", "paths.output_dir=/tmp/unused", "+model.net.top_k=0.1"])
+    with pytest.raises(Exception, match="model.net.top_k=0.1 .* set model.top_k instead"):
+        build_model(cfg)

@@ -46,7 +46,6 @@ from torch import Tensor
 __all__ = [
     "FieldBasis",
     "backproject",
-    "compose",
     "field_basis",
     "invert_pose",
     "motion_field",
@@ -120,17 +119,17 @@ def motion_matrices(intrinsics: Tensor, height: int, width: int) -> tuple[Tensor
         one for a rotation vector ``ω`` (rad). See the module docstring for the sign convention.
     """
     K = _as_batch_intrinsics(intrinsics)
-    xy = normalized_grid(K, height, width)
-    x, y = xy[:, 0], xy[:, 1]
-    one, zero = torch.ones_like(x), torch.zeros_like(x)
-    fx = K[:, 0, None, None]
-    fy = K[:, 1, None, None]
-    a_row0 = torch.stack([-one, zero, x], dim=-1) * fx[..., None]
-    a_row1 = torch.stack([zero, -one, y], dim=-1) * fy[..., None]
-    b_row0 = torch.stack([x * y, -(1 + x * x), y], dim=-1) * fx[..., None]
-    b_row1 = torch.stack([1 + y * y, -x * y, -x], dim=-1) * fy[..., None]
-    A = torch.stack([a_row0, a_row1], dim=-2)
-    B = torch.stack([b_row0, b_row1], dim=-2)
+    n = K.shape[0]
+    # The columns of A and B are the fields of the unit motions: one writing of the formulas
+    # (the field functions below, the hot path of the losses), not three.
+    units = torch.eye(3, dtype=K.dtype, device=K.device).repeat(n, 1)  # (3n, 3)
+    K3 = K.repeat_interleave(3, dim=0)
+
+    def columns(field: Tensor) -> Tensor:  # (3n, 2, H, W) → (n, H, W, 2, 3)
+        return field.view(n, 3, 2, height, width).permute(0, 3, 4, 2, 1)
+
+    A = columns(translational_field(units, K3, height, width))
+    B = columns(rotational_field(units, K3, height, width))
     return A, B
 
 
@@ -459,13 +458,11 @@ def _make_pose(R: Tensor, t: Tensor) -> Tensor:
 def se3_exp(xi: Tensor) -> Tensor:
     """Twist ``(..., 6)`` = ``(v, ω)`` → pose ``(..., 4, 4)`` (the SE(3) exponential)."""
     v, w = xi[..., :3], xi[..., 3:]
-    theta = w.norm(dim=-1)[..., None, None]
-    a, b, c = _sinc_terms(theta)
+    _, b, c = _sinc_terms(w.norm(dim=-1)[..., None, None])
     W = _hat(w)
     eye = torch.eye(3, dtype=xi.dtype, device=xi.device).expand_as(W)
-    R = eye + a * W + b * (W @ W)
-    V = eye + b * W + c * (W @ W)
-    return _make_pose(R, (V @ v[..., None])[..., 0])
+    V = eye + b * W + c * (W @ W)  # the left Jacobian of SO(3)
+    return _make_pose(so3_exp(w), (V @ v[..., None])[..., 0])
 
 
 def se3_log(T: Tensor) -> Tensor:
@@ -489,11 +486,6 @@ def invert_pose(T: Tensor) -> Tensor:
     R = T[..., :3, :3].transpose(-1, -2)
     t = -(R @ T[..., :3, 3:4])[..., 0]
     return _make_pose(R, t)
-
-
-def compose(T_ab: Tensor, T_bc: Tensor) -> Tensor:
-    """``T_ab · T_bc`` for ``(..., 4, 4)`` poses."""
-    return T_ab @ T_bc
 
 
 def relative_pose(T_world_a: Tensor, T_world_b: Tensor) -> Tensor:

@@ -74,6 +74,12 @@ class MFGLitModule(L.LightningModule):
         self.save_hyperparameters(
             ignore=["net", "loss", "object_motion", "optimizer", "scheduler"], logger=False
         )
+        if net.top_k is not None:
+            # One knob: the module's top_k is what evaluation, sweeps and checkpoints use.
+            raise ValueError(
+                f"model.net.top_k={net.top_k} is not a setting of the training module: set "
+                "model.top_k instead (it applies to the network at evaluation)"
+            )
         self.net = net
         self.loss_fn = loss
         self.net.top_k = validate_top_k(top_k)
