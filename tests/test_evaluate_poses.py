@@ -13,12 +13,13 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
+from conftest import SHARED
 from mfg_lightning.evaluate_poses import main
 from mfg_lightning.metrics import relative_pose_error, snippet_ate
 from mfg_lightning.pose_io import read_kitti_poses, write_kitti_poses, write_tum_poses
 from mfg_lightning.trajectories import snippets_from_poses
 
-KITTI_POSES = Path(__file__).parents[2] / "shared" / "data" / "kitti_odometry" / "poses"
+KITTI_POSES = SHARED / "data" / "kitti_odometry" / "poses"
 METRIC_KEYS = {
     "ate",
     "ate_std",
