@@ -39,6 +39,7 @@ __all__ = [
     "sequence_figures",
     "trajectory_curves",
     "trajectory_figure",
+    "write_trajectory_figures",
 ]
 
 #: Ground truth is drawn in black, methods in the qualitative ``tab10`` colours.
@@ -146,7 +147,9 @@ def trajectory_figure(
     ax.plot(gt_xz[:, 0], gt_xz[:, 1], color=GT_COLOUR, lw=2.2, label="ground truth")
     for i, (name, xz) in enumerate(methods.items()):
         ax.plot(xz[:, 0], xz[:, 1], color=method_colour(i), lw=1.3, label=name)
-    ax.plot(gt_xz[0, 0], gt_xz[0, 1], "o", color=GT_COLOUR, ms=7, label="start")
+    # Hollow and on top: a method that barely moves stays visible inside it.
+    ax.plot(gt_xz[0, 0], gt_xz[0, 1], "o", color=GT_COLOUR, mfc="none", ms=9, mew=1.5,
+            label="start", zorder=5)  # fmt: skip
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("z (m)")
@@ -165,6 +168,8 @@ def drift_by_length_figure(
         methods: method name → ``{segment length (m): (t_err %, r_err deg/100 m)}``.
         title: the figure title.
     """
+    from mfg_lightning.metrics.drift import KITTI_SEGMENT_LENGTHS as KITTI_LENGTHS
+
     fig = _new_figure(9.0, 3.6)
     axes = fig.subplots(1, 2)
     empty = True
@@ -182,8 +187,11 @@ def drift_by_length_figure(
         ax.set_xlabel("segment length (m)")
         ax.set_ylabel(label)
         ax.grid(True, alpha=0.3)
+        ax.set_xticks(KITTI_LENGTHS)
+        ax.set_xlim(KITTI_LENGTHS[0] - 50, KITTI_LENGTHS[-1] + 50)
         ax.set_ylim(bottom=0)
         if empty:
+            ax.set_yticks([])
             ax.text(0.5, 0.5, "no complete 100 m segment", ha="center", va="center",
                     transform=ax.transAxes)  # fmt: skip
     if not empty:
@@ -270,3 +278,38 @@ def log_figures(experiment: object, figures: Mapping[str, Figure], tag: str, ste
     """Add each figure to a TensorBoard ``SummaryWriter`` as image ``<tag>/<kind>``."""
     for kind, fig in figures.items():
         experiment.add_image(f"{tag}/{kind}", figure_rgb(fig), step, dataformats="HWC")
+
+
+def write_trajectory_figures(
+    sequences: Mapping[str, tuple[Tensor, Tensor]],
+    directory: str | Path,
+    experiment: object | None = None,
+    method: str = "MFG",
+    tag: str = "test",
+) -> list[Path]:
+    """The figures of :func:`sequence_figures` for one method's predicted trajectories, as PNG
+    files and (given a TensorBoard ``SummaryWriter``) images ``<tag>/<seq>/<kind>``.
+
+    Every figure is drawn before the first file is written.
+
+    Args:
+        sequences: sequence → ``(pred, gt)``, ``(N, 4, 4)`` camera-to-world poses each (metres),
+            compared as they are (no alignment, as the evaluation's metrics).
+        directory: where the PNGs go (``<kind>_<seq>.png``).
+        experiment: a ``SummaryWriter`` (e.g. ``TensorBoardLogger.experiment``), or None.
+        method: the legend's name for the predictions.
+        tag: TensorBoard tag prefix.
+
+    Returns:
+        The PNG paths written.
+    """
+    figures = {
+        seq: sequence_figures(seq, {method: trajectory_curves(pred, gt)})
+        for seq, (pred, gt) in sequences.items()
+    }
+    paths = []
+    for seq, figs in figures.items():
+        paths += save_figures(figs, directory, seq)
+        if experiment is not None:
+            log_figures(experiment, figs, f"{tag}/{seq}")
+    return paths
