@@ -243,3 +243,12 @@ def test_bad_options_are_refused() -> None:
         TrajectoryATE(align="se3", n_to_align=0)
     with pytest.raises(ValueError, match=r"\(N, 4, 4\)"):
         ate_traj(poses[:4], poses)
+
+
+def test_a_rotation_needs_three_poses() -> None:
+    poses = torch.eye(4, dtype=torch.float64).repeat(10, 1, 1)
+    poses[:, 2, 3] = torch.arange(10.0)
+    with pytest.raises(ValueError, match="sim3 alignment needs at least 3 poses .* got 2"):
+        ate_traj(poses, poses, "sim3", n_to_align=2)
+    # scale needs no rotation: the second pose alone (the first is the origin) fixes it.
+    assert ate_traj(poses, poses, "scale", n_to_align=2)["ate_traj_scale"].item() == 1.0

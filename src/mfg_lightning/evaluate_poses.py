@@ -393,8 +393,8 @@ def read_inputs(
         if name in sources:
             raise InputError(f"--pred: two methods are named {name!r}; name them with name=<path>")
         sources[name] = path
-    files = {name: _method_files(name, path, sequences, gt) for name, path in sources.items()}
     gt_files = {seq: read_poses(path, fmt) for seq, path in sequences.items()}
+    files = {name: _method_files(name, path, sequences, gt) for name, path in sources.items()}
     methods: dict[str, dict[str, PoseFile]] = {}
     for name, per_seq in files.items():
         methods[name] = {}

@@ -16,8 +16,8 @@ estimated and ``g_k`` the ground-truth positions (translation columns of camera-
   multiplied by the least-squares scale ``s = Σ_k g_k · p_k / Σ_k p_k · p_k``; no rotation.
 
 ``n_to_align`` fits the alignment on the first ``n`` poses only and applies it to all (evo's
-``--n_to_align``; the first ``min(n, N)`` poses, as evo slices). The fitted scale is reported
-(1 for ``none`` and ``se3``).
+``--n_to_align``; the first ``min(n, N)`` poses, as evo slices); ``se3`` and ``sim3`` need at
+least 3 of them. The fitted scale is reported (1 for ``none`` and ``se3``).
 
 Umeyama's closed form (IEEE TPAMI 13(4), 1991, eqs. 38–42): with the centred point sets
 ``x̃ = p − μ_p``, ``ỹ = g − μ_g``, the cross-covariance ``Σ = (1/n) Σ_k ỹ_k x̃_kᵀ = U D Vᵀ`` and
@@ -176,6 +176,9 @@ def align_trajectory(
         aligned = P.clone()
         aligned[:, :3, 3] = s * P[:, :3, 3]
         return Alignment(aligned, Q, eye, zero, s, mode, n)
+    if n < 3:
+        # Fewer points leave the rotation about the line through them undetermined.
+        raise ValueError(f"{mode} alignment needs at least 3 poses to fit a rotation, got {n}")
     R, t, s = umeyama(P[:n, :3, 3], Q[:n, :3, 3], with_scale=mode == "sim3")
     aligned = P.clone()
     aligned[:, :3, :3] = R @ P[:, :3, :3]

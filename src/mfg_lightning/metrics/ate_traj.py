@@ -12,7 +12,10 @@ Definition, for one sequence of ground-truth poses ``Q_k`` and estimated poses `
    standard deviation of ``e_k`` beside it (``ate_traj_mean``, ``ate_traj_std``), and the fitted
    scale (``ate_traj_scale``).
 
-Units: those of the ground-truth positions (metres for KITTI). Over several sequences (the
+With ``none`` the poses are compared as they are (``evo_ape`` without ``-a``); kitti-odom-eval
+always expresses both trajectories relative to their first frame first, which is the same for
+trajectories that start at the identity (KITTI's ground truth, and every trajectory this project
+writes). Units: those of the ground-truth positions (metres for KITTI). Over several sequences (the
 :class:`TrajectoryATE` metric), each sequence is aligned on its own and the statistics pool the
 errors of every pose of every sequence. This is not the ATE of the paper's Table 1, which is taken
 over 5-frame snippets (:mod:`mfg_lightning.metrics.ate`).
