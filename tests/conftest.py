@@ -28,7 +28,8 @@ def _seed_global_generators() -> None:
 
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED = REPO.parent / "shared"
+# ../shared beside the checkout; MFG_SHARED_DIR points elsewhere (a git worktree, a CI cache).
+SHARED = Path(os.environ.get("MFG_SHARED_DIR", REPO.parent / "shared"))
 
 
 def run_module(module: str, *args: str, cwd: Path, timeout: int = 300, check: bool = True):

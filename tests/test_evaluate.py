@@ -38,6 +38,18 @@ def test_top_k_sweep_writes_table_plot_and_pose_files(trained: Path, tmp_path: P
     assert payload["metrics"]["test/ate"] == payload["top_k_sweep"]["1"]["test/ate"]
     assert "test/test00/ate" in payload["metrics"]
     assert "test00" in (out / "sequences.md").read_text()
+    # The trajectory figures of the reported model: PNGs in the run directory and TensorBoard.
+    for kind in ("trajectory", "drift", "error"):
+        png = (out / "trajectories" / f"{kind}_test00.png").read_bytes()
+        assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(out / "tensorboard"), size_guidance={"images": 0})
+    events.Reload()
+    tags = set(events.Tags()["images"])
+    assert {"test/test00/trajectory", "test/test00/drift", "test/test00/error"} <= tags
+    image = events.Images("test/test00/trajectory")[0]
+    assert (image.width, image.height) == (768, 720)  # 6.4 × 6.0 in at 120 dpi
 
     # Pose files that evo reads unchanged, of the 15 test frames.
     from evo.tools import file_interface

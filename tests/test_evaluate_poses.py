@@ -13,12 +13,13 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
+from conftest import SHARED
 from mfg_lightning.evaluate_poses import main
 from mfg_lightning.metrics import relative_pose_error, snippet_ate
 from mfg_lightning.pose_io import read_kitti_poses, write_kitti_poses, write_tum_poses
 from mfg_lightning.trajectories import snippets_from_poses
 
-KITTI_POSES = Path(__file__).parents[2] / "shared" / "data" / "kitti_odometry" / "poses"
+KITTI_POSES = SHARED / "data" / "kitti_odometry" / "poses"
 METRIC_KEYS = {
     "ate",
     "ate_std",
@@ -31,6 +32,10 @@ METRIC_KEYS = {
     "rpe_rot_rmse",
     "kitti_t_err",
     "kitti_r_err",
+    "ate_traj",
+    "ate_traj_mean",
+    "ate_traj_std",
+    "ate_traj_scale",
 }
 
 
@@ -213,3 +218,161 @@ def test_runs_as_a_module(files) -> None:
     )
     assert proc.returncode == 2 and proc.stdout == ""
     assert proc.stderr == f"error: {pred}:11: file ends after 10 poses but {gt} has 160\n"
+
+
+# ------------------------------------------------------------------------------------------------
+# Alignment and many methods
+# ------------------------------------------------------------------------------------------------
+
+
+def _similar(poses: np.ndarray, scale: float) -> np.ndarray:
+    """``poses`` in another world frame and scale, as a monocular method would give them."""
+    R = Rotation.from_rotvec([0.1, 0.8, -0.05]).as_matrix()
+    out = poses.copy()
+    out[:, :3, :3] = R @ poses[:, :3, :3]
+    out[:, :3, 3] = scale * poses[:, :3, 3] @ R.T + np.array([2.0, 0.5, -3.0])
+    return out
+
+
+def test_align_choices_are_the_metric_modes() -> None:
+    from mfg_lightning.evaluate_poses import _ALIGN_CHOICES
+    from mfg_lightning.metrics import ALIGN_MODES
+
+    assert _ALIGN_CHOICES == ALIGN_MODES
+
+
+def test_one_file_with_sim3_alignment(files, capsys) -> None:
+    from mfg_lightning.metrics import ate_traj
+
+    gt, pred, gt_poses, pred_poses = files
+    write_kitti_poses(pred, _similar(pred_poses, 0.5))
+    argv = ["--gt", str(gt), "--pred", str(pred), "--align", "sim3", "--n-to-align", "100"]
+    code, out, err = _run(capsys, *argv, "--json")
+    assert code == 0 and err == ""
+    result = json.loads(out)
+    assert result["align"] == "sim3" and result["n_to_align"] == 100
+    expected = ate_traj(
+        torch.from_numpy(read_kitti_poses(pred)), torch.from_numpy(gt_poses), "sim3", 100
+    )
+    for key, value in expected.items():
+        assert result[key] == pytest.approx(value.item(), rel=1e-9)
+    assert result["ate_traj_scale"] == pytest.approx(2.0, rel=0.05)
+    code, out, _ = _run(capsys, *argv)
+    assert code == 0
+    assert "ATE, whole trajectory, sim3-aligned (160 poses)" in out and "fitted scale" in out
+
+
+@pytest.fixture
+def kitti_methods(tmp_path: Path) -> tuple[Path, Path, Path, dict[str, np.ndarray]]:
+    """Real KITTI GT poses 09 and 10 and two methods: noisy (metric) and scaled (monocular)."""
+    if not KITTI_POSES.is_dir():
+        pytest.skip(f"{KITTI_POSES} not present")
+    a, b = tmp_path / "a", tmp_path / "b"
+    gts = {}
+    for i, seq in enumerate(("09", "10")):
+        gts[seq] = read_kitti_poses(KITTI_POSES / f"{seq}.txt")
+        write_kitti_poses(a / f"{seq}.txt", _perturb(gts[seq], 10 + i))
+        write_tum_poses(b / f"{seq}.txt", np.arange(len(gts[seq])) / 10.0,
+                        _similar(_perturb(gts[seq], 20 + i), 0.3))  # fmt: skip
+    return KITTI_POSES, a, b, gts
+
+
+def test_many_methods_write_tables_json_and_figures(kitti_methods, tmp_path: Path, capsys) -> None:
+    gt_dir, a, b, gts = kitti_methods
+    out = tmp_path / "results"
+    argv = ["--gt", str(gt_dir), "--pred", f"a={a}", "--pred", f"b={b}", "--seqs", "09", "10",
+            "--align", "sim3", "--out", str(out)]  # fmt: skip
+    code, stdout, err = _run(capsys, *argv)
+    assert code == 0 and err == ""
+    for stem in ("table_09", "table_10", "table_overall"):
+        md = (out / f"{stem}.md").read_text()
+        assert md in stdout  # the same tables on stdout
+        assert "| method | ATE traj RMSE (m) |" in md and "\n| a |" in md and "\n| b |" in md
+        tex = (out / f"{stem}.tex").read_text()
+        assert "\\begin{tabular}{lrrrrrrrrrr}" in tex and "t\\_err (\\%)" in tex
+    payload = json.loads((out / "results.json").read_text())
+    assert payload["sequences"] == ["09", "10"] and payload["align"] == "sim3"
+    # Every number is that of the metric functions on the same files, per sequence.
+    from mfg_lightning.evaluate_poses import evaluate_trajectory
+
+    for name, directory in (("a", a), ("b", b)):
+        for seq in ("09", "10"):
+            from mfg_lightning.pose_io import read_poses
+
+            expected = evaluate_trajectory(
+                gts[seq], read_poses(directory / f"{seq}.txt").poses, align="sim3"
+            )
+            got = payload["methods"][name]["sequences"][seq]
+            for key in METRIC_KEYS:
+                assert got[key] == pytest.approx(expected[key], rel=1e-9), (name, seq, key)
+        overall = payload["methods"][name]["overall"]
+        assert overall["num_poses"] == 1591 + 1201 and overall["ate_traj_scale"] is None
+    # The monocular method's scale is found (1 / 0.3) and its aligned error is that of the noise.
+    scale_b = payload["methods"]["b"]["sequences"]["09"]["ate_traj_scale"]
+    assert scale_b == pytest.approx(1 / 0.3, rel=0.05)
+    rows = list(__import__("csv").reader((out / "table_09.csv").open()))
+    assert rows[0][:2] == ["method", "ATE traj RMSE (m)"] and [r[0] for r in rows[1:]] == ["a", "b"]
+    assert float(rows[2][4]) == pytest.approx(scale_b, rel=1e-12)  # CSV keeps full precision
+    for png in ("trajectory_09", "trajectory_10", "drift_09", "drift_10", "error_09", "error_10",
+                "drift_overall"):  # fmt: skip
+        data = (out / f"{png}.png").read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 20_000, png
+    # --json prints the same payload.
+    code, stdout, _ = _run(capsys, *argv, "--json")
+    assert code == 0 and json.loads(stdout) == payload
+
+
+def _gt_dir(tmp_path: Path) -> tuple[Path, dict[str, np.ndarray]]:
+    gts = {"00": _drive(120, 5), "01": _drive(90, 6)}
+    for seq, poses in gts.items():
+        write_kitti_poses(tmp_path / "gt" / f"{seq}.txt", poses)
+    return tmp_path / "gt", gts
+
+
+def test_a_method_missing_a_sequence_is_an_error_unless_left_out(tmp_path: Path, capsys) -> None:
+    gt_dir, gts = _gt_dir(tmp_path)
+    write_kitti_poses(tmp_path / "m" / "00.txt", _perturb(gts["00"], 1))
+    out = tmp_path / "out"
+    argv = ["--gt", str(gt_dir), "--pred", f"m={tmp_path / 'm'}", "--out", str(out)]
+    _assert_one_line_error(
+        capsys, argv, f"{tmp_path / 'm' / '01.txt'}:1",
+        f"method 'm' has no poses for sequence 01 (ground truth {gt_dir / '01.txt'})",
+    )  # fmt: skip
+    assert not out.exists()  # nothing written
+    code, stdout, err = _run(capsys, *argv, "--seqs", "00")
+    assert code == 0 and err == "" and "Sequence 00 (120 poses)" in stdout
+    assert (out / "table_00.md").is_file() and not (out / "table_01.md").exists()
+
+
+def test_directory_inputs_name_the_file_and_line(tmp_path: Path, capsys) -> None:
+    gt_dir, gts = _gt_dir(tmp_path)
+    m = tmp_path / "m"
+    write_kitti_poses(m / "00.txt", _perturb(gts["00"], 1))
+    write_kitti_poses(m / "01.txt", _perturb(gts["01"], 2)[:80])
+    argv = ["--gt", str(gt_dir), "--pred", f"m={m}"]
+    _assert_one_line_error(capsys, argv, f"{m / '01.txt'}:81", f"{gt_dir / '01.txt'} has 90")
+    lines = (m / "00.txt").read_text().splitlines()
+    lines[6] = " ".join([*lines[6].split()[:11], "inf"])
+    (m / "00.txt").write_text("\n".join(lines) + "\n")
+    _assert_one_line_error(capsys, argv, f"{m / '00.txt'}:7", "non-finite number: 'inf'")
+
+
+def test_arguments_that_do_not_fit_together(tmp_path: Path, capsys) -> None:
+    gt_dir, gts = _gt_dir(tmp_path)
+    one = tmp_path / "one.txt"
+    write_kitti_poses(one, gts["00"])
+    code, out, err = _run(capsys, "--gt", str(gt_dir), "--pred", f"x={one}")
+    assert code == 2 and out == "" and err.count("\n") == 1
+    assert err.startswith(f"error: --pred x={one}: a file holds one sequence but 2 are evaluated")
+    # A single sequence of a directory can take a file.
+    code, out, _ = _run(capsys, "--gt", str(gt_dir), "--pred", f"x={one}", "--seqs", "00")
+    assert code == 0 and "| x |" in out
+    code, _, err = _run(capsys, "--gt", str(gt_dir), "--pred", f"x={one}", "--pred", f"x={one}")
+    assert code == 2 and "two methods are named 'x'" in err
+    # Results are never written into the data.
+    code, _, err = _run(capsys, "--gt", str(gt_dir), "--pred", str(gt_dir), "--out",
+                        str(gt_dir / "results"))  # fmt: skip
+    assert code == 2 and err.startswith(f"error: --out {gt_dir / 'results'}: inside the input")
+    assert not (gt_dir / "results").exists()
+    assert _run(capsys, "--gt", str(one), "--pred", str(one), "--n-to-align", "0")[0] == 2
+    assert _run(capsys, "--gt", str(one), "--pred", str(one), "--align", "7dof")[0] == 2

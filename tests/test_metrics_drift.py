@@ -4,17 +4,22 @@ from __future__ import annotations
 
 import math
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from mfg_lightning.metrics import KittiDrift, kitti_drift, kitti_segment_errors
+from conftest import SHARED
+from mfg_lightning.metrics import (
+    KittiDrift,
+    kitti_drift,
+    kitti_drift_by_length,
+    kitti_segment_errors,
+)
 from mfg_lightning.pose_io import read_kitti_poses
 
-KITTI_POSES = Path(__file__).parents[2] / "shared" / "data" / "kitti_odometry" / "poses"
+KITTI_POSES = SHARED / "data" / "kitti_odometry" / "poses"
 LENGTHS = (100, 200, 300, 400, 500, 600, 700, 800)
 
 
@@ -189,3 +194,69 @@ def test_paths_shorter_than_100_m_have_undefined_drift() -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # torchmetrics warns about compute before update
         assert all(math.isnan(v.item()) for v in metric.compute().values())
+
+
+def _in_another_similarity_frame(poses: np.ndarray, scale: float) -> np.ndarray:
+    """``poses`` scaled and moved into another world frame, as a monocular method's output."""
+    R = Rotation.from_rotvec([0.3, -1.2, 0.2]).as_matrix()
+    out = poses.copy()
+    out[:, :3, :3] = R @ poses[:, :3, :3]
+    out[:, :3, 3] = scale * poses[:, :3, 3] @ R.T + np.array([5.0, -2.0, 30.0])
+    return out
+
+
+def _scale_aligned_loop(gt: np.ndarray, est: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """kitti-odom-eval's ``--align scale`` pose by pose: both relative to their first frame,
+    estimated positions times Σ g·p / Σ p·p."""
+    g = np.stack([np.linalg.inv(gt[0]) @ gt[k] for k in range(len(gt))])
+    p = np.stack([np.linalg.inv(est[0]) @ est[k] for k in range(len(est))])
+    num = sum(float(g[k][:3, 3] @ p[k][:3, 3]) for k in range(len(g)))
+    den = sum(float(p[k][:3, 3] @ p[k][:3, 3]) for k in range(len(p)))
+    for k in range(len(p)):
+        p[k][:3, 3] *= num / den
+    return g, p
+
+
+def test_aligned_drift_matches_the_devkit_loop() -> None:
+    gt = _drive(700, 1)
+    est = _in_another_similarity_frame(_perturbed_estimate(gt, 2), 0.4)
+    P, Q = torch.from_numpy(est), torch.from_numpy(gt)
+    # sim3: evo's Umeyama alignment (an independent implementation), then the devkit's loop.
+    pytest.importorskip("evo")
+    from evo.core.trajectory import PosePath3D
+
+    evo_est = PosePath3D(poses_se3=list(est))
+    evo_est.align(PosePath3D(poses_se3=list(gt)), correct_scale=True)
+    expected = {
+        "sim3": (gt, np.stack(evo_est.poses_se3)),
+        "scale": _scale_aligned_loop(gt, est),
+    }
+    for mode, (loop_gt, loop_est) in expected.items():
+        t_loop, r_loop = _devkit_loop(loop_gt, loop_est)
+        t_err, r_err, _ = kitti_segment_errors(P, Q, align=mode)
+        assert len(t_loop) == t_err.numel() > 100
+        np.testing.assert_allclose(t_err.numpy(), t_loop, rtol=1e-8, atol=1e-12)
+        np.testing.assert_allclose(r_err.numpy(), r_loop, rtol=1e-6, atol=1e-10)
+        metric = KittiDrift(align=mode)
+        metric.update(P, Q)
+        assert metric.compute()["t_err"].item() == pytest.approx(100 * np.mean(t_loop), rel=1e-8)
+    # Unaligned, the 0.4 scale dominates; a rigid alignment changes no segment.
+    assert _drift(est, gt)["t_err"] > 50 > kitti_drift(P, Q, align="sim3")["t_err"].item()
+    for key, value in kitti_drift(P, Q, align="se3").items():
+        assert value.item() == pytest.approx(_drift(est, gt)[key], rel=1e-9)
+
+
+def test_drift_by_length_is_the_mean_of_each_length() -> None:
+    gt = _drive(900, 3)
+    est = _perturbed_estimate(gt, 4)
+    t_loop, r_loop = _devkit_loop(gt, est)
+    t_err, r_err, length = kitti_segment_errors(torch.from_numpy(est), torch.from_numpy(gt))
+    by_length = kitti_drift_by_length(t_err, r_err, length)
+    assert list(by_length) == [100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0]
+    lengths = length.tolist()
+    for value, result in by_length.items():
+        t = [e for e, s in zip(t_loop, lengths, strict=True) if s == value]
+        r = [e for e, s in zip(r_loop, lengths, strict=True) if s == value]
+        assert int(result["count"]) == len(t) > 0
+        assert result["t_err"].item() == pytest.approx(100 * np.mean(t), rel=1e-9)
+        assert result["r_err"].item() == pytest.approx(np.mean(r) * 18000 / math.pi, rel=1e-6)

@@ -9,6 +9,8 @@
 * ``sequences.md`` / ``sequences.csv``: one row per test sequence;
 * ``poses/kitti/<seq>.txt`` and ``poses/tum/<seq>.txt`` (predicted) with ``<seq>_gt.txt`` beside
   them, readable unchanged by ``evo`` and KITTI's devkit;
+* ``trajectories/{trajectory,drift,error}_<seq>.png`` (x–z over the ground truth, drift per segment
+  length, error along the trajectory; :mod:`mfg_lightning.plots`), also TensorBoard images;
 * with ``eval.top_k_sweep=[...]``: ``top_k.md`` / ``top_k.csv`` (the paper's Table 1 layout: one
   row per k, ATE mean ± std per sequence) and ``top_k.png`` (error against k %, supplementary
   Figure 4).
@@ -210,6 +212,14 @@ def evaluate_egomotion(cfg: DictConfig) -> dict[str, Any]:
     sequences = sorted(evaluation.sequences) if evaluation else []
     if cfg.eval.write_poses and evaluation is not None and sequences:
         write_trajectories(evaluation, out, cfg.eval.frame_rate)
+    if evaluation is not None and sequences:
+        from mfg_lightning.plots import write_trajectory_figures
+
+        write_trajectory_figures(
+            {s: (evaluation.sequences[s].pred, evaluation.sequences[s].gt) for s in sequences},
+            out / "trajectories",
+            trainer.logger.experiment if trainer.logger is not None else None,
+        )
     md, csv_text = sequence_table(final, sequences)
     atomic_write_text(out / "sequences.md", md)
     atomic_write_text(out / "sequences.csv", csv_text)

@@ -27,9 +27,9 @@ from typing import Any
 import torch
 from torch import Tensor
 from torchmetrics import Metric
-from torchmetrics.utilities import dim_zero_cat
 
 from mfg_lightning import geometry
+from mfg_lightning.metrics.stats import cat_state, summary
 from mfg_lightning.trajectories import evaluation_poses
 
 __all__ = ["SnippetATE", "snippet_ate", "snippet_ate_errors"]
@@ -74,14 +74,9 @@ def snippet_ate_errors(pred: Tensor, target: Tensor) -> tuple[Tensor, Tensor]:
 
 def _summary(ate: Tensor, ate_rmse: Tensor) -> dict[str, Tensor]:
     """Mean and population std over snippets; NaN when there are none."""
-    if ate.numel() == 0:
-        nan = torch.tensor(float("nan"), dtype=torch.float64, device=ate.device)
-        return {"ate": nan, "ate_std": nan.clone(), "ate_rmse": nan.clone()}
-    return {
-        "ate": ate.mean(),
-        "ate_std": ate.std(correction=0),
-        "ate_rmse": ate_rmse.mean(),
-    }
+    stats = summary(ate)
+    # ate_rmse is the mean of the per-snippet RMSEs (not the RMSE of ate): Table 1's layout.
+    return {"ate": stats["mean"], "ate_std": stats["std"], "ate_rmse": summary(ate_rmse)["mean"]}
 
 
 def snippet_ate(pred: Tensor, target: Tensor) -> dict[str, Tensor]:
@@ -144,11 +139,4 @@ class SnippetATE(Metric):
 
     def compute(self) -> dict[str, Tensor]:
         """``{"ate", "ate_std", "ate_rmse"}`` over every snippet seen (NaN if none)."""
-        return _summary(_cat(self.ate_values), _cat(self.rmse_values))
-
-
-def _cat(state: list[Tensor] | Tensor) -> Tensor:
-    """A concatenated list state (a tensor already after a DDP sync); empty float64 if none."""
-    if isinstance(state, list) and not state:
-        return torch.zeros(0, dtype=torch.float64)
-    return dim_zero_cat(state)
+        return _summary(cat_state(self.ate_values), cat_state(self.rmse_values))

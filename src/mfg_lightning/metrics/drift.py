@@ -17,9 +17,16 @@ Definition (``../shared/docs/protocols.md``, "KITTI odometry drift", as computed
 Differences from the C++ devkit, on purpose: float64 instead of float32 throughout (the devkit's
 float32 path length can move a segment's last frame by one at exact ties), and rotation blocks
 projected onto SO(3) first (:func:`mfg_lightning.trajectories.evaluation_poses`). Neither changes a
-leaderboard-scale number. No scale alignment is done (the devkit does none): a monocular method's
-poses must be in metres. With no complete segment (a path shorter than 100 m) the drift is
+leaderboard-scale number. With no complete segment (a path shorter than 100 m) the drift is
 undefined and NaN is returned.
+
+Alignment (``align``, as kitti-odom-eval's ``--align``): the devkit aligns nothing, so by default
+(``none``) a monocular method's poses must be in metres. With ``se3``, ``sim3`` or ``scale`` the
+estimate is first aligned to the ground truth (:mod:`mfg_lightning.metrics.alignment`, optionally
+fitted on the first ``n_to_align`` poses), then the segments are scored as above. Segment errors
+compare relative poses, so a rigid alignment leaves them unchanged (``se3`` equals ``none``);
+the scale of ``sim3`` and ``scale`` multiplies every estimated relative translation.
+:func:`kitti_drift_by_length` gives the devkit's per-length averages (its ``tl``/``rl`` plots).
 """
 
 from __future__ import annotations
@@ -33,9 +40,8 @@ from torch import Tensor
 from torchmetrics import Metric
 
 from mfg_lightning import geometry
-
-# One helper for list states shared by the trajectory metrics.
-from mfg_lightning.metrics.ate import _cat
+from mfg_lightning.metrics.alignment import align_trajectory, check_align_options
+from mfg_lightning.metrics.stats import cat_state
 from mfg_lightning.trajectories import evaluation_poses
 
 __all__ = [
@@ -43,6 +49,7 @@ __all__ = [
     "KITTI_STEP",
     "KittiDrift",
     "kitti_drift",
+    "kitti_drift_by_length",
     "kitti_drift_from_segments",
     "kitti_segment_errors",
 ]
@@ -58,6 +65,8 @@ def kitti_segment_errors(
     target: Tensor,
     lengths: Sequence[float] = KITTI_SEGMENT_LENGTHS,
     step: int = KITTI_STEP,
+    align: str = "none",
+    n_to_align: int | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Per-segment errors of one sequence, as the devkit's ``calcSequenceErrors``.
 
@@ -66,6 +75,9 @@ def kitti_segment_errors(
         target: ``(N, 4, 4)`` ground-truth camera-to-world poses (metres), in frame order.
         lengths: segment lengths of ground-truth path in metres.
         step: frames between two segment starts.
+        align: alignment of the estimate first (module docstring): ``"none"`` (the devkit),
+            ``"se3"``, ``"sim3"`` or ``"scale"``.
+        n_to_align: fit the alignment on the first N poses (``None``: all).
 
     Returns:
         ``(t_err, r_err, length)``, ``(S,)`` float64 each, for the S complete segments ordered by
@@ -79,8 +91,13 @@ def kitti_segment_errors(
         )
     if step < 1:
         raise ValueError(f"step must be >= 1, got {step}")
-    P = evaluation_poses(pred)
-    Q = evaluation_poses(target).to(P.device)
+    check_align_options(align, n_to_align)
+    if align == "none":
+        P = evaluation_poses(pred)
+        Q = evaluation_poses(target).to(P.device)
+    else:
+        aligned = align_trajectory(pred, target, align, n_to_align)
+        P, Q = aligned.pred, aligned.target
     n = Q.shape[0]
     seg = torch.as_tensor(lengths, dtype=torch.float64, device=Q.device)
     steps = (Q[1:, :3, 3] - Q[:-1, :3, 3]).norm(dim=-1)
@@ -117,23 +134,50 @@ def kitti_drift_from_segments(t_err: Tensor, r_err: Tensor) -> dict[str, Tensor]
     return {"t_err": t_err.mean() * 100.0, "r_err": r_err.mean() * (180.0 / math.pi) * 100.0}
 
 
+def kitti_drift_by_length(
+    t_err: Tensor, r_err: Tensor, length: Tensor
+) -> dict[float, dict[str, Tensor]]:
+    """Mean drift per segment length (the devkit's per-length plots, kitti-odom-eval's
+    ``compute_segment_error``).
+
+    Args:
+        t_err, r_err, length: ``(S,)`` as returned by :func:`kitti_segment_errors` (of one or
+            several sequences).
+
+    Returns:
+        ``{length (m): {"t_err" (%), "r_err" (deg/100 m), "count"}}`` for every length that has
+        at least one segment, in increasing length.
+    """
+    out: dict[float, dict[str, Tensor]] = {}
+    for value in torch.unique(length).tolist():
+        keep = length == value
+        out[float(value)] = {
+            **kitti_drift_from_segments(t_err[keep], r_err[keep]),
+            "count": keep.sum(),
+        }
+    return out
+
+
 def kitti_drift(
     pred: Tensor,
     target: Tensor,
     lengths: Sequence[float] = KITTI_SEGMENT_LENGTHS,
     step: int = KITTI_STEP,
+    align: str = "none",
+    n_to_align: int | None = None,
 ) -> dict[str, Tensor]:
     """KITTI drift of one sequence: the functional twin of :class:`KittiDrift`.
 
     Args:
         pred, target: ``(N, 4, 4)`` estimated and ground-truth camera-to-world poses (metres).
         lengths, step: the devkit's segment lengths (m) and start spacing (frames).
+        align, n_to_align: alignment of the estimate first (:func:`kitti_segment_errors`).
 
     Returns:
         ``{"t_err", "r_err"}``: float64 scalars, the mean translational error in % of the distance
         travelled and the mean rotational error in degrees per 100 m; NaN without segments.
     """
-    t_err, r_err, _ = kitti_segment_errors(pred, target, lengths, step)
+    t_err, r_err, _ = kitti_segment_errors(pred, target, lengths, step, align, n_to_align)
     return kitti_drift_from_segments(t_err, r_err)
 
 
@@ -146,6 +190,7 @@ class KittiDrift(Metric):
 
     Args:
         lengths, step: the devkit's segment lengths (m) and start spacing (frames).
+        align, n_to_align: alignment of each sequence's estimate first (module docstring).
         kwargs: passed to :class:`torchmetrics.Metric`.
 
     ``compute()`` returns ``{"t_err", "r_err"}`` (% and deg/100 m; NaN without segments).
@@ -159,11 +204,16 @@ class KittiDrift(Metric):
         self,
         lengths: Sequence[float] = KITTI_SEGMENT_LENGTHS,
         step: int = KITTI_STEP,
+        align: str = "none",
+        n_to_align: int | None = None,
         **kwargs: Any,
     ) -> None:
         super().__init__(**kwargs)
+        check_align_options(align, n_to_align)
         self.lengths = tuple(float(x) for x in lengths)
         self.step = step
+        self.align = align
+        self.n_to_align = n_to_align
         self.add_state("t_values", default=[], dist_reduce_fx="cat")
         self.add_state("r_values", default=[], dist_reduce_fx="cat")
 
@@ -174,10 +224,12 @@ class KittiDrift(Metric):
             pred: ``(N, 4, 4)`` estimated camera-to-world poses (metres), in frame order.
             target: ``(N, 4, 4)`` ground-truth camera-to-world poses (metres), in frame order.
         """
-        t_err, r_err, _ = kitti_segment_errors(pred, target, self.lengths, self.step)
+        t_err, r_err, _ = kitti_segment_errors(
+            pred, target, self.lengths, self.step, self.align, self.n_to_align
+        )
         self.t_values.append(t_err)
         self.r_values.append(r_err)
 
     def compute(self) -> dict[str, Tensor]:
         """``{"t_err", "r_err"}`` over every segment seen."""
-        return kitti_drift_from_segments(_cat(self.t_values), _cat(self.r_values))
+        return kitti_drift_from_segments(cat_state(self.t_values), cat_state(self.r_values))

@@ -19,14 +19,11 @@ from __future__ import annotations
 
 from typing import Any
 
-import torch
 from torch import Tensor
 from torchmetrics import Metric
 
 from mfg_lightning import geometry
-
-# One helper for list states shared by the trajectory metrics.
-from mfg_lightning.metrics.ate import _cat
+from mfg_lightning.metrics.stats import cat_state, summary
 from mfg_lightning.trajectories import evaluation_poses
 
 __all__ = ["RelativePoseError", "relative_pose_error", "relative_pose_errors"]
@@ -67,13 +64,10 @@ def _summary(trans: Tensor, rot: Tensor) -> dict[str, Tensor]:
     """Mean, population std and RMSE of each error; NaN when there are no pairs."""
     out: dict[str, Tensor] = {}
     for name, values in (("trans", trans), ("rot", rot)):
-        if values.numel() == 0:
-            nan = torch.tensor(float("nan"), dtype=torch.float64, device=values.device)
-            out.update({name: nan, f"{name}_std": nan.clone(), f"{name}_rmse": nan.clone()})
-            continue
-        out[name] = values.mean()
-        out[f"{name}_std"] = values.std(correction=0)
-        out[f"{name}_rmse"] = values.square().mean().sqrt()
+        stats = summary(values)
+        out.update(
+            {name: stats["mean"], f"{name}_std": stats["std"], f"{name}_rmse": stats["rmse"]}
+        )
     return out
 
 
@@ -132,4 +126,4 @@ class RelativePoseError(Metric):
 
     def compute(self) -> dict[str, Tensor]:
         """The six RPE statistics over every pair seen (NaN if none)."""
-        return _summary(_cat(self.trans_values), _cat(self.rot_values))
+        return _summary(cat_state(self.trans_values), cat_state(self.rot_values))
