@@ -53,11 +53,12 @@ def test_jobs_differing_only_in_seed_are_grouped(tmp_path: Path) -> None:
     root = tmp_path / "multirun"
     values = {("10", "0"): 0.1, ("10", "1"): 0.2, ("10", "2"): 0.4, ("100", "0"): 0.3,
               ("100", "1"): 0.5}  # fmt: skip
+    # (w_s=100, seed=2) has no metrics.json: a failed job
     for num, (w_s, seed) in enumerate([*values, ("100", "2")]):
-        metrics = _metrics(values[(w_s, seed)], 0.5, ate=values[(w_s, seed)] / 10) if (
-            w_s, seed) in values else None  # fmt: skip
-        _fake_job(root, str(num), ["hparams_search=seeds", f"model.loss.w_s={w_s}",
-                                   f"seed={seed}"], metrics, w_s=float(w_s))  # fmt: skip
+        trans = values.get((w_s, seed))
+        metrics = None if trans is None else _metrics(trans, 0.5, ate=trans / 10)
+        overrides = ["hparams_search=seeds", f"model.loss.w_s={w_s}", f"seed={seed}"]
+        _fake_job(root, str(num), overrides, metrics, w_s=float(w_s))
     report = write_report(root)
     assert report.swept == ["model.loss.w_s", "seed"]
     groups = report.seed_groups
@@ -67,8 +68,10 @@ def test_jobs_differing_only_in_seed_are_grouped(tmp_path: Path) -> None:
     assert (mean, n) == (pytest.approx(0.7 / 3), 3)
     assert std == pytest.approx(np.std([0.1, 0.2, 0.4], ddof=1))
     assert groups[1].seeds == ["0", "1"]  # the failed seed 2 is not counted
-    assert groups[1].stats("ate")[:2] == (pytest.approx(0.04), pytest.approx(np.std([.03, .05],
-                                                                                  ddof=1)))
+    assert groups[1].stats("ate")[:2] == (
+        pytest.approx(0.04),
+        pytest.approx(np.std([0.03, 0.05], ddof=1)),
+    )
     md = report.markdown
     assert "| `model.loss.w_s` | n | seeds | ATE (m) |" in md
     assert "| 100 | 2 of 3 | 0 1 |" in md
