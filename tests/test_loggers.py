@@ -135,3 +135,28 @@ def test_logger_configs_compose(option: str, names: list[str], tmp_path: Path) -
         assert cfg.logger.mlflow.tracking_uri == f"sqlite:///{tmp_path}/mlflow.db"
     if option == "wandb":
         assert cfg.logger.wandb.offline is True
+
+
+def test_a_wandb_run_left_open_by_a_failed_job_is_finished(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Lightning's WandbLogger reuses any open W&B run: a job of a multirun that failed must not
+    leave its run for the next job to log into."""
+    wandb = pytest.importorskip("wandb")
+    from mfg_lightning.runs import finish_stale_logger_runs
+
+    for name in ("DIR", "CACHE_DIR", "CONFIG_DIR", "DATA_DIR", "ARTIFACT_DIR"):
+        monkeypatch.setenv(f"WANDB_{name}", str(tmp_path / name.lower()))
+    monkeypatch.setenv("WANDB_SILENT", "true")
+    run = wandb.init(mode="offline", dir=str(tmp_path), project="stale")
+    assert wandb.run is not None
+    finish_stale_logger_runs()
+    assert wandb.run is None
+    summary = subprocess.run(
+        [sys.executable, "-m", "wandb", "leet", "inspect", "--summary", "--json",
+         str(Path(run.dir).parent)],
+        capture_output=True, text=True, timeout=120, check=True,
+        env={"PATH": "/usr/bin:/bin", "HOME": str(tmp_path), "WANDB_MODE": "offline"},
+    )  # fmt: skip
+    assert json.loads(summary.stdout)["exit_code"] == 1  # recorded as failed
+    finish_stale_logger_runs()  # nothing open: nothing to do
