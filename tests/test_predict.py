@@ -131,18 +131,21 @@ def test_predict_with_depth_writes_object_masks(ckpt: Path, tmp_path: Path) -> N
 
 
 @pytest.mark.slow
-def test_predict_errors_are_one_line(ckpt: Path, tmp_path: Path) -> None:
-    proc = run_module("mfg_lightning.predict", f"ckpt_path={ckpt}", "dataset=image_folder",
-                      f"dataset.data_root={tmp_path}", cwd=tmp_path, check=False)  # fmt: skip
-    assert proc.returncode == 2 and "error: dataset.fx, dataset.fy" in proc.stderr
+def test_an_input_size_other_than_the_networks_is_one_error_line(
+    ckpt: Path, tmp_path: Path
+) -> None:
     root = _kitti_without_poses(tmp_path / "kitti", ("11",), n_frames=4)
+    before = tree_snapshot(root)
     proc = run_module("mfg_lightning.predict", f"ckpt_path={ckpt}", "dataset=kitti",
                       f"dataset.data_root={root}", "dataset.test_sequences=[11]",
-                      cwd=tmp_path, check=False)  # fmt: skip
+                      f"hydra.run.dir={tmp_path / 'pred'}", cwd=tmp_path, check=False)  # fmt: skip
     assert proc.returncode == 2
-    assert f"error: dataset.height×width is 48×128 but the network of {ckpt} takes 32×64" in (
-        proc.stderr
+    (line,) = [ln for ln in proc.stderr.splitlines() if ln.startswith("error:")]
+    assert line == (
+        f"error: dataset.height×width is 48×128 but the network of {ckpt} takes 32×64: pass "
+        "dataset.height=32 dataset.width=64"
     )
+    assert not (tmp_path / "pred" / "poses").exists() and tree_snapshot(root) == before
 
 
 # --------------------------------------------------------------------------------------------
