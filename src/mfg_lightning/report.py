@@ -16,6 +16,11 @@ The report, written into ``--out`` (default ``<multirun dir>/report/``), each fi
 * ``error_vs_top_k.png``, ``error_vs_w_s.png``, ``active_fraction_vs_w_s.png``: each drawn when its
   x variable takes at least two values among the finished jobs, one line per value of the other
   swept parameters.
+* when ``seed`` is swept (``hparams_search=seeds``, or ``seed=0,1,2`` beside other sweeps):
+  ``seeds.csv`` and a section of ``report.md`` with one row per group of jobs that differ only in
+  ``seed``: the number of finished seeds ``n`` and, for every metric, the mean and the sample
+  standard deviation (ddof = 1) over those seeds. This ± is the run-to-run spread; the ± of a
+  single job's ATE is over its snippets.
 
 Main metrics (units as logged by the module): ``ate`` ± ``ate_std`` (m, ATE over 5-frame snippets,
 ``../shared/docs/protocols.md``), ``rpe_trans`` (m) and ``rpe_rot`` (rad), ``trans_err`` (m) and
@@ -37,6 +42,7 @@ import json
 import math
 import os
 import re
+import statistics
 import sys
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -145,6 +151,8 @@ class Report:
     markdown: str
     plots: dict[str, Path]
     skipped_plots: dict[str, str]
+    #: groups of jobs that differ only in ``seed`` (empty when no seed is swept)
+    seed_groups: list[SeedGroup] = field(default_factory=list)
 
     @property
     def n_failed(self) -> int:
@@ -374,13 +382,23 @@ def table_rows(
     return header, rows
 
 
-def to_csv(jobs: Sequence[JobRecord], swept: Sequence[str]) -> str:
-    header, rows = table_rows(jobs, swept)
+def _csv_text(header: Sequence[Any], rows: Iterable[Sequence[Any]]) -> str:
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
     writer.writerow(header)
     writer.writerows(rows)
     return buf.getvalue()
+
+
+def _md_table(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> list[str]:
+    """The lines of a Markdown table (cells escaped)."""
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(_md_cell(str(c)) for c in row) + " |" for row in rows]
+    return lines
+
+
+def to_csv(jobs: Sequence[JobRecord], swept: Sequence[str]) -> str:
+    return _csv_text(*table_rows(jobs, swept))
 
 
 def to_markdown(
@@ -407,7 +425,7 @@ def to_markdown(
     common = _common_overrides(jobs, swept)
     if common:
         lines += ["Common overrides: " + " ".join(f"`{o}`" for o in common), ""]
-    lines += ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    rows = []
     for j in jobs:
         cells = [j.name, "ok" if j.ok else "**failed**", *[j.overrides.get(k, "") for k in swept]]
         if has["ate"]:
@@ -425,7 +443,8 @@ def to_markdown(
             "–" if active is None else f"{100 * active:.1f}",
             "–" if seconds is None else f"{seconds:.1f}",
         ]
-        lines.append("| " + " | ".join(_md_cell(str(c)) for c in cells) + " |")
+        rows.append(cells)
+    lines += _md_table(header, rows)
     failed = [j for j in jobs if not j.ok]
     if failed:
         lines += ["", f"Failed jobs ({len(failed)} of {len(jobs)}):", ""]
@@ -464,6 +483,122 @@ def _optuna_note(multirun_dir: Path) -> list[str]:
         return []
     text = ", ".join(f"`{k}={v}`" for k, v in params.items())
     return [f"Optuna best: {text} → {value}"]
+
+
+# --------------------------------------------------------------------------------------------
+# Across seeds
+# --------------------------------------------------------------------------------------------
+
+#: the override that names a job's seed
+SEED_KEY = "seed"
+#: the columns of the seed table in ``report.md``: report column, header, scale, digits
+_SEED_COLUMNS = (
+    ("ate", "ATE (m)", 1.0, 4),
+    ("rpe_trans", "RPE trans (m)", 1.0, 4),
+    ("rpe_rot", "RPE rot (rad)", 1.0, 5),
+    ("trans_err", "trans err (m)", 1.0, 4),
+    ("rot_err", "rot err (rad)", 1.0, 5),
+    ("active_fraction", "active units (%)", 100.0, 2),
+)
+
+
+@dataclass
+class SeedGroup:
+    """Jobs of a multirun whose overrides are the same except ``seed``.
+
+    Attributes:
+        overrides: the overrides the jobs share, ``key → value`` (``seed`` left out).
+        jobs: every job of the group, finished or not, in Hydra's order.
+    """
+
+    overrides: dict[str, str]
+    jobs: list[JobRecord]
+
+    @property
+    def finished(self) -> list[JobRecord]:
+        return [j for j in self.jobs if j.ok]
+
+    @property
+    def seeds(self) -> list[str]:
+        """The seeds of the finished jobs, as their overrides write them."""
+        return [j.overrides.get(SEED_KEY, "") for j in self.finished]
+
+    def stats(self, key: str) -> tuple[float | None, float | None, int]:
+        """``(mean, std, n)`` of a metric (report column or raw ``metrics.json`` key) over the
+        finished seeds that have it: the sample standard deviation (ddof = 1), None below two
+        values, and ``n`` the number of values."""
+        if key == "train_seconds":
+            found = [_finite(j.extra.get(key)) for j in self.finished]
+        else:
+            found = [j.metric(key) for j in self.finished]
+        values = [v for v in found if v is not None]
+        mean = statistics.fmean(values) if values else None
+        std = statistics.stdev(values) if len(values) >= 2 else None
+        return mean, std, len(values)
+
+
+def seed_groups(jobs: Sequence[JobRecord], swept: Sequence[str]) -> list[SeedGroup]:
+    """Group the jobs that differ only in ``seed``, in the order of their first job.
+
+    Empty when ``seed`` is not swept (all jobs share one seed, or none is given).
+    """
+    if SEED_KEY not in swept or not any(SEED_KEY in j.overrides for j in jobs):
+        return []
+    groups: dict[tuple[tuple[str, str], ...], SeedGroup] = {}
+    for j in jobs:
+        shared = {k: v for k, v in j.overrides.items() if k != SEED_KEY}
+        key = tuple(sorted(shared.items()))
+        groups.setdefault(key, SeedGroup(shared, [])).jobs.append(j)
+    return list(groups.values())
+
+
+def _pm_text(mean: float | None, std: float | None, scale: float = 1.0, digits: int = 4) -> str:
+    if mean is None:
+        return "–"
+    spread = "–" if std is None else f"{scale * std:.{digits}f}"
+    return f"{scale * mean:.{digits}f} ± {spread}"
+
+
+def seeds_markdown(groups: Sequence[SeedGroup], swept: Sequence[str]) -> list[str]:
+    """The Markdown section of the seed table (no lines without groups)."""
+    if not groups:
+        return []
+    keys = [k for k in swept if k != SEED_KEY]
+    columns = [c for c in _SEED_COLUMNS if any(g.stats(c[0])[2] for g in groups)]
+    header = [*[f"`{k}`" for k in keys], "n", "seeds", *[h for _, h, _, _ in columns]]
+    rows = []
+    for g in groups:
+        cells = [g.overrides.get(k, "") for k in keys]
+        cells += [f"{len(g.finished)} of {len(g.jobs)}", " ".join(g.seeds) or "–"]
+        cells += [_pm_text(*g.stats(c)[:2], scale, digits) for c, _, scale, digits in columns]
+        rows.append(cells)
+    return [
+        "## Across seeds",
+        "",
+        "Mean ± standard deviation (ddof = 1) over the finished seeds of each group of jobs that "
+        "differ only in `seed`; n counts the finished seeds.",
+        "",
+        *_md_table(header, rows),
+    ]
+
+
+def seeds_csv(groups: Sequence[SeedGroup], swept: Sequence[str]) -> str:
+    """``seeds.csv``: per group, the shared swept values, n, the seeds, then the mean and the
+    std over seeds of the main metrics, ``train_seconds`` and every ``metrics.json`` key."""
+    keys = [k for k in swept if k != SEED_KEY]
+    raw = sorted({k for g in groups for j in g.finished for k in j.metrics})
+    metrics = [*MAIN_METRICS, "train_seconds", *raw]
+    header = [*keys, "n", "jobs", "seeds"]
+    header += [f"{m} {stat}" for m in metrics for stat in ("mean", "std")]
+    rows = []
+    for g in groups:
+        row: list[Any] = [g.overrides.get(k, "") for k in keys]
+        row += [len(g.finished), len(g.jobs), " ".join(g.seeds)]
+        for m in metrics:
+            mean, std, _ = g.stats(m)
+            row += ["" if mean is None else mean, "" if std is None else std]
+        rows.append(row)
+    return _csv_text(header, rows)
 
 
 # --------------------------------------------------------------------------------------------
@@ -627,13 +762,19 @@ def write_report(
     notes += [f"![{name}]({name})" for name in images]
     n_ok = sum(j.ok for j in jobs)
     title = f"Sweep report: {root.resolve().name} ({n_ok} of {len(jobs)} jobs finished)"
+    groups = seed_groups(jobs, swept)
+    seed_lines = seeds_markdown(groups, swept)
+    notes = [*seed_lines, *([""] if seed_lines else []), *notes]
     markdown = to_markdown(jobs, swept, title=title, notes=notes)
     csv_path, md_path = out / "report.csv", out / "report.md"
     pngs = {name: figure_png(fig) for name, fig in images.items()}
+    seeds_text = seeds_csv(groups, swept) if groups else None
     atomic_write_text(csv_path, to_csv(jobs, swept))
     atomic_write_text(md_path, markdown)
+    if seeds_text is not None:
+        atomic_write_text(out / "seeds.csv", seeds_text)
     plots = {name: atomic_write_bytes(out / name, data) for name, data in pngs.items()}
-    return Report(root, out, jobs, swept, csv_path, md_path, markdown, plots, skipped)
+    return Report(root, out, jobs, swept, csv_path, md_path, markdown, plots, skipped, groups)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -656,6 +797,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(report.markdown)
     print(f"report: wrote {report.csv_path}, {report.markdown_path}", end="")
     print(f" and {len(report.plots)} plot(s) in {report.out_dir}")
+    if report.seed_groups:
+        print(f"report: {len(report.seed_groups)} group(s) across seeds in seeds.csv")
     if report.n_failed:
         print(
             f"report: {report.n_failed} of {len(report.jobs)} jobs failed (reasons in the table)",

@@ -36,6 +36,54 @@ def build_model(cfg: DictConfig) -> L.LightningModule:
     return model
 
 
+def log_hyperparameters(loggers: list[Any], hparams: dict[str, Any]) -> None:
+    """The run's settings (``train.flat_hparams``) to every logger when the run starts, so that
+    a run that crashes still shows what it was. TensorBoard is left for
+    :func:`log_final_metrics`: its HParams view pairs the settings with the final metrics in
+    one record."""
+    from lightning.pytorch.loggers import TensorBoardLogger
+
+    for lg in loggers:
+        if not isinstance(lg, TensorBoardLogger):
+            lg.log_hyperparams(hparams)
+
+
+def log_final_metrics(
+    loggers: list[Any], hparams: dict[str, Any], metrics: dict[str, Any], step: int
+) -> None:
+    """The run's final metrics (the last validation's ``val/*`` and the test's ``test/*``) to
+    every logger, in the place each one shows a run's result, then close the W&B run.
+
+    * TensorBoard: ``log_hyperparams(hparams, metrics)``, the HParams view's settings and
+      results of the run;
+    * CSV, MLflow, W&B and any other Lightning logger: ``log_metrics`` at the last step (the last
+      row of CSV's ``metrics.csv``; MLflow's latest value of each metric; W&B's run summary).
+    """
+    from lightning.pytorch.loggers import TensorBoardLogger, WandbLogger
+
+    values = {k: float(v) for k, v in metrics.items()}
+    for lg in loggers:
+        if isinstance(lg, TensorBoardLogger):
+            lg.log_hyperparams(hparams, metrics=values)
+        else:
+            lg.log_metrics(values, step=step)
+        lg.save()
+        if isinstance(lg, WandbLogger):
+            # Lightning never finishes a W&B run; the next job of a multirun would log into it.
+            lg.experiment.finish()
+
+
+def finish_stale_logger_runs() -> None:
+    """End a W&B run that an earlier job of this process left open by failing, so that this
+    job's logger starts its own run (Lightning reuses any open one)."""
+    import sys
+
+    wandb = sys.modules.get("wandb")  # imported only by a W&B logger: no import otherwise
+    if wandb is not None and getattr(wandb, "run", None) is not None:
+        log.warning("finishing the W&B run %s left open by a failed job", wandb.run.id)
+        wandb.finish(exit_code=1)
+
+
 def to_float(value: Any) -> float | None:
     """A metric value as a JSON-safe float (None for NaN or infinity)."""
     try:

@@ -29,7 +29,6 @@ import hydra
 import lightning as L
 from hydra.utils import instantiate
 from lightning.fabric.plugins.io.checkpoint_io import CheckpointIO
-from lightning.pytorch.loggers import TensorBoardLogger
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
@@ -44,7 +43,10 @@ from mfg_lightning.runs import (
     atomic_write_text,
     build_model,
     exit_on_user_error,
+    finish_stale_logger_runs,
     instantiate_list,
+    log_final_metrics,
+    log_hyperparameters,
     run_info,
     write_metrics,
 )
@@ -138,9 +140,11 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     callbacks = instantiate_list(cfg.get("callbacks"))
     # LastCheckpoint saves after ModelCheckpoint has recorded a validation's score (stable sort).
     callbacks.sort(key=lambda cb: isinstance(cb, LastCheckpoint))
+    finish_stale_logger_runs()
     loggers = instantiate_list(cfg.get("logger"))
     trainer = build_trainer(cfg, callbacks, loggers)
     hparams = flat_hparams(cfg)
+    log_hyperparameters(loggers, hparams)
 
     start = time.perf_counter()
     with exit_on_sigterm(trainer):
@@ -158,21 +162,18 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         with exit_on_sigterm(trainer):
             trainer.test(model, datamodule=datamodule, ckpt_path=best, weights_only=True)
         metrics.update({k: v for k, v in trainer.callback_metrics.items() if k.startswith("test/")})
-        for lg in loggers:
-            if isinstance(lg, TensorBoardLogger):
-                # TensorBoard's HParams view: this run's settings beside its final metrics.
-                lg.log_hyperparams(hparams, metrics={k: float(v) for k, v in metrics.items()})
-        if trainer.is_global_zero:
-            write_metrics(
-                output_dir / "metrics.json",
-                metrics,
-                {
-                    "train_seconds": train_seconds,
-                    "global_step": trainer.global_step,
-                    "best_checkpoint": best,
-                    **run_info(),
-                },
-            )
+    log_final_metrics(loggers, hparams, metrics, trainer.global_step)
+    if cfg.get("test") and trainer.is_global_zero:
+        write_metrics(
+            output_dir / "metrics.json",
+            metrics,
+            {
+                "train_seconds": train_seconds,
+                "global_step": trainer.global_step,
+                "best_checkpoint": best,
+                **run_info(),
+            },
+        )
     return {k: float(v) for k, v in metrics.items()}
 
 

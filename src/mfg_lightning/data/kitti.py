@@ -41,6 +41,11 @@ Flow, one of:
 Poses: ``sample['pose'] = T_world_cam(src)^-1 · T_world_cam(tgt)`` (camera at the target in the
 camera at the source), from :func:`mfg_lightning.geometry.relative_pose`. Intrinsics come from
 ``P2`` and are scaled to the input size.
+
+Sequences without ground truth (KITTI ships ``poses/`` for 00–10 only): the ``predict`` split
+(:mod:`mfg_lightning.predict`) holds the test sequences, every pair ``t → t + 1``, and reads
+``poses/XX.txt`` only if it is there; its samples have no ``pose`` when it is not. Training,
+validation and test need the pose files and name the missing ones.
 """
 
 from __future__ import annotations
@@ -187,12 +192,15 @@ class _Sequence:
     image_dir: Path
     intrinsics: np.ndarray  # (4,) native pixels
     native_hw: tuple[int, int]
-    poses: np.ndarray  # (N, 4, 4) T_world_cam
+    poses: np.ndarray | None  # (N, 4, 4) T_world_cam; None: a sequence without ground truth
+    n_frames: int  # frames 0 … n_frames − 1 (those with a pose, when there are poses)
 
 
-def check_kitti_root(data_root: str | os.PathLike | None, sequences: Iterable[str]) -> Path:
+def check_kitti_root(
+    data_root: str | os.PathLike | None, sequences: Iterable[str], poses: bool = True
+) -> Path:
     """Return the resolved root, or raise ONE :class:`DataRootError` listing every missing
-    entry and showing the expected layout."""
+    entry and showing the expected layout. ``poses=False``: ``poses/`` is not required."""
     if data_root is None or str(data_root).strip() in ("", "???", "None", "null"):
         raise DataRootError(
             "dataset.data_root is not set: point it at the unpacked KITTI odometry download, "
@@ -213,18 +221,24 @@ def check_kitti_root(data_root: str | os.PathLike | None, sequences: Iterable[st
         for rel in (f"sequences/{seq}/image_2", f"sequences/{seq}/calib.txt"):
             if not (root / rel).exists():
                 missing.append(rel)
-    if not (root / "poses").is_dir():
+    if poses and not (root / "poses").is_dir():
         missing.append("poses/")
-    else:
+    elif poses:
         missing += [
             f"poses/{s}.txt" for s in sequences if not (root / "poses" / f"{s}.txt").exists()
         ]
     if missing:
         shown = "\n".join(f"  {root / m}" for m in missing[:20])
         more = f"\n  … and {len(missing) - 20} more" if len(missing) > 20 else ""
+        hint = ""
+        if all(m.startswith("poses/") for m in missing):
+            hint = (
+                "\nTraining and evaluation need ground-truth poses (KITTI has them for 00–10); "
+                "python -m mfg_lightning.predict runs on sequences without them."
+            )
         raise DataRootError(
             f"dataset.data_root={root} does not look like KITTI odometry; missing:\n"
-            f"{shown}{more}\nExpected layout:\n{KITTI_LAYOUT}"
+            f"{shown}{more}{hint}\nExpected layout:\n{KITTI_LAYOUT}"
         )
     return root.resolve()
 
@@ -249,6 +263,8 @@ class KittiOdometryDataset(FileMotionDataset):
         load_rgb: deliver the source image as ``rgb`` (decoded once, then read from the cache).
         skip_bad_samples: warn and skip unreadable samples (``__getitem__`` returns None, the
             collate drops it) instead of raising.
+        require_poses: False: a sequence without ``poses/XX.txt`` is read without ground truth
+            (its samples have no ``pose``; :meth:`relative_poses` refuses).
     """
 
     name = "kitti"
@@ -271,8 +287,10 @@ class KittiOdometryDataset(FileMotionDataset):
         cache_dir: str | os.PathLike | None = None,
         load_rgb: bool = True,
         skip_bad_samples: bool = False,
+        require_poses: bool = True,
     ) -> None:
         super().__init__()
+        self.require_poses = bool(require_poses)
         offsets = [int(o) for o in offsets]
         if not offsets or 0 in offsets or len(set(offsets)) != len(offsets):
             raise ValueError(f"dataset.offsets must be distinct non-zero integers, got {offsets}")
@@ -281,7 +299,7 @@ class KittiOdometryDataset(FileMotionDataset):
         if (flow_height is None) != (flow_width is None):
             raise ValueError("set both dataset.flow_height and dataset.flow_width, or neither")
         self.sequence_names = [normalize_sequence(s) for s in sequences]
-        self.root = check_kitti_root(data_root, self.sequence_names)
+        self.root = self._check_root(data_root)
         self.height, self.width = int(height), int(width)
         self.offsets = offsets
         self.split = split
@@ -303,6 +321,7 @@ class KittiOdometryDataset(FileMotionDataset):
             "output_hw": [self.height, self.width],
             "data_root": str(self.root),
             "format": _CACHE_FORMAT,
+            **self._layout_key(),
         }
         self.cache = FlowCache.create(cache_dir or default_cache_dir(), key)
         if self.flow_dir is not None and not self.flow_dir.is_dir():
@@ -319,7 +338,7 @@ class KittiOdometryDataset(FileMotionDataset):
             info, frames, seq_problems = self._load_sequence(seq)
             problems += seq_problems
             self._sequences[seq] = info
-            n = len(info.poses)
+            n = info.n_frames
             train_rng, val_rng = transforms.holdout_ranges(
                 n, val_fraction if portion != "all" else 0.0, span
             )
@@ -338,16 +357,28 @@ class KittiOdometryDataset(FileMotionDataset):
 
     # -- index -------------------------------------------------------------------------------
 
+    def _check_root(self, data_root: str | os.PathLike | None) -> Path:
+        """The resolved ``data_root`` after checking the layout (a hook for other layouts)."""
+        return check_kitti_root(data_root, self.sequence_names, poses=self.require_poses)
+
+    def _layout_key(self) -> dict[str, Any]:
+        """What else decides which file a frame number means (for the cache key): nothing
+        here, the KITTI names are fixed."""
+        return {}
+
     def _load_sequence(self, seq: str) -> tuple[_Sequence, list[int], list[str]]:
         seq_dir = self.root / "sequences" / seq
         image_dir = seq_dir / "image_2"
         pose_file = self.root / "poses" / f"{seq}.txt"
-        poses = read_kitti_poses(pose_file)
         intrinsics = read_kitti_calib(seq_dir / "calib.txt")
         frames = _list_frames(image_dir)
         if not frames:
             raise DataFileError(f"{image_dir}: no frames (expected 000000.png, 000001.png, …)")
         native_hw = flow_io.image_size(image_dir / f"{frames[0]:06d}.png")
+        if not self.require_poses and not pose_file.exists():
+            info = _Sequence(seq, image_dir, intrinsics, native_hw, None, frames[-1] + 1)
+            return info, frames, []
+        poses = read_kitti_poses(pose_file)
         problems = []
         if len(poses) < len(frames) or frames[-1] >= len(poses):
             problems.append(
@@ -362,7 +393,7 @@ class KittiOdometryDataset(FileMotionDataset):
                 + (" …" if len(missing) > 5 else "")
             )
         frames = [f for f in frames if f < len(poses)]
-        info = _Sequence(seq, image_dir, intrinsics, native_hw, poses)
+        info = _Sequence(seq, image_dir, intrinsics, native_hw, poses, len(poses))
         return info, frames, problems
 
     def _index_flow_files(self) -> list[str]:
@@ -409,6 +440,7 @@ class KittiOdometryDataset(FileMotionDataset):
         """``(N, 4, 4)`` float32 ``T_src,tgt`` of every sample, from the pose files only."""
         if not self.samples:
             return torch.zeros(0, 4, 4)
+        self._check_poses()
         src = np.stack([self._sequences[s].poses[a] for s, a, _ in self.samples])
         tgt = np.stack([self._sequences[s].poses[b] for s, _, b in self.samples])
         rel = geometry.relative_pose(torch.from_numpy(src), torch.from_numpy(tgt))
@@ -419,6 +451,32 @@ class KittiOdometryDataset(FileMotionDataset):
         for i, (seq, _, _) in enumerate(self.samples):
             out.setdefault(seq, []).append(i)
         return out
+
+    def has_poses(self) -> bool:
+        """Whether every sequence has ground-truth poses."""
+        return all(info.poses is not None for info in self._sequences.values())
+
+    def _check_poses(self) -> None:
+        without = sorted(seq for seq, info in self._sequences.items() if info.poses is None)
+        if without:
+            raise DataRootError(
+                f"the {self.split} split has no ground-truth poses for sequence(s) "
+                f"{', '.join(without)} (no {self.root / 'poses'}/<seq>.txt); training and "
+                "evaluation need them"
+            )
+
+    def timestamps(self, seq: str) -> np.ndarray | None:
+        """``(n_frames,)`` seconds of frames 0 … n_frames − 1 from ``sequences/XX/times.txt``,
+        or None when the file is absent or does not cover every frame."""
+        path = self.root / "sequences" / seq / "times.txt"
+        if not path.is_file():
+            return None
+        try:
+            times = pose_io.read_kitti_times(path)
+        except pose_io.PoseFileError as err:
+            raise DataFileError(str(err)) from None
+        n = self._sequences[seq].n_frames
+        return times[:n] if len(times) >= n else None
 
     def intrinsics(self, seq: str) -> torch.Tensor:
         """``(4,)`` ``(fx, fy, cx, cy)`` of ``seq`` at the input size."""
@@ -439,7 +497,7 @@ class KittiOdometryDataset(FileMotionDataset):
         """Per sequence: frames, native image size, intrinsics (native and at the input size)."""
         return {
             seq: {
-                "frames": len(info.poses),
+                "frames": info.n_frames,
                 "native_size": list(info.native_hw),
                 "intrinsics_native": [round(float(v), 4) for v in info.intrinsics],
                 "intrinsics_input": [round(float(v), 4) for v in self.intrinsics(seq)],
@@ -457,19 +515,19 @@ class KittiOdometryDataset(FileMotionDataset):
         flow_t, valid_t, _ = sanitize_flow(
             transforms.flow_to_tensor(flow), torch.from_numpy(np.ascontiguousarray(valid))
         )
-        pose = geometry.relative_pose(
-            torch.from_numpy(info.poses[src]), torch.from_numpy(info.poses[tgt])
-        ).float()
         sample: dict[str, Any] = {
             "flow": flow_t,
             "flow_valid": valid_t,
-            "pose": pose,
             "intrinsics": self.intrinsics(seq),
             "sequence": seq,
             "frame": src,
             "target": tgt,
             "sample_id": self.sample_id(index),
         }
+        if info.poses is not None:
+            sample["pose"] = geometry.relative_pose(
+                torch.from_numpy(info.poses[src]), torch.from_numpy(info.poses[tgt])
+            ).float()
         if self.load_rgb:
             rgb = self.cache.load(
                 self.cache.rgb_path(seq, src), (self.height, self.width, 3), np.uint8
@@ -677,6 +735,12 @@ class KittiDataModule(MFGDataModule):
         return list(self.offsets)
 
     def build_dataset(self, split: str) -> KittiOdometryDataset:
+        if split == "predict":
+            # Trajectories compose consecutive motions: every pair t -> t + 1, poses optional.
+            return KittiOdometryDataset(
+                self.data_root, self.test_sequences, offsets=(1,), split="predict",
+                require_poses=False, **self.dataset_kwargs,
+            )  # fmt: skip
         if split not in ("train", "val", "test"):
             raise ValueError(f"unknown split {split!r}")
         sequences = self.test_sequences if split == "test" else self.train_sequences
@@ -691,6 +755,10 @@ class KittiDataModule(MFGDataModule):
             portion=portion,
             **self.dataset_kwargs,
         )
+
+    def predict_dataloader(self) -> torch.utils.data.DataLoader:
+        """The ``predict`` split: the test sequences, with or without ground truth."""
+        return self._loader("predict", shuffle=False, batch_size=self.eval_batch_size)
 
     def prepare_data(self) -> None:
         """Fill the flow cache for every split (Lightning calls this on one process per node)."""

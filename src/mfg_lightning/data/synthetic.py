@@ -479,6 +479,9 @@ class SyntheticDataModule(MFGDataModule):
         test_offsets: target offsets of test samples (``[1]``, or ``[-2, -1, 1, 2]`` for the
             central-frame ATE mode).
         scene: :class:`SceneConfig` fields.
+        scene_seed: seed of the trajectories and scenes (None: ``seed``, which then also sets
+            the training order); the config fixes it so that runs differing in ``seed`` see the
+            same samples, in a different order.
         Remaining arguments: see :class:`MFGDataModule`.
     """
 
@@ -495,9 +498,11 @@ class SyntheticDataModule(MFGDataModule):
         outlier_fraction: float = 0.01,
         test_offsets: Sequence[int] = (1,),
         scene: dict | None = None,
+        scene_seed: int | None = None,
         **kwargs,
     ) -> None:
         super().__init__(**kwargs)
+        self.scene_seed = self.seed if scene_seed is None else int(scene_seed)
         if trajectory not in ("procedural", "kitti"):
             raise ValueError(
                 f"dataset.trajectory must be 'procedural' or 'kitti', got {trajectory!r}"
@@ -536,7 +541,7 @@ class SyntheticDataModule(MFGDataModule):
             for s in range(spec):
                 name = f"{which}{s:02d}"
                 trajs[name] = procedural_trajectory(
-                    _rng(self.seed, "trajectory", name), self.sequence_length
+                    _rng(self.scene_seed, "trajectory", name), self.sequence_length
                 )
         else:
             if self.poses_dir is None:
@@ -580,7 +585,7 @@ class SyntheticDataModule(MFGDataModule):
             frames,
             self.height,
             self.width,
-            seed=self.seed + {"train": 0, "val": 0, "test": 7919}[split],
+            seed=self.scene_seed + {"train": 0, "val": 0, "test": 7919}[split],
             offsets=offsets,
             noise_std=self.noise_std,
             outlier_fraction=self.outlier_fraction,

@@ -1,0 +1,280 @@
+"""Run a trained model on sequences without ground truth.
+
+``python -m mfg_lightning.predict ckpt_path=<file.ckpt> dataset=<name> [dataset.<key>=…]``
+
+* KITTI odometry 11–21 (images and ``calib.txt``, no ``poses/``)::
+
+      python -m mfg_lightning.predict ckpt_path=run/checkpoints/last.ckpt dataset=kitti \\
+          dataset.data_root=/data/kitti/dataset 'dataset.test_sequences=[11,12]'
+
+* one's own video, a folder of frames with the camera given in pixels
+  (:mod:`mfg_lightning.data.image_folder`)::
+
+      python -m mfg_lightning.predict ckpt_path=… dataset=image_folder \\
+          dataset.data_root=/data/drive/frames dataset.fx=718.9 dataset.fy=718.9 \\
+          dataset.cx=607.2 dataset.cy=185.2
+
+A dataset with a ``predict`` split (KITTI: the test sequences, poses optional; the image folder)
+is read through it; the others (synthetic, Virtual KITTI) through their test split, whose
+ground truth is then simply not used. Flow comes from the dataset exactly as in training (KITTI
+and the image folder: OpenCV's DIS, cached). The dataset's input size must be the network's.
+
+Written into the run directory (``hydra.run.dir``):
+
+* ``poses/kitti/<seq>.txt`` and ``poses/tum/<seq>.txt``: the trajectory ``T_world_cam`` of
+  every frame, composed from the predicted motions (the first frame is the identity; see
+  :func:`mfg_lightning.trajectories.sequence_trajectory`), in the formats ``evo`` and the KITTI
+  devkit read; TUM timestamps from the dataset (KITTI's ``times.txt``) or ``frame / frame_rate``;
+* ``motions/<seq>.csv``: per frame pair, the predicted ``t`` (m) and ``ω`` (rad), camera ``k + 1``
+  in camera ``k`` (x right, y down, z forward);
+* ``masks/<seq>/<frame:06d>.png`` when the dataset delivers depth (synthetic, Virtual KITTI):
+  the object mask of the paper's section 4 filters at the input size (255 = moving);
+* ``predict.json``: what was written, per sequence.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import hydra
+import lightning as L
+import numpy as np
+import torch
+from hydra.utils import instantiate
+from lightning.pytorch.utilities.model_helpers import is_overridden
+from omegaconf import DictConfig
+from torch import Tensor
+
+from mfg_lightning import geometry, trajectories
+from mfg_lightning.atomic import atomic_write_bytes, atomic_write_text
+from mfg_lightning.config import CONFIG_DIR
+from mfg_lightning.data.sample import sanitize_flow
+from mfg_lightning.models.mfg import validate_top_k
+from mfg_lightning.models.mfg_module import MFGLitModule, module_from_checkpoint
+from mfg_lightning.object_motion import ObjectMotionConfig, extract_object_motion
+from mfg_lightning.pose_io import write_kitti_poses, write_tum_poses
+from mfg_lightning.runs import UserError, exit_on_user_error, run_info
+
+log = logging.getLogger("mfg_lightning.predict")
+
+#: the columns of ``motions/<seq>.csv``
+MOTION_COLUMNS = ("frame", "target", "time_s", "t_x_m", "t_y_m", "t_z_m",
+                  "omega_x_rad", "omega_y_rad", "omega_z_rad")  # fmt: skip
+
+
+class PredictionError(UserError):
+    """The predictions cannot form a trajectory (a frame pair is missing)."""
+
+
+class MotionPredictor(L.LightningModule):
+    """Lightning's predict loop around a trained :class:`MFGLitModule`.
+
+    Per batch: the egomotion ``(t, ω)`` in closed form from the predicted fields and, when the
+    batch carries depth and ``object_motion`` is set, the object masks of the paper's filters.
+    """
+
+    def __init__(self, module: MFGLitModule, object_motion: ObjectMotionConfig | None) -> None:
+        super().__init__()
+        self.module = module
+        self.object_motion = object_motion
+
+    def predict_step(self, batch: dict[str, Any] | None, batch_idx: int) -> dict[str, Any] | None:
+        """Returns ``sequence`` (B names), ``frame``, ``target`` ``(B,)``, ``t``, ``omega``
+        ``(B, 3)`` float64 on the CPU, and ``mask`` ``(B, H, W)`` bool with depth."""
+        if batch is None:  # every sample of the batch was skipped as unreadable
+            return None
+        flow, valid, _ = sanitize_flow(batch["flow"], batch["flow_valid"])
+        t, w, out = self.module.predict_motion(flow, batch["intrinsics"])
+        result = {
+            "sequence": list(batch["sequence"]),
+            "frame": batch["frame"].cpu(),
+            "target": batch["target"].cpu(),
+            "t": t.double().cpu(),
+            "omega": w.double().cpu(),
+        }
+        if self.object_motion is not None and "depth" in batch:
+            res = extract_object_motion(
+                flow, out.v_t, out.v_omega, batch["depth"], self.object_motion, valid=valid
+            )
+            result["mask"] = res.mask.cpu()
+        return result
+
+
+@dataclass
+class SequencePrediction:
+    """The predictions of one sequence, in frame order.
+
+    Attributes:
+        frames: ``(N − 1,)`` source frames k (consecutive), each predicted for ``k → k + 1``.
+        t, omega: ``(N − 1, 3)`` float64 translation (m) and rotation (rad) per pair.
+        masks: ``(N − 1, H, W)`` bool object masks, or None without depth.
+    """
+
+    frames: np.ndarray
+    t: Tensor
+    omega: Tensor
+    masks: Tensor | None
+
+    def trajectory(self) -> Tensor:
+        """``(N, 4, 4)`` float64 camera-to-world poses, frame ``frames[0]`` at the identity."""
+        return trajectories.sequence_trajectory(geometry.motion_to_pose(self.t, self.omega))
+
+
+def gather(outputs: list[dict[str, Any] | None]) -> dict[str, SequencePrediction]:
+    """The batch outputs of :class:`MotionPredictor` grouped by sequence, sorted by frame.
+
+    Raises:
+        PredictionError: a sequence whose pairs are not ``k → k + 1`` for consecutive k (a
+            frame could not be read, or a dataset split with other offsets).
+    """
+    kept = [o for o in outputs if o is not None]
+    if not kept:
+        raise PredictionError("no predictions: every sample was skipped")
+    names = [s for o in kept for s in o["sequence"]]
+    frame = torch.cat([o["frame"] for o in kept]).numpy()
+    target = torch.cat([o["target"] for o in kept]).numpy()
+    t, w = torch.cat([o["t"] for o in kept]), torch.cat([o["omega"] for o in kept])
+    has_masks = all("mask" in o for o in kept)
+    masks = torch.cat([o["mask"] for o in kept]) if has_masks else None
+    result: dict[str, SequencePrediction] = {}
+    for seq in dict.fromkeys(names):
+        rows = np.array([i for i, s in enumerate(names) if s == seq])
+        rows = rows[np.argsort(frame[rows], kind="stable")]
+        f, g = frame[rows], target[rows]
+        other = np.flatnonzero(g != f + 1)
+        if other.size:
+            k = other[0]
+            raise PredictionError(
+                f"sequence {seq}: a pair {f[k]} → {g[k]}; a trajectory composes the pairs "
+                "k → k + 1 only (set the dataset's offsets to [1])"
+            )
+        jumps = np.flatnonzero(np.diff(f) != 1)
+        if jumps.size:
+            k = jumps[0]
+            raise PredictionError(
+                f"sequence {seq}: no prediction from frame {f[k] + 1} to {f[k + 1]} (a missing "
+                "or unreadable image?); a trajectory needs every pair k → k + 1"
+            )
+        index = torch.from_numpy(rows)
+        result[seq] = SequencePrediction(
+            f, t[index], w[index], None if masks is None else masks[index]
+        )
+    return result
+
+
+def _timestamps(dataset: Any, seq: str, frames: np.ndarray, frame_rate: float) -> np.ndarray:
+    """``(N,)`` seconds of ``frames``: the dataset's own clock when it has one, else
+    ``frame / frame_rate``."""
+    clock = getattr(dataset, "timestamps", None)
+    times = clock(seq) if clock is not None else None
+    if times is not None and len(times) > frames[-1]:
+        return np.asarray(times, np.float64)[frames]
+    return frames.astype(np.float64) / frame_rate
+
+
+def _mask_png(mask: np.ndarray) -> bytes:
+    ok, data = cv2.imencode(".png", mask.astype(np.uint8) * 255)
+    if not ok:
+        raise OSError("OpenCV could not encode a mask as PNG")
+    return data.tobytes()
+
+
+def write_sequence(
+    out: Path, seq: str, pred: SequencePrediction, times: np.ndarray
+) -> dict[str, Any]:
+    """Write one sequence's trajectory (KITTI, TUM), motions CSV and masks; what was written.
+
+    Args:
+        out: the run directory.
+        seq: the sequence name.
+        pred: its predictions (N − 1 pairs).
+        times: ``(N,)`` seconds of frames ``frames[0] … frames[-1] + 1``.
+    """
+    poses = pred.trajectory().numpy()
+    kitti, tum = out / "poses" / "kitti" / f"{seq}.txt", out / "poses" / "tum" / f"{seq}.txt"
+    write_kitti_poses(kitti, poses)
+    write_tum_poses(tum, times, poses)
+    table = np.column_stack(
+        [pred.frames, pred.frames + 1, times[:-1], pred.t.numpy(), pred.omega.numpy()]
+    )
+    buf = io.StringIO()
+    fmt = ["%d", "%d"] + ["%.9g"] * 7  # float32 predictions: 9 digits are exact
+    np.savetxt(buf, table, fmt=fmt, delimiter=",", header=",".join(MOTION_COLUMNS), comments="")
+    motions = out / "motions" / f"{seq}.csv"
+    atomic_write_text(motions, buf.getvalue())
+    written: dict[str, Any] = {
+        "frames": len(poses),
+        "first_frame": int(pred.frames[0]),
+        "kitti": str(kitti),
+        "tum": str(tum),
+        "motions": str(motions),
+    }
+    if pred.masks is not None:
+        mask_dir = out / "masks" / seq
+        for frame, mask in zip(pred.frames, pred.masks.numpy(), strict=True):
+            atomic_write_bytes(mask_dir / f"{frame:06d}.png", _mask_png(mask))
+        written["masks"] = str(mask_dir)
+    return written
+
+
+def predict(cfg: DictConfig) -> dict[str, dict[str, Any]]:
+    """Predict every sequence of the configured dataset and write the files (module docstring).
+
+    Returns:
+        Per sequence, what was written (``predict.json``).
+    """
+    out = Path(cfg.paths.output_dir)
+    module = module_from_checkpoint(cfg.ckpt_path, top_k=validate_top_k(cfg.model.get("top_k")))
+    datamodule = instantiate(cfg.dataset)
+    net_hw = (module.net.height, module.net.width)
+    if (datamodule.height, datamodule.width) != net_hw:
+        raise ValueError(
+            f"dataset.height×width is {datamodule.height}×{datamodule.width} but the network of "
+            f"{cfg.ckpt_path} takes {net_hw[0]}×{net_hw[1]}: pass dataset.height={net_hw[0]} "
+            f"dataset.width={net_hw[1]}"
+        )
+    has_predict = is_overridden("predict_dataloader", datamodule, L.LightningDataModule)
+    split = "predict" if has_predict else "test"
+    loader = datamodule.predict_dataloader() if has_predict else datamodule.test_dataloader()
+    object_motion = instantiate(cfg.object_motion) if cfg.predict.object_masks else None
+    trainer: L.Trainer = instantiate(
+        cfg.trainer, logger=False, callbacks=[], enable_checkpointing=False
+    )
+    outputs = trainer.predict(MotionPredictor(module, object_motion), dataloaders=loader)
+    # Everything is predicted and checked before the first file is written.
+    sequences = gather(outputs)
+    dataset = datamodule.dataset(split)
+    written = {}
+    for seq, pred in sequences.items():
+        frames = np.append(pred.frames, pred.frames[-1] + 1)
+        times = _timestamps(dataset, seq, frames, float(cfg.predict.frame_rate))
+        written[seq] = write_sequence(out, seq, pred, times)
+        log.info("%s: %d poses → %s", seq, written[seq]["frames"], written[seq]["kitti"])
+    summary = {
+        "ckpt_path": str(cfg.ckpt_path),
+        "dataset": cfg.dataset.get("_target_"),
+        "split": split,
+        "sequences": written,
+        **run_info(),
+    }
+    atomic_write_text(out / "predict.json", json.dumps(summary, indent=2) + "\n")
+    return written
+
+
+@hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="predict")
+@exit_on_user_error
+def main(cfg: DictConfig) -> None:
+    L.seed_everything(cfg.seed, workers=True, verbose=False)
+    written = predict(cfg)
+    for seq, files in written.items():
+        print(f"{seq}: {files['frames']} poses in {files['kitti']} and {files['tum']}")
+
+
+if __name__ == "__main__":
+    main()
