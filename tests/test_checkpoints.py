@@ -198,6 +198,12 @@ ENTRY_POINTS = {
     "evaluate": ("mfg_lightning.evaluate",),
     "analyze_basis": ("mfg_lightning.analyze_basis",),
     "train": ("mfg_lightning.train", "debug=tiny", "trainer.max_steps=6"),
+    "predict": (
+        "mfg_lightning.predict",
+        "dataset=synthetic",
+        "dataset.height=32",
+        "dataset.width=64",
+    ),
 }
 
 
@@ -212,6 +218,8 @@ ENTRY_POINTS = {
         ("analyze_basis", "model_target"),
         ("analyze_basis", "run_config_target"),
         ("train", "pickle"),
+        ("predict", "pickle"),
+        ("predict", "model_target"),
     ],
 )
 def test_crafted_checkpoints_end_in_one_error_line(

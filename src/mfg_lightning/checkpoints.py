@@ -177,6 +177,7 @@ PROJECT_TARGETS = (
     "mfg_lightning.data.synthetic.SyntheticDataModule",
     "mfg_lightning.data.kitti.KittiDataModule",
     "mfg_lightning.data.vkitti.VirtualKittiDataModule",
+    "mfg_lightning.data.image_folder.ImageFolderDataModule",
 )
 
 

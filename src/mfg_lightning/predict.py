@@ -53,10 +53,11 @@ from torch import Tensor
 
 from mfg_lightning import geometry, trajectories
 from mfg_lightning.atomic import atomic_write_bytes, atomic_write_text
+from mfg_lightning.checkpoints import module_from_checkpoint
 from mfg_lightning.config import CONFIG_DIR
 from mfg_lightning.data.sample import sanitize_flow
 from mfg_lightning.models.mfg import validate_top_k
-from mfg_lightning.models.mfg_module import MFGLitModule, module_from_checkpoint
+from mfg_lightning.models.mfg_module import MFGLitModule
 from mfg_lightning.object_motion import ObjectMotionConfig, extract_object_motion
 from mfg_lightning.pose_io import write_kitti_poses, write_tum_poses
 from mfg_lightning.runs import UserError, exit_on_user_error, run_info
