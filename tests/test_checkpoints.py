@@ -273,3 +273,30 @@ def test_checkpoints_of_earlier_versions_still_load(tmp_path: Path) -> None:
     assert loaded["hyper_parameters"]["optimizer"].func is torch.optim.Adam
     assert list(loaded["hyper_parameters"]["betas"]) == [0.9, 0.99]
     module_from_checkpoint(path)
+
+
+def test_settings_newer_than_a_checkpoint_keep_its_old_behaviour(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A checkpoint written before a setting existed is rebuilt with the value it was trained
+    with, whatever today's default, and the log says so."""
+    path = tmp_path / "old.ckpt"
+    ckpt = _tiny_checkpoint(path)
+    for key in ("init", "align_corners", "input_scale"):
+        del ckpt["mfg_model_config"]["net"][key]
+    del ckpt["mfg_model_config"]["loss"]["balance_squared"]
+    torch.save(ckpt, path)
+    with caplog.at_level("WARNING", logger="mfg_lightning.checkpoints"):
+        module = module_from_checkpoint(path)
+    assert module.net.align_corners is False and module.net.input_scale == 1.0
+    assert module.loss_fn.balance_squared is True
+    assert module.model_config["net"]["init"] == "torch"
+    assert "predates model.net.init, model.net.align_corners" in caplog.text
+    # a checkpoint that has them is read as stored, silently
+    caplog.clear()
+    ckpt = _tiny_checkpoint(path)
+    ckpt["mfg_model_config"]["net"]["align_corners"] = True
+    torch.save(ckpt, path)
+    with caplog.at_level("WARNING", logger="mfg_lightning.checkpoints"):
+        assert module_from_checkpoint(path).net.align_corners is True
+    assert "predates" not in caplog.text

@@ -74,3 +74,24 @@ def test_loss_is_vectorised_over_the_batch() -> None:
 def test_bad_loss_settings_are_refused(kwargs) -> None:
     with pytest.raises(ValueError, match="model.loss"):
         MFGLoss(**kwargs)
+
+
+@pytest.mark.parametrize(
+    ("tz", "wy", "squared", "w_omega"),
+    [(1.0, 0.01, True, 100.0), (1.0, 0.01, False, 41.87), (0.5, 0.03, True, 48.70),
+     (0.5, 0.03, False, 6.979)],
+)  # fmt: skip
+def test_balancing_weights_of_real_fields_for_both_readings(
+    tz: float, wy: float, squared: bool, w_omega: float
+) -> None:
+    """The two readings of w = max(‖v_ω‖ / ‖v_t‖, 1) at 48 × 128 with KITTI intrinsics: the
+    paper's squared ratio reaches the clamp where the released code's is 42."""
+    from mfg_lightning import geometry
+    from mfg_lightning.data.synthetic import kitti_like_intrinsics
+
+    K = kitti_like_intrinsics(48, 128).float()[None]
+    v_t = geometry.translational_field(torch.tensor([[0.0, 0.0, tz]]), K, 48, 128)
+    v_w = geometry.rotational_field(torch.tensor([[0.0, wy, 0.0]]), K, 48, 128)
+    w_t, w_w = balancing_weights(v_t, v_w, max_weight=100.0, squared=squared)
+    assert w_t.item() == 1.0
+    assert w_w.item() == pytest.approx(w_omega, rel=1e-3)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -65,3 +67,64 @@ def test_wrong_input_size_is_refused() -> None:
     net = MFG(height=16, width=32, hidden_units=10, channels=(4, 4, 4, 4, 4))
     with pytest.raises(ValueError, match="built for 16×32"):
         net(torch.zeros(1, 2, 17, 32))
+
+
+def _upsampling_residual(align_corners: bool) -> float:
+    """Largest |error| (px) of the best decoder column for the translational field at unit
+    depth of a forward motion, at 24 × 64 with KITTI intrinsics, decoded at half resolution."""
+    from mfg_lightning import geometry
+    from mfg_lightning.data.synthetic import kitti_like_intrinsics
+
+    H, W = 24, 64
+    n = (H // 2) * (W // 2)
+    net = MFG(height=H, width=W, hidden_units=n, channels=(2, 2, 2, 2, 2),
+              align_corners=align_corners)  # fmt: skip
+    K = kitti_like_intrinsics(H, W).float()[None]
+    v_t = geometry.translational_field(torch.tensor([[0.1, -0.05, 1.0]]), K, H, W)
+    with torch.no_grad():
+        # Unit i writes coarse pixel i of the u channel: decoding them all gives the decoder's
+        # linear map from a coarse field to the output field.
+        net.decoder_t.weight.zero_()
+        net.decoder_t.weight[:n] = torch.eye(n)
+        U = net.decode(torch.eye(n))[0][:, 0].reshape(n, H * W).T.double()  # (H·W, h·w)
+        residual = 0.0
+        for c in range(2):
+            target = v_t[0, c].flatten().double()[:, None]
+            coarse = torch.linalg.lstsq(U, target).solution
+            residual = max(residual, float((U @ coarse - target).abs().max()))
+    return residual
+
+
+def test_align_corners_represents_the_translational_field_exactly() -> None:
+    assert _upsampling_residual(align_corners=True) < 1e-4  # float32 rounding of ~100 px
+    assert _upsampling_residual(align_corners=False) > 0.05
+
+
+def test_xavier_initialisation_as_the_released_code() -> None:
+    torch.manual_seed(0)
+    net = MFG(height=16, width=32, hidden_units=10, channels=(4, 4, 4, 4, 4), init="xavier")
+    convs = [m for m in net.encoder if isinstance(m, torch.nn.Conv2d)]
+    assert convs
+    for conv in convs:
+        fan_in = conv.in_channels * conv.kernel_size[0] * conv.kernel_size[1]
+        fan_out = conv.out_channels * conv.kernel_size[0] * conv.kernel_size[1]
+        bound = math.sqrt(6.0 / (fan_in + fan_out))
+        assert (conv.bias == 0).all()
+        assert conv.weight.abs().max() <= bound
+        assert conv.weight.abs().max() > 0.8 * bound  # uniform over the whole range
+    torch.manual_seed(0)
+    default = MFG(height=16, width=32, hidden_units=10, channels=(4, 4, 4, 4, 4))
+    assert any((m.bias != 0).any() for m in default.encoder if isinstance(m, torch.nn.Conv2d))
+    with pytest.raises(ValueError, match="model.net.init"):
+        MFG(height=16, width=32, hidden_units=10, channels=(4, 4, 4, 4, 4), init="he")
+
+
+def test_input_scale_multiplies_the_flow_before_the_encoder() -> None:
+    torch.manual_seed(0)
+    scaled = MFG(height=16, width=32, hidden_units=10, channels=(4, 4, 4, 4, 4), input_scale=0.2)
+    plain = MFG(height=16, width=32, hidden_units=10, channels=(4, 4, 4, 4, 4))
+    plain.load_state_dict(scaled.state_dict())
+    flow = torch.randn(3, 2, 16, 32)
+    torch.testing.assert_close(scaled(flow).hidden, plain(0.2 * flow).hidden)
+    with pytest.raises(ValueError, match="model.net.input_scale"):
+        MFG(height=16, width=32, hidden_units=10, channels=(4, 4, 4, 4, 4), input_scale=0.0)

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import inspect
+import logging
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from functools import cache
@@ -37,7 +38,10 @@ from torch import Tensor
 if TYPE_CHECKING:
     from mfg_lightning.models.mfg_module import MFGLitModule
 
+log = logging.getLogger(__name__)
+
 __all__ = [
+    "LEGACY_MODEL_SETTINGS",
     "CheckpointError",
     "CheckpointSizeError",
     "ModelSize",
@@ -50,6 +54,7 @@ __all__ = [
     "model_size",
     "module_from_checkpoint",
     "safe_unpickling",
+    "with_legacy_settings",
 ]
 
 
@@ -273,6 +278,37 @@ def _weights_description(state_dict: Mapping[str, Tensor]) -> str:
     return f"weights with hidden_units={w.shape[1]} and {w.shape[0] // 2}-pixel decoder fields"
 
 
+#: Model settings added after checkpoints were first written, with the value every checkpoint
+#: that lacks them was trained with. A stored config missing one is read with this value, so an
+#: old checkpoint keeps the behaviour it was trained with when a default changes.
+LEGACY_MODEL_SETTINGS: dict[str, dict[str, Any]] = {
+    "net": {"init": "torch", "align_corners": False, "input_scale": 1.0},
+    "loss": {"balance_squared": True},
+}
+
+
+def with_legacy_settings(cfg: Mapping[str, Any], path: str | Path) -> dict[str, Any]:
+    """``cfg`` with every missing :data:`LEGACY_MODEL_SETTINGS` key filled in (logged)."""
+    cfg = {k: dict(v) if isinstance(v, Mapping) else v for k, v in cfg.items()}
+    filled = []
+    for part, settings in LEGACY_MODEL_SETTINGS.items():
+        node = cfg.get(part)
+        if not isinstance(node, dict):
+            continue
+        for key, value in settings.items():
+            if key not in node:
+                node[key] = value
+                filled.append(f"model.{part}.{key}={value}")
+    if filled:
+        log.warning(
+            "checkpoint %s predates %s: using the behaviour it was trained with (%s)",
+            path,
+            ", ".join(f.split("=")[0] for f in filled),
+            ", ".join(filled),
+        )
+    return cfg
+
+
 def build_module(
     ckpt: Mapping[str, Any],
     path: str | Path,
@@ -298,7 +334,7 @@ def build_module(
     """
     from hydra.utils import instantiate
 
-    cfg = {**ckpt["mfg_model_config"], **overrides}
+    cfg = {**with_legacy_settings(ckpt["mfg_model_config"], path), **overrides}
     check_targets(cfg, f"checkpoint {path} (mfg_model_config)")
     size = model_size(cfg)
     if expected is not None and size != expected:

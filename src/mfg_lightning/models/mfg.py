@@ -63,6 +63,10 @@ def keep_top_k(hidden: Tensor, top_k: float | None) -> Tensor:
     return hidden * mask
 
 
+#: ``model.net.init`` values (see :class:`MFG`).
+INITS = ("torch", "xavier")
+
+
 class MFG(nn.Module):
     """Motion Field Generator.
 
@@ -75,6 +79,16 @@ class MFG(nn.Module):
         double_blocks: how many leading blocks have two convolutions (the second has stride 1).
         decoder_scale: resolution of the decoded fields relative to the input (paper: 0.5).
         top_k: fraction of hidden units kept at evaluation (None: all). Training is unaffected.
+        init: ``"torch"``: PyTorch's default initialisation of the convolutions; ``"xavier"``:
+            ``xavier_uniform_`` weights and zero biases, as the authors' released code
+            (hkashyap/SparseMotion) initialises every convolution.
+        align_corners: of the bilinear upsampling of the decoded fields. ``True`` (the released
+            code's) maps the corner pixels of the coarse and fine grids onto each other, so a
+            field linear in the pixel coordinates (the translational field at unit depth) is
+            represented exactly; ``False`` leaves a least-squares residual.
+        input_scale: the input flow (pixels) is multiplied by this before the encoder. With the
+            sparsity function's fixed B, the activations' scale sets the sparsity pressure; the
+            released code feeds PWC-Net's raw output (about quarter-resolution pixels / 5).
     """
 
     def __init__(
@@ -88,6 +102,9 @@ class MFG(nn.Module):
         double_blocks: int = 2,
         decoder_scale: float = 0.5,
         top_k: float | None = None,
+        init: str = "torch",
+        align_corners: bool = False,
+        input_scale: float = 1.0,
     ) -> None:
         super().__init__()
         channels, kernels, strides = list(channels), list(kernels), list(strides)
@@ -98,8 +115,14 @@ class MFG(nn.Module):
             )
         if hidden_units <= 0:
             raise ValueError(f"model.net.hidden_units must be positive, got {hidden_units}")
+        if init not in INITS:
+            raise ValueError(f"model.net.init must be one of {INITS}, got {init!r}")
+        if not (math.isfinite(input_scale) and input_scale > 0):
+            raise ValueError(f"model.net.input_scale must be a positive number, got {input_scale}")
         self.height, self.width = height, width
         self.hidden_units = hidden_units
+        self.align_corners = bool(align_corners)
+        self.input_scale = float(input_scale)
         self.top_k = validate_top_k(top_k)
         layers: list[nn.Module] = []
         c_in = 2
@@ -119,10 +142,15 @@ class MFG(nn.Module):
         n_out = 2 * self.out_height * self.out_width
         self.decoder_t = nn.Linear(hidden_units, n_out, bias=False)
         self.decoder_omega = nn.Linear(hidden_units, n_out, bias=False)
+        if init == "xavier":
+            for module in self.encoder:
+                if isinstance(module, nn.Conv2d):
+                    nn.init.xavier_uniform_(module.weight)
+                    nn.init.zeros_(module.bias)
 
     def encode(self, flow: Tensor) -> tuple[Tensor, Tensor]:
         """``(B, 2, H, W)`` flow → hidden ``(B, M)`` (before top-k) and the map ``(B, M, h, w)``."""
-        hidden_map = self.encoder(flow)
+        hidden_map = self.encoder(flow * self.input_scale if self.input_scale != 1.0 else flow)
         return hidden_map.amax(dim=(2, 3)), hidden_map
 
     def decode(self, hidden: Tensor) -> tuple[Tensor, Tensor]:
@@ -132,7 +160,10 @@ class MFG(nn.Module):
             f = decoder(hidden).view(-1, 2, self.out_height, self.out_width)
             if (self.out_height, self.out_width) != (self.height, self.width):
                 f = F.interpolate(
-                    f, size=(self.height, self.width), mode="bilinear", align_corners=False
+                    f,
+                    size=(self.height, self.width),
+                    mode="bilinear",
+                    align_corners=self.align_corners,
                 )
             fields.append(f)
         return fields[0], fields[1]
