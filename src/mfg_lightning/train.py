@@ -43,6 +43,7 @@ from mfg_lightning.models.mfg_module import CheckpointError
 from mfg_lightning.runs import (
     atomic_write_text,
     build_model,
+    exit_on_unknown_choice,
     exit_on_user_error,
     instantiate_list,
     run_info,
@@ -176,6 +177,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     return {k: float(v) for k, v in metrics.items()}
 
 
+@exit_on_unknown_choice
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="train")
 @exit_on_user_error
 def main(cfg: DictConfig) -> float | None:
