@@ -99,9 +99,7 @@ class DISFlowEstimator:
 
     def __init__(self, preset: str = "medium", params: dict[str, Any] | None = None) -> None:
         if preset not in DIS_PRESETS:
-            raise ValueError(
-                f"flow.preset must be one of {sorted(DIS_PRESETS)}, got {preset!r}"
-            )
+            raise ValueError(f"flow.preset must be one of {sorted(DIS_PRESETS)}, got {preset!r}")
         params = dict(params or {})
         unknown = sorted(set(params) - set(_DIS_SETTERS))
         if unknown:
@@ -333,5 +331,6 @@ class FlowCache:
     def store_arrays(self, path: Path, arrays: dict[str, np.ndarray]) -> None:
         """Write ``arrays`` as one uncompressed ``.npz`` (atomically)."""
         buf = io.BytesIO()
-        np.savez(buf, **{k: np.ascontiguousarray(v) for k, v in arrays.items()})
+        # (ascontiguousarray would turn a 0-d array into a 1-d one)
+        np.savez(buf, **{k: np.require(v, requirements="C") for k, v in arrays.items()})
         atomic_write_bytes(path, buf.getvalue())

@@ -594,12 +594,21 @@ def summarize_quality(stats: np.ndarray) -> dict[str, dict[str, float | None]]:
     return out
 
 
+_DIGESTS: dict[tuple[str, ...], str] = {}
+
+
 def _source_digest(*modules: Any) -> str:
-    """A digest of the source files of ``modules``: any change to the renderer changes it."""
-    h = hashlib.sha256()
-    for m in modules:
-        h.update(Path(m.__file__).read_bytes())
-    return h.hexdigest()[:16]
+    """A digest of the source files of ``modules``: any change to the renderer changes it.
+
+    Read once per process, so that one process keeps one cache key even if the files are
+    edited while it runs (it runs the code it imported)."""
+    names = tuple(m.__file__ for m in modules)
+    if names not in _DIGESTS:
+        h = hashlib.sha256()
+        for name in names:
+            h.update(Path(name).read_bytes())
+        _DIGESTS[names] = h.hexdigest()[:16]
+    return _DIGESTS[names]
 
 
 @dataclass
@@ -853,10 +862,15 @@ class RenderedDrivingDataset(TrajectoryDataset):
 
 
 def check_render_size(flow: EstimatedFlow, model_hw: tuple[int, int]) -> tuple[int, int]:
-    """The image size of estimated synthetic flow, refused when the flow cannot be resized
-    down to the model input from it (``flow.height``/``flow.width`` below ``dataset.height``/
-    ``dataset.width``)."""
+    """The image size of estimated synthetic flow, refused (naming ``flow.height``/
+    ``flow.width``) when the renderer cannot take it or the flow cannot be resized down to the
+    model input from it (a side below ``dataset.height``/``dataset.width``)."""
     hw = flow.image_hw(RENDER_SIZE)
+    _, render = _renderer()
+    try:
+        render.check_render_size(*hw)
+    except ValueError as err:
+        raise ValueError(f"flow.height={hw[0]}, flow.width={hw[1]}: {err}") from None
     for key, size, need in zip(("height", "width"), hw, model_hw, strict=True):
         if size < need:
             raise ValueError(
@@ -877,9 +891,7 @@ def _world_config(fields: dict[str, Any]) -> Any:
     known = {f.name for f in dataclasses.fields(worlds.WorldConfig)}
     unknown = sorted(set(fields) - known)
     if unknown:
-        raise ValueError(
-            f"unknown dataset.world setting(s) {unknown}; known: {sorted(known)}"
-        )
+        raise ValueError(f"unknown dataset.world setting(s) {unknown}; known: {sorted(known)}")
     return worlds.WorldConfig(
         **{k: tuple(v) if isinstance(v, list) else v for k, v in fields.items()}
     )
@@ -1098,7 +1110,6 @@ class SyntheticDataModule(MFGDataModule):
                     split,
                 )
             log.info("flow quality (%s): %s", split, _quality_line(quality["regions"]))
-
 
     def _picture_hook(self, ds: RenderedDrivingDataset, pictures: dict[str, np.ndarray]):
         """``on_pair`` for :meth:`RenderedDrivingDataset.precompute_flow`: the picture grid of
