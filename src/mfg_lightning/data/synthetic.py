@@ -506,18 +506,19 @@ RENDER_SIZE = (192, 512)
 #: The regions flow quality is reported for (the renderer's region map), then all pixels.
 QUALITY_REGIONS = ("road", "structure", "moving", "far", "all")
 # Bump when the arrays cached per pair change, so old caches are not misread.
-_RENDER_CACHE_FORMAT = 1
-#: What :class:`RenderedDrivingDataset` caches per pair, at the model input ``h × w``.
-_PAIR_ARRAYS = (
-    "flow",  # (h, w, 2) float32 estimated flow, NaN where it was not finite
-    "exact_flow",  # (h, w, 2) float32 exact flow, 0 where unknown
-    "object_mask",  # (h, w) bool
-    "object_flow",  # (h, w, 2) float32
-    "depth",  # (h, w) float32 metres, 0 where unknown
-    "rgb",  # (h, w, 3) uint8 source frame
-    "quality",  # (len(QUALITY_REGIONS), 3) float64: EPE sum, Fl outliers, pixels (image size)
-    "nonfinite",  # () int64: estimated pixels that were not finite (image size)
+_RENDER_CACHE_FORMAT = 2
+#: What :class:`RenderedDrivingDataset` caches per pair, at the model input ``h × w``: the
+#: float fields as channels of one ``(h, w, 7)`` float32 array and the byte fields of one
+#: ``(h, w, 4)`` uint8 array (two array headers to parse per sample instead of eight).
+_FLOAT_FIELDS = (
+    ("flow", 2),  # estimated flow, NaN where it was not finite
+    ("exact_flow", 2),  # exact flow, 0 where unknown
+    ("object_flow", 2),  # flow due to object motion alone, 0 off objects
+    ("depth", 1),  # metres, 0 where unknown
 )
+_BYTE_FIELDS = (("rgb", 3), ("object_mask", 1))  # source frame; moving-object mask (0 / 1)
+# plus "stats": (len(QUALITY_REGIONS) * 3 + 1,) float64, the quality (EPE sum, Fl outliers,
+# pixels per region, at the image size) and the number of non-finite estimated pixels.
 
 
 def _renderer():
@@ -707,10 +708,10 @@ class RenderedDrivingDataset(TrajectoryDataset):
         return [i for i in range(len(self.index)) if not self.pair_path(i).exists()]
 
     def _cached(self, i: int) -> dict[str, np.ndarray] | None:
-        arrays = self.cache.load_arrays(self.pair_path(i), _PAIR_ARRAYS)
-        if arrays is None or arrays["flow"].shape != (self.height, self.width, 2):
+        packed = self.cache.load_arrays(self.pair_path(i), ("floats", "bytes"))
+        if packed is None or packed["floats"].shape != (self.height, self.width, 7):
             return None
-        return arrays
+        return _unpack(packed)
 
     # -- rendering and estimation ------------------------------------------------------------
 
@@ -734,9 +735,11 @@ class RenderedDrivingDataset(TrajectoryDataset):
         return _Frame(rendered, self.estimator.prepare(rgb))
 
     def compute_pair(self, seq: str, src: int, tgt: int, a: _Frame, b: _Frame) -> dict:
-        """Exact and estimated flow of ``src → tgt`` from the rendered frames ``a``, ``b``; every
-        array of :data:`_PAIR_ARRAYS`, at the model input, and the full-size fields under
-        ``"full"`` (for pictures)."""
+        """Exact and estimated flow of ``src → tgt`` from the rendered frames ``a``, ``b``: the
+        fields of a sample at the model input (``flow`` ``(h, w, 2)``, ``exact_flow``,
+        ``object_flow``, ``depth`` ``(h, w)``, ``rgb`` ``(h, w, 3)``, ``object_mask``), the
+        ``quality`` (:func:`flow_quality`) and ``nonfinite`` count at the image size, and the
+        image-size fields under ``"full"`` (for pictures)."""
         _, render = _renderer()
         exact = render.exact_flow(
             self.world(seq), src, tgt, self.image_intrinsics, *self.image_hw, source=a.rendered
@@ -780,9 +783,17 @@ class RenderedDrivingDataset(TrajectoryDataset):
         }
 
     def _store(self, i: int, pair: dict) -> dict[str, np.ndarray]:
-        arrays = {k: pair[k] for k in _PAIR_ARRAYS}
-        self.cache.store_arrays(self.pair_path(i), arrays)
-        return arrays
+        packed = {
+            "floats": np.concatenate(
+                [pair[k].reshape(self.height, self.width, n) for k, n in _FLOAT_FIELDS], axis=2
+            ).astype(np.float32),
+            "bytes": np.concatenate(
+                [pair[k].reshape(self.height, self.width, n) for k, n in _BYTE_FIELDS], axis=2
+            ).astype(np.uint8),
+            "stats": np.append(pair["quality"].ravel(), float(pair["nonfinite"])),
+        }
+        self.cache.store_arrays(self.pair_path(i), packed)
+        return _unpack(packed)
 
     def precompute_flow(self, progress: bool = True, on_pair=None) -> int:
         """Render, estimate and cache every pair not cached yet; return how many.
@@ -829,11 +840,11 @@ class RenderedDrivingDataset(TrajectoryDataset):
         stats = np.zeros((len(QUALITY_REGIONS), 3))
         nonfinite = 0
         for i in range(len(self.index)):
-            arrays = self.cache.load_arrays(self.pair_path(i), ("quality", "nonfinite"))
+            arrays = self.cache.load_arrays(self.pair_path(i), ("stats",))
             if arrays is None:
                 raise FileNotFoundError(f"{self.pair_path(i)}: pair not cached yet")
-            stats += arrays["quality"]
-            nonfinite += int(arrays["nonfinite"])
+            stats += arrays["stats"][:-1].reshape(stats.shape)
+            nonfinite += int(arrays["stats"][-1])
         return {"regions": summarize_quality(stats), "nonfinite_pixels": nonfinite}
 
     # -- samples -----------------------------------------------------------------------------
@@ -851,7 +862,7 @@ class RenderedDrivingDataset(TrajectoryDataset):
         sample = {
             "flow": flow,
             "flow_valid": valid,
-            "depth": torch.from_numpy(arrays["depth"]),
+            "depth": torch.from_numpy(np.ascontiguousarray(arrays["depth"])),
             "object_mask": torch.from_numpy(arrays["object_mask"]),
             "object_flow": transforms.flow_to_tensor(arrays["object_flow"]),
             "exact_flow": transforms.flow_to_tensor(arrays["exact_flow"]),
@@ -859,6 +870,19 @@ class RenderedDrivingDataset(TrajectoryDataset):
         }
         sample.update(self._identity(seq, src, tgt, self._pose(seq, src, tgt)))
         return sample
+
+
+def _unpack(packed: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The named fields of a cached pair (views of its two packed arrays)."""
+    out: dict[str, np.ndarray] = {}
+    for array, fields in ((packed["floats"], _FLOAT_FIELDS), (packed["bytes"], _BYTE_FIELDS)):
+        start = 0
+        for name, n in fields:
+            part = array[..., start : start + n]
+            out[name] = part if n > 1 else part[..., 0]
+            start += n
+    out["object_mask"] = out["object_mask"].astype(bool)
+    return out
 
 
 def check_render_size(flow: EstimatedFlow, model_hw: tuple[int, int]) -> tuple[int, int]:
