@@ -45,7 +45,7 @@ import torch
 
 from mfg_lightning import geometry
 from mfg_lightning.data.synthetic import FAR_PLANE, _reciprocal, _rng, _slab
-from mfg_lightning.data.worlds import CAR, CRATE, FACADE, PARKED_CAR, PEDESTRIAN, World
+from mfg_lightning.data.worlds import CAR, CRATE, FACADE, PARKED_CAR, PEDESTRIAN, Ground, World
 
 __all__ = [
     "CULL_DISTANCE",
@@ -74,8 +74,11 @@ REGION_NAMES = ("road", "structure", "moving", "far")
 #: Surfaces beyond this depth (metres) are far field: KITTI's ground-truth flow (from a
 #: Velodyne) does not reach much further.
 FAR_FIELD_DEPTH = 80.0
-#: Boxes further than this from the camera (metres) are not drawn.
-CULL_DISTANCE = 400.0
+#: Boxes further than this from the camera (metres) are not drawn (at most the worlds'
+#: ``SECTION_MARGIN``).
+CULL_DISTANCE = 200.0
+#: Depth (metres) where the distance fog starts.
+FOG_START = 40.0
 #: Smallest and largest image side (pixels).
 MIN_SIZE, MAX_SIZE = 16, 4096
 #: Nearest hit along a ray (metres of depth).
@@ -146,7 +149,7 @@ def _check_frame(world: World, frame: int) -> int:
 
 
 def _cast_ground(
-    world: World, origin: np.ndarray, dx: torch.Tensor, dy: torch.Tensor, dz: torch.Tensor
+    ground: Ground, origin: np.ndarray, dx: torch.Tensor, dy: torch.Tensor, dz: torch.Tensor
 ) -> torch.Tensor:
     """Depth of the first ground hit of every ray (inf where there is none).
 
@@ -163,18 +166,18 @@ def _cast_ground(
         ``(n,)`` depth in metres.
     """
     ox, oy, oz = (float(v) for v in origin)
-    h0, gx0, gz0 = world.ground_height(torch.tensor([ox]), torch.tensor([oz]))
+    h0, gx0, gz0 = ground.height(torch.tensor([ox]), torch.tensor([oz]))
     below = float(h0[0]) - oy
     depth = torch.full_like(dx, float("inf"))
     # A ray can reach the ground only if it climbs less steeply than the steepest ground.
     horizontal = torch.sqrt(dx * dx + dz * dz)
-    active = (dy > -(world.max_slope + 0.01) * horizontal).nonzero(as_tuple=True)[0]
-    x, y, z = dx[active], dy[active], dz[active]
+    active = (dy > -(ground.max_slope + 0.01) * horizontal).nonzero(as_tuple=True)[0]
+    x, y, z = dx.index_select(0, active), dy.index_select(0, active), dz.index_select(0, active)
     den = y - float(gx0[0]) * x - float(gz0[0]) * z
     t = torch.where(den > 0.02, below / den.clamp_min(0.02), torch.full_like(den, 60.0))
     t = t.clamp(NEAR, 2 * FAR_PLANE)
     for _ in range(8):
-        h, hx, hz = world.ground_height(ox + t * x, oz + t * z)
+        h, hx, hz = ground.height(ox + t * x, oz + t * z)
         f = h - oy - t * y
         slope = hx * x + hz * z - y  # df/dt: negative where the ray descends onto the ground
         step = f / torch.where(slope < -1e-4, slope, torch.full_like(slope, -1e-4))
@@ -186,8 +189,13 @@ def _cast_ground(
         more = (~done & ~lost).nonzero(as_tuple=True)[0]
         if not len(more):
             break
-        active, x, y, z = active[more], x[more], y[more], z[more]
-        t = (t[more] - step[more]).clamp(NEAR, 2 * FAR_PLANE)
+        active, x, y, z = (
+            active.index_select(0, more),
+            x.index_select(0, more),
+            y.index_select(0, more),
+            z.index_select(0, more),
+        )
+        t = (t.index_select(0, more) - step.index_select(0, more)).clamp(NEAR, 2 * FAR_PLANE)
     return depth
 
 
@@ -208,31 +216,34 @@ class _FrameBoxes:
 
 
 def _frame_boxes(world: World, frame: int, origin: np.ndarray) -> _FrameBoxes:
-    """Static boxes and the moving objects at ``frame`` within ``CULL_DISTANCE``."""
+    """The static boxes of the frame's section and the moving objects on it at ``frame``,
+    within ``CULL_DISTANCE`` of the camera."""
     st, mv = world.static, world.moving.boxes
-    near_st = np.linalg.norm(st.centre - origin, axis=1) - np.linalg.norm(st.half, axis=1)
-    keep_st = np.nonzero(near_st < CULL_DISTANCE)[0]
+    index, centre = world.static_boxes(frame)
+    near = np.linalg.norm(centre - origin, axis=1) - np.linalg.norm(st.half[index], axis=1)
+    keep = near < CULL_DISTANCE
+    index, centre = index[keep], centre[keep]
     poses = world.object_poses(frame).numpy()
-    mv_centre = poses[:, :3, 3]
-    near_mv = np.linalg.norm(mv_centre - origin, axis=1) - np.linalg.norm(mv.half, axis=1)
-    keep_mv = np.nonzero(near_mv < CULL_DISTANCE)[0]
+    ground = world.ground(frame)
+    arc = world.object_arc(frame)
+    near = np.linalg.norm(poses[:, :3, 3] - origin, axis=1) - np.linalg.norm(mv.half, axis=1)
+    moving = np.nonzero((near < CULL_DISTANCE) & (arc >= ground.lo) & (arc <= ground.hi))[0]
+    poses = poses[moving]
 
     def cat(a: np.ndarray, b: np.ndarray, dtype=torch.float32) -> torch.Tensor:
-        return torch.from_numpy(np.concatenate([a[keep_st], b[keep_mv]])).to(dtype)
+        return torch.from_numpy(np.concatenate([a, b])).to(dtype)
 
     return _FrameBoxes(
-        centre=torch.from_numpy(
-            np.concatenate([st.centre[keep_st], mv_centre[keep_mv]]) - origin
-        ).float(),
-        cos=cat(np.cos(st.yaw), poses[:, 0, 0]),
-        sin=cat(np.sin(st.yaw), poses[:, 0, 2]),
-        half=cat(st.half, mv.half),
-        base=cat(st.base, mv.base),
-        kind=cat(st.kind, mv.kind, torch.long),
-        colour=cat(st.colour, mv.colour),
-        colour2=cat(st.colour2, mv.colour2),
-        params=cat(st.params, mv.params),
-        instance=cat(np.full(len(st), -1), np.arange(len(mv)), torch.long),
+        centre=torch.from_numpy(np.concatenate([centre, poses[:, :3, 3]]) - origin).float(),
+        cos=cat(np.cos(st.yaw[index]), poses[:, 0, 0]),
+        sin=cat(np.sin(st.yaw[index]), poses[:, 0, 2]),
+        half=cat(st.half[index], mv.half[moving]),
+        base=cat(st.base[index], mv.base[moving]),
+        kind=cat(st.kind[index], mv.kind[moving], torch.long),
+        colour=cat(st.colour[index], mv.colour[moving]),
+        colour2=cat(st.colour2[index], mv.colour2[moving]),
+        params=cat(st.params[index], mv.params[moving]),
+        instance=cat(np.full(len(index), -1), moving, torch.long),
     )
 
 
@@ -329,11 +340,15 @@ def _cast_boxes(
     counts = nu * nv
     box = torch.repeat_interleave(torch.arange(rect.shape[0]), counts)
     start = torch.cumsum(counts, 0) - counts
-    local = torch.arange(int(counts.sum())) - start[box]
-    tile = (tv0[box] + local // nu[box]) * ntw + tu0[box] + local % nu[box]
-    ax, ay, az = (t[tile] for t in tiles)  # (P, T²)
+    local = torch.arange(int(counts.sum())) - start.index_select(0, box)
+    tile = (
+        (tv0.index_select(0, box) + local // nu.index_select(0, box)) * ntw
+        + tu0.index_select(0, box)
+        + local % nu.index_select(0, box)
+    )
+    ax, ay, az = (t.index_select(0, tile) for t in tiles)  # (P, T²)
     c, s = boxes.cos[box, None], boxes.sin[box, None]
-    cen = boxes.centre[box]
+    cen = boxes.centre.index_select(0, box)
     # The camera (origin) and the rays in the box's frame: R^T (0 − centre), R^T d.
     o = (
         -(c[:, 0] * cen[:, 0] - s[:, 0] * cen[:, 2]),
@@ -341,7 +356,7 @@ def _cast_boxes(
         -(s[:, 0] * cen[:, 0] + c[:, 0] * cen[:, 2]),
     )
     d = (c * ax - s * az, ay, s * ax + c * az)
-    h = boxes.half[box]
+    h = boxes.half.index_select(0, box)
     near = far = None
     for axis in range(3):
         oa = o[axis][:, None]
@@ -356,7 +371,9 @@ def _cast_boxes(
     t = t.reshape(-1)
     best.scatter_reduce_(0, pix, t, "amin")
     cand = torch.where(
-        (t == best[pix]) & torch.isfinite(t), box[:, None].expand(-1, T * T).reshape(-1), -1
+        (t == best.index_select(0, pix)) & torch.isfinite(t),
+        box[:, None].expand(-1, T * T).reshape(-1),
+        -1,
     )
     winner.scatter_reduce_(0, pix, cand, "amax")
 
@@ -377,6 +394,33 @@ def _noise_table(world: World) -> torch.Tensor:
     return torch.from_numpy(rng.uniform(-1, 1, _NOISE_SIZE * _NOISE_SIZE).astype(np.float32))
 
 
+def _lookup(table: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """``table[index]`` for a 1-D table and an integer index of any shape (``index_select``,
+    several times faster than advanced indexing on CPU)."""
+    return table.index_select(0, index.reshape(-1)).view(index.shape)
+
+
+def _sensor_noise(world: World, frame: int, height: int, width: int) -> torch.Tensor:
+    """Standard-normal sensor noise ``(3, H, W)`` of one frame.
+
+    Drawn from the world's table of 2¹⁶ normal values through a random affine map of the pixel
+    coordinates per frame and channel (odd multipliers, so every row is a permutation of a
+    stretch of the table): as good as fresh noise for an optical-flow estimator, and cheaper.
+    """
+    table = _rng(world.seed, "world", world.name, "sensor").standard_normal(1 << 16)
+    table = torch.from_numpy(table.astype(np.float32))
+    coeff = _rng(world.seed, "world", world.name, "sensor", frame).integers(0, 1 << 16, (3, 3))
+    u = torch.arange(width)[None]
+    v = torch.arange(height)[:, None]
+    mask = (1 << 16) - 1
+    return torch.stack(
+        [
+            _lookup(table, (u * (2 * int(a) + 1) + v * (2 * int(b) + 1) * 977 + int(o)) & mask)
+            for a, b, o in coeff
+        ]
+    )
+
+
 def _noise(table: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Value noise in [-1, 1] at lattice coordinates ``(a, b)`` (smoothstep-interpolated)."""
     n = _NOISE_SIZE
@@ -386,8 +430,8 @@ def _noise(table: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tenso
     tb = tb * tb * (3 - 2 * tb)
     ia, ib = fa.long() & (n - 1), fb.long() & (n - 1)
     ja, jb = (ia + 1) & (n - 1), (ib + 1) & (n - 1)
-    v00, v01 = table[ib * n + ia], table[ib * n + ja]
-    v10, v11 = table[jb * n + ia], table[jb * n + ja]
+    v00, v01 = _lookup(table, ib * n + ia), _lookup(table, ib * n + ja)
+    v10, v11 = _lookup(table, jb * n + ia), _lookup(table, jb * n + ja)
     top = v00 + (v01 - v00) * ta
     bottom = v10 + (v11 - v10) * ta
     return top + (bottom - top) * tb
@@ -396,7 +440,9 @@ def _noise(table: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tenso
 def _cell_random(table: torch.Tensor, i: torch.Tensor, j: torch.Tensor) -> torch.Tensor:
     """A random value in [-1, 1] per integer cell ``(i, j)`` (e.g. per window or slab)."""
     n = _NOISE_SIZE
-    return table[((j.long() * 7 + 3) & (n - 1)) * n + ((i.long() * 13 + j.long()) & (n - 1))]
+    return _lookup(
+        table, ((j.long() * 7 + 3) & (n - 1)) * n + ((i.long() * 13 + j.long()) & (n - 1))
+    )
 
 
 def _fade(footprint: torch.Tensor, wavelength: float) -> torch.Tensor:
@@ -418,12 +464,22 @@ def _fbm(
     out = torch.zeros_like(a)
     for k, (wavelength, amplitude) in enumerate(octaves):
         weight = _fade(footprint, wavelength)
+        shift = 37.0 * k + offset
+        if bool((weight > 0).all()):
+            value = _noise(table, a / wavelength + shift, b / wavelength + 0.61 * shift)
+            out = out + amplitude * weight * value
+            continue
         sel = (weight > 0).nonzero(as_tuple=True)[0]
         if not len(sel):
             continue
-        shift = 37.0 * k + (offset[sel] if isinstance(offset, torch.Tensor) else offset)
-        value = _noise(table, a[sel] / wavelength + shift, b[sel] / wavelength + 0.61 * shift)
-        out.index_add_(0, sel, amplitude * weight[sel] * value)
+        if isinstance(shift, torch.Tensor):
+            shift = shift.index_select(0, sel)
+        value = _noise(
+            table,
+            a.index_select(0, sel) / wavelength + shift,
+            b.index_select(0, sel) / wavelength + 0.61 * shift,
+        )
+        out.index_add_(0, sel, amplitude * weight.index_select(0, sel) * value)
     return out
 
 
@@ -447,6 +503,7 @@ def _grey(v: torch.Tensor, tint: Sequence[float] = (1.0, 1.0, 1.0)) -> torch.Ten
 
 def _shade_ground(
     world: World,
+    ground: Ground,
     table: torch.Tensor,
     x: torch.Tensor,
     z: torch.Tensor,
@@ -456,7 +513,7 @@ def _shade_ground(
     """Colour ``(n, 3)`` of ground points at world ``(x, z)`` (``(n,)`` each) seen with
     footprints across and along the ray (metres); each material shaded on its own pixels."""
     cfg = world.config
-    s, d, _ = world.road_coordinates(x, z)
+    s, d, _ = ground.road_coordinates(x, z)
     ad = d.abs()
     half, kerb, line = cfg.road_half_width, cfg.kerb, cfg.building_line
     L = cfg.lane_width
@@ -464,7 +521,16 @@ def _shade_ground(
 
     def part(mask: torch.Tensor):
         idx = mask.nonzero(as_tuple=True)[0]
-        return idx, x[idx], z[idx], s[idx], d[idx], ad[idx], fp_lat[idx], fp[idx]
+        return (
+            idx,
+            x.index_select(0, idx),
+            z.index_select(0, idx),
+            s.index_select(0, idx),
+            d.index_select(0, idx),
+            ad.index_select(0, idx),
+            fp_lat.index_select(0, idx),
+            fp.index_select(0, idx),
+        )
 
     # Asphalt: patches, grain down to 3 cm; lanes worn darker by tyres; markings dashed between
     # lanes (3 m on, 6 m off) and solid along the road's edges.
@@ -482,12 +548,12 @@ def _shade_ground(
             paint = torch.maximum(paint, dash * (pad < half - 0.5))
         wear = 1.0 + 0.08 * _noise(table, px / 0.7 + 11.0, pz / 0.7)
         grey = grey + paint * (205.0 * wear - grey)
-        out[idx] = _grey(grey, (1.0, 1.0, 1.03))
+        out.index_copy_(0, idx, _grey(grey, (1.0, 1.0, 1.03)))
     # Kerb stones.
     idx, px, pz, ps, pd, pad, pfl, pf = part((ad >= kerb) & (ad < kerb + 0.2))
     if len(idx):
         grey = 160.0 + _fbm(table, px, pz + 300.0, pf, [(0.3, 5.0), (0.05, 5.0)])
-        out[idx] = _grey(grey)
+        out.index_copy_(0, idx, _grey(grey))
     # Sidewalk: 0.6 m slabs with seams, each slab its own shade.
     idx, px, pz, ps, pd, pad, pfl, pf = part((ad >= kerb + 0.2) & (ad <= line))
     if len(idx):
@@ -497,12 +563,12 @@ def _shade_ground(
             _coverage(_periodic_dist(ps, 0.6, 0.0), 0.025, pf),
             _coverage(_periodic_dist(pad, 0.6, 0.0), 0.025, pf),
         )
-        out[idx] = _grey(grey - 45.0 * seam, (1.0, 0.99, 0.97))
+        out.index_copy_(0, idx, _grey(grey - 45.0 * seam, (1.0, 0.99, 0.97)))
     # Verge beyond the building line: grass and dirt.
     idx, px, pz, ps, pd, pad, pfl, pf = part(ad > line)
     if len(idx):
         g = _fbm(table, px + 900.0, pz, pf, [(3.0, 0.5), (0.6, 0.35), (0.12, 0.25), (0.04, 0.2)])
-        out[idx] = torch.stack([88 + 30 * g, 104 + 34 * g, 58 + 18 * g], -1)
+        out.index_copy_(0, idx, torch.stack([88 + 30 * g, 104 + 34 * g, 58 + 18 * g], -1))
     return out
 
 
@@ -666,7 +732,8 @@ def render_frame(
     t_box, box = _cast_boxes(boxes, rect[keep], rays, height, width)
     dx, dy, dz = (r.reshape(-1) for r in rays)
     t_box, box = t_box.reshape(-1), box.reshape(-1)
-    t_ground = _cast_ground(world, origin, dx, dy, dz)
+    ground = world.ground(frame)
+    t_ground = _cast_ground(ground, origin, dx, dy, dz)
 
     on_box = (t_box < t_ground) & (t_box < FAR_PLANE)
     on_ground = ~on_box & (t_ground < FAR_PLANE)
@@ -681,37 +748,57 @@ def render_frame(
     sun = torch.from_numpy(world.sun).float()
 
     def haze(rgb: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-        """Aerial perspective: distant surfaces take on a little of the horizon's colour."""
-        return rgb + (0.45 * t / (t + 350.0))[:, None] * (_HORIZON - rgb)
+        """Distance fog: surfaces fade into the horizon's colour from ``FOG_START`` on and are
+        gone at ``CULL_DISTANCE``, so nothing visibly appears where culling starts."""
+        f = ((t - FOG_START) / (CULL_DISTANCE - FOG_START)).clamp(0, 1)
+        return rgb + (f * f * (3 - 2 * f))[:, None] * (_HORIZON - rgb)
 
     idx = sky.nonzero(as_tuple=True)[0]
     if len(idx):
-        colour[idx] = _shade_sky(table, dx[idx], dy[idx], dz[idx])
+        colour.index_copy_(
+            0,
+            idx,
+            _shade_sky(
+                table, dx.index_select(0, idx), dy.index_select(0, idx), dz.index_select(0, idx)
+            ),
+        )
     idx = on_ground.nonzero(as_tuple=True)[0]
     if len(idx):
-        t = depth[idx]
-        gx = float(origin[0]) + t * dx[idx]
-        gz = float(origin[2]) + t * dz[idx]
-        cos_inc = (dy[idx] / norm[idx]).abs().clamp_min(0.02)
+        t = depth.index_select(0, idx)
+        gx = float(origin[0]) + t * dx.index_select(0, idx)
+        gz = float(origin[2]) + t * dz.index_select(0, idx)
+        cos_inc = (dy.index_select(0, idx) / norm.index_select(0, idx)).abs().clamp_min(0.02)
         light = 0.62 + 0.38 * float(-world.sun[1])
-        rgb = _shade_ground(world, table, gx, gz, fp_lat[idx], fp_lat[idx] / cos_inc)
-        colour[idx] = haze(light * rgb, t)
+        rgb = _shade_ground(
+            world,
+            ground,
+            table,
+            gx,
+            gz,
+            fp_lat.index_select(0, idx),
+            fp_lat.index_select(0, idx) / cos_inc,
+        )
+        colour.index_copy_(0, idx, haze(light * rgb, t))
     idx = on_box.nonzero(as_tuple=True)[0]
     if len(idx):
-        colour[idx] = haze(
-            _shade_boxes(
-                table,
-                boxes,
-                box[idx],
-                depth[idx],
-                dx[idx],
-                dy[idx],
-                dz[idx],
-                norm[idx],
-                fp_lat[idx],
-                sun,
+        colour.index_copy_(
+            0,
+            idx,
+            haze(
+                _shade_boxes(
+                    table,
+                    boxes,
+                    box.index_select(0, idx),
+                    depth.index_select(0, idx),
+                    dx.index_select(0, idx),
+                    dy.index_select(0, idx),
+                    dz.index_select(0, idx),
+                    norm.index_select(0, idx),
+                    fp_lat.index_select(0, idx),
+                    sun,
+                ),
+                depth.index_select(0, idx),
             ),
-            depth[idx],
         )
 
     # Camera: vignette, this frame's exposure, sensor noise, 8 bits.
@@ -719,8 +806,7 @@ def render_frame(
     v = (torch.arange(height, dtype=torch.float32) - (height - 1) / 2) / (height / 2)
     vignette = 1.0 - 0.09 * (u[None] ** 2 + v[:, None] ** 2)
     gain = float(world.exposure[frame])
-    rng = _rng(world.seed, "world", world.name, "sensor", frame, height, width)
-    noise = torch.from_numpy(rng.standard_normal((3, height, width), dtype=np.float32))
+    noise = _sensor_noise(world, frame, height, width)
     image = (
         colour.T.reshape(3, height, width) * (gain * vignette) + world.config.sensor_noise * noise
     )
@@ -758,52 +844,82 @@ def _shade_boxes(
     sun: torch.Tensor,
 ) -> torch.Tensor:
     """Colour ``(n, 3)`` of box hits: box ``b`` at depth ``t`` along rays ``d`` (``(n,)`` each)."""
-    c, s = boxes.cos[b], boxes.sin[b]
-    cen = boxes.centre[b]
+    c, s = boxes.cos.index_select(0, b), boxes.sin.index_select(0, b)
+    cen = boxes.centre.index_select(0, b)
+    half = boxes.half.index_select(0, b)
     wx, wy, wz = t * dx - cen[:, 0], t * dy - cen[:, 1], t * dz - cen[:, 2]
-    p = torch.stack([c * wx - s * wz, wy, s * wx + c * wz], -1)  # box-local hit point
-    half = boxes.half[b]
-    face = (p.abs() / half).argmax(-1)
-    sign = torch.gather(p, 1, face[:, None])[:, 0].sign()
-    normal = torch.nn.functional.one_hot(face, 3).float() * sign[:, None]
+    px, py, pz = c * wx - s * wz, wy, s * wx + c * wz  # box-local hit point
+    p = torch.stack([px, py, pz], -1)
+    # The face hit: the axis along which the point is furthest out relative to the half size.
+    rx, ry, rz = px.abs() / half[:, 0], py.abs() / half[:, 1], pz.abs() / half[:, 2]
+    on_x = (rx >= ry) & (rx >= rz)
+    on_y = ~on_x & (ry >= rz)
+    on_z = ~on_x & ~on_y
+    face = torch.where(on_x, 0, torch.where(on_y, 1, 2))
+    zero = torch.zeros_like(px)
+    lx, ly, lz = (torch.where(m, q.sign(), zero) for m, q in ((on_x, px), (on_y, py), (on_z, pz)))
     # World normal: R · n with R = [[c, 0, s], [0, 1, 0], [-s, 0, c]].
-    nx = c * normal[:, 0] + s * normal[:, 2]
-    nz = -s * normal[:, 0] + c * normal[:, 2]
-    ny = normal[:, 1]
+    nx = c * lx + s * lz
+    nz = -s * lx + c * lz
+    ny = ly
     lambert = (nx * sun[0] + ny * sun[1] + nz * sun[2]).clamp_min(0)
     cos_inc = ((nx * dx + ny * dy + nz * dz) / norm).abs().clamp_min(0.02)
     fp = fp_lat / cos_inc
-    hh = boxes.base[b] - p[:, 1]
-    kind = boxes.kind[b]
+    hh = boxes.base.index_select(0, b) - p[:, 1]
+    kind = boxes.kind.index_select(0, b)
     rgb = torch.empty(len(b), 3)
     for k in (FACADE, PARKED_CAR, CRATE, CAR, PEDESTRIAN):
         sel = (kind == k).nonzero(as_tuple=True)[0]
         if not len(sel):
             continue
-        bs = b[sel]
-        args = (table, p[sel], face[sel], hh[sel], fp[sel])
+        bs = b.index_select(0, sel)
+        args = (
+            table,
+            p.index_select(0, sel),
+            face.index_select(0, sel),
+            hh.index_select(0, sel),
+            fp.index_select(0, sel),
+        )
         if k == FACADE:
-            top = boxes.base[bs] + boxes.half[bs, 1]
-            out = _shade_facade(*args, boxes.colour[bs], boxes.colour2[bs], boxes.params[bs], top)
-            out = torch.where((face[sel] == 1)[:, None], torch.tensor([85.0, 82.0, 80.0]), out)
+            top = boxes.base.index_select(0, bs) + boxes.half.index_select(0, bs)[:, 1]
+            out = _shade_facade(
+                *args,
+                boxes.colour.index_select(0, bs),
+                boxes.colour2.index_select(0, bs),
+                boxes.params.index_select(0, bs),
+                top,
+            )
+            out = torch.where(
+                (face.index_select(0, sel) == 1)[:, None], torch.tensor([85.0, 82.0, 80.0]), out
+            )
         elif k in (PARKED_CAR, CAR):
             out = _shade_car(
-                *args, half[sel], boxes.colour[bs], boxes.colour2[bs], boxes.params[bs], 1.0
+                *args,
+                half.index_select(0, sel),
+                boxes.colour.index_select(0, bs),
+                boxes.colour2.index_select(0, bs),
+                boxes.params.index_select(0, bs),
+                1.0,
             )
         elif k == CRATE:
-            out = _shade_crate(*args, half[sel], boxes.colour[bs], boxes.params[bs])
+            out = _shade_crate(
+                *args,
+                half.index_select(0, sel),
+                boxes.colour.index_select(0, bs),
+                boxes.params.index_select(0, bs),
+            )
         else:
             out = _shade_pedestrian(
                 table,
-                p[sel],
-                hh[sel],
-                fp[sel],
-                half[sel],
-                boxes.colour[bs],
-                boxes.colour2[bs],
-                boxes.params[bs],
+                p.index_select(0, sel),
+                hh.index_select(0, sel),
+                fp.index_select(0, sel),
+                half.index_select(0, sel),
+                boxes.colour.index_select(0, bs),
+                boxes.colour2.index_select(0, bs),
+                boxes.params.index_select(0, bs),
             )
-        rgb[sel] = out
+        rgb.index_copy_(0, sel, out)
     return rgb * (0.58 + 0.42 * lambert)[:, None]
 
 

@@ -65,8 +65,13 @@ KIND_NAMES = ("facade", "parked car", "crate", "car", "pedestrian")
 EXTENSION = 250.0
 #: Arc-length spacing of the resampled path (metres).
 PATH_STEP = 0.5
-#: Largest number of grid cells: longer trajectories get coarser cells.
-MAX_GRID_CELLS = 2_500_000
+#: Largest number of grid cells of a section's ground: longer sections get coarser cells.
+MAX_GRID_CELLS = 600_000
+#: Arc length of a section of the path (metres): frames in one section see one ground.
+SECTION = 100.0
+#: Centreline beyond a section's ends that its ground is built from (metres; at least the
+#: renderer's culling distance, so that a switch of sections changes nothing in view).
+SECTION_MARGIN = 200.0
 
 # Full sizes (x width, y height, z length) in metres.
 _CAR_SIZE = (1.8, 1.5, 4.2)
@@ -296,11 +301,101 @@ class MovingObjects:
         return len(self.s0)
 
 
+class Ground:
+    """The ground of one section of a world: a height field and road coordinates on a grid.
+
+    Attributes:
+        lo, hi: the range of centreline arc lengths this ground is built from (metres).
+        origin: ``(x0, z0)`` world coordinates of grid cell ``(0, 0)``'s centre.
+        cell: cell size (metres).
+        grid: ``(nz, nx, 4)`` float32 per cell: ground y, and the arc length ``s``, lateral
+            offset ``d`` and ``|d|`` of the nearest centreline point.
+        max_slope: the steepest ground slope (rise over run).
+    """
+
+    def __init__(
+        self, lo: float, hi: float, origin: tuple[float, float], cell: float, grid: np.ndarray
+    ) -> None:
+        self.lo, self.hi, self.origin, self.cell = lo, hi, origin, cell
+        self.grid = torch.from_numpy(grid)
+        self._height = self.grid[..., 0].contiguous().view(-1)
+        self._road = self.grid[..., 1:].contiguous().view(-1, 3)
+        gz, gx = np.gradient(grid[..., 0], cell)
+        self.max_slope = float(np.sqrt(gx * gx + gz * gz).max())
+
+    def _cells(self, x: torch.Tensor, z: torch.Tensor):
+        """Corner index and bilinear fractions of world points (clamped at the border)."""
+        nz, nx = self.grid.shape[:2]
+        gx = ((x - self.origin[0]) / self.cell).clamp(0, nx - 1.001)
+        gz = ((z - self.origin[1]) / self.cell).clamp(0, nz - 1.001)
+        ix, iz = gx.floor(), gz.floor()
+        return iz.long() * nx + ix.long(), nx, gx - ix, gz - iz
+
+    def height(
+        self, x: torch.Tensor, z: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Ground y (down) at world points and its slopes.
+
+        Args:
+            x, z: world coordinates (metres), equal shapes, float32 or float64.
+
+        Returns:
+            ``(y, dy/dx, dy/dz)`` of the bilinear height field, shaped and typed like ``x``.
+        """
+        i00, nx, fx, fz = self._cells(x.reshape(-1), z.reshape(-1))
+        h = self._height
+        h00, h01, h10, h11 = (
+            h.index_select(0, i).to(x.dtype) for i in (i00, i00 + 1, i00 + nx, i00 + nx + 1)
+        )
+        a = h00 + (h01 - h00) * fx
+        b = h10 + (h11 - h10) * fx
+        dx = ((h01 - h00) + (h11 - h10 - h01 + h00) * fz) / self.cell
+        shape = x.shape
+        return (a + (b - a) * fz).view(shape), dx.view(shape), ((b - a) / self.cell).view(shape)
+
+    def road_coordinates(
+        self, x: torch.Tensor, z: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Road coordinates of world points.
+
+        Args:
+            x, z: world coordinates (metres), ``(n,)`` each.
+
+        Returns:
+            ``(s, d, dist)``: arc length and signed lateral offset (metres, positive to the
+            right of the direction of travel) of the nearest centreline point, and the distance
+            to the centreline. Between two passes of the path, where the nearest point jumps
+            from one to the other, ``d`` is meaningless: there it is 10 km (off any road).
+        """
+        i00, nx, fx, fz = self._cells(x, z)
+        g = self._road
+        c00, c01, c10, c11 = (
+            g.index_select(0, i).to(x.dtype) for i in (i00, i00 + 1, i00 + nx, i00 + nx + 1)
+        )
+        fx, fz = fx[:, None], fz[:, None]
+        a = c00 + (c01 - c00) * fx
+        b = c10 + (c11 - c10) * fx
+        v = a + (b - a) * fz
+        s, d, dist = v[:, 0], v[:, 1], v[:, 2]
+        # Bilinear |d| exceeds |bilinear d| only where d changes sign in the cell: by less than a
+        # cell at the centreline, by metres where the nearest pass jumps (d flips from +D to -D).
+        torn = (dist - d.abs()) > 2.0 * self.cell
+        return s, torch.where(torn, torch.full_like(d, 1e4), d), dist
+
+
 @dataclass
 class World:
     """A persistent street scene along one trajectory (see the module docstring).
 
     Build with :meth:`generate`. Attributes are read by the renderer; all lengths in metres.
+
+    The ground is built in overlapping **sections** of the path: frame ``k`` sees the ground of
+    section ``⌊s_k / SECTION⌋`` (``s_k`` its arc length), built from the centreline within
+    ``SECTION_MARGIN`` of that section. A street the trajectory drives again much later (KITTI
+    loops) thus keeps the height and lanes of the pass being driven, even where the ground-truth
+    poses of the two passes disagree by metres in height (KITTI 08: up to 6 m); the world near
+    the camera is the same in both sections at a switch, and whatever differs is at least
+    ``SECTION_MARGIN`` of path away.
 
     Attributes:
         poses: ``(N, 4, 4)`` float64 camera poses ``T_world_cam``.
@@ -309,11 +404,11 @@ class World:
             negative on the extension behind it).
         path_xyz: ``(P, 3)`` ground points of the centreline (world coordinates).
         path_dir: ``(P, 2)`` unit horizontal heading ``(dx, dz)`` of the centreline.
-        grid_origin: ``(x0, z0)`` world coordinates of grid cell ``(0, 0)``'s centre.
-        grid_cell: cell size.
-        grid: ``(nz, nx, 4)`` float32 per cell: ground y, arc length s, lateral offset d,
-            ``|d|`` of the nearest centreline point.
-        static: facades, parked cars and crates (:class:`Boxes`).
+        frame_s: ``(N,)`` arc length of every frame.
+        static: facades, parked cars and crates (:class:`Boxes`; ``centre`` y is filled in per
+            section, see :meth:`static_boxes`).
+        static_s: ``(M,)`` arc length each static box was placed at.
+        static_clearance: ``(M,)`` the distance it keeps from every pass of the path.
         moving: cars and pedestrians (:class:`MovingObjects`).
         exposure: ``(N,)`` float64 exposure gain of every frame (around 1).
         sun: ``(3,)`` float64 unit vector towards the sun (world coordinates; up is ``-y``).
@@ -326,14 +421,14 @@ class World:
     path_s: np.ndarray
     path_xyz: np.ndarray
     path_dir: np.ndarray
-    grid_origin: tuple[float, float]
-    grid_cell: float
-    grid: torch.Tensor
+    frame_s: np.ndarray
     static: Boxes
+    static_s: np.ndarray
+    static_clearance: np.ndarray
     moving: MovingObjects
     exposure: np.ndarray
     sun: np.ndarray
-    _height: torch.Tensor = field(repr=False, default=None)  # (nz·nx,) ground y, contiguous
+    _sections: dict = field(default_factory=dict, repr=False)
 
     # ----------------------------------------------------------------------------------------
     # Generation
@@ -370,8 +465,7 @@ class World:
         poses = poses.to(torch.float64).contiguous()
         if not bool(torch.isfinite(poses).all()):
             raise ValueError(f"World.generate: trajectory {name!r} has non-finite poses")
-        path_s, path_xyz, path_dir = _road_centreline(poses.numpy())
-        grid_origin, cell, grid = _ground_grid(path_s, path_xyz, path_dir, cfg)
+        path_s, path_xyz, path_dir, frame_s = _road_centreline(poses.numpy())
         world = cls(
             poses=poses,
             seed=int(seed),
@@ -380,92 +474,67 @@ class World:
             path_s=path_s,
             path_xyz=path_xyz,
             path_dir=path_dir,
-            grid_origin=grid_origin,
-            grid_cell=cell,
-            grid=torch.from_numpy(grid),
+            frame_s=frame_s,
             static=_empty_boxes(),
+            static_s=np.zeros(0),
+            static_clearance=np.zeros(0),
             moving=MovingObjects(_empty_boxes(), *(np.zeros(0) for _ in range(4))),
             exposure=_exposure(_rng(seed, "world", name, "exposure"), poses.shape[0], cfg),
             sun=_sun(_rng(seed, "world", name, "sun")),
         )
-        world.static = world._place_static(_rng(seed, "world", name, "static"))
+        world._place_static(_rng(seed, "world", name, "static"))
         world.moving = world._place_moving(_rng(seed, "world", name, "moving"))
         return world
-
-    def __post_init__(self) -> None:
-        self._height = self.grid[..., 0].contiguous().view(-1)
-        gz, gx = np.gradient(self.grid[..., 0].numpy(), self.grid_cell)
-        #: The steepest slope of the ground (rise over run).
-        self.max_slope = float(np.sqrt(gx * gx + gz * gz).max())
 
     @property
     def num_frames(self) -> int:
         return int(self.poses.shape[0])
 
     # ----------------------------------------------------------------------------------------
-    # Queries shared by generation and rendering
+    # Sections and queries
     # ----------------------------------------------------------------------------------------
 
-    def _cells(self, x: torch.Tensor, z: torch.Tensor):
-        """Bilinear weights of world points on the ground grid (clamped at its border)."""
-        nz, nx = self.grid.shape[:2]
-        gx = ((x - self.grid_origin[0]) / self.grid_cell).clamp(0, nx - 1.001)
-        gz = ((z - self.grid_origin[1]) / self.grid_cell).clamp(0, nz - 1.001)
-        ix, iz = gx.floor(), gz.floor()
-        fx, fz = gx - ix, gz - iz
-        i00 = iz.long() * nx + ix.long()
-        return i00, nx, fx, fz
+    @property
+    def num_sections(self) -> int:
+        return max(1, math.ceil(float(self.frame_s.max()) / SECTION))
 
-    def ground_height(
-        self, x: torch.Tensor, z: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Ground y (down) at world points and its slopes.
+    def section_of(self, frame: int | float) -> int:
+        """The section whose ground frame ``frame`` sees."""
+        k = int(np.clip(round(float(frame)), 0, self.num_frames - 1))
+        return int(np.clip(self.frame_s[k] // SECTION, 0, self.num_sections - 1))
 
-        Args:
-            x, z: world coordinates (metres), any equal shapes, float32 or float64.
+    def ground(self, frame: int | float) -> Ground:
+        """The ground frame ``frame`` sees (built on first use, then kept)."""
+        j = self.section_of(frame)
+        if j not in self._sections:
+            lo = j * SECTION - SECTION_MARGIN
+            hi = (j + 1) * SECTION + SECTION_MARGIN
+            if j == 0:
+                lo = -np.inf
+            if j == self.num_sections - 1:
+                hi = np.inf
+            sel = (self.path_s >= lo) & (self.path_s <= hi)
+            origin, cell, grid = _ground_grid(
+                self.path_s[sel],
+                self.path_xyz[sel],
+                self.path_dir[sel],
+                self.config,
+                extension=(self.path_s[sel] < 0) | (self.path_s[sel] > self.frame_s.max()),
+            )
+            ground = Ground(
+                float(self.path_s[sel][0]), float(self.path_s[sel][-1]), origin, cell, grid
+            )
+            ground.static_index, ground.static_centre = self._static_in(ground)
+            self._sections[j] = ground
+        return self._sections[j]
 
-        Returns:
-            ``(y, dy/dx, dy/dz)`` of the bilinear height field, shaped like ``x``.
-        """
-        i00, nx, fx, fz = self._cells(x, z)
-        h = self._height
-        h00, h01 = h[i00].to(x.dtype), h[i00 + 1].to(x.dtype)
-        h10, h11 = h[i00 + nx].to(x.dtype), h[i00 + nx + 1].to(x.dtype)
-        a = h00 + (h01 - h00) * fx
-        b = h10 + (h11 - h10) * fx
-        y = a + (b - a) * fz
-        dx = ((h01 - h00) + (h11 - h10 - h01 + h00) * fz) / self.grid_cell
-        dz = (b - a) / self.grid_cell
-        return y, dx, dz
+    def ground_height(self, x: torch.Tensor, z: torch.Tensor, frame: int = 0):
+        """:meth:`Ground.height` of the ground frame ``frame`` sees."""
+        return self.ground(frame).height(x, z)
 
-    def road_coordinates(
-        self, x: torch.Tensor, z: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Road coordinates of world points.
-
-        Args:
-            x, z: world coordinates (metres), ``(n,)`` each.
-
-        Returns:
-            ``(s, d, dist)``: arc length and signed lateral offset (metres, positive to the
-            right of the direction of travel) of the nearest centreline point, and the distance
-            to the centreline. Between two passes of the path, where the nearest point jumps
-            from one to the other, ``d`` is meaningless: there it is set to ``±dist``'s
-            largest value (off any road).
-        """
-        i00, nx, fx, fz = self._cells(x, z)
-        g = self.grid.view(-1, 4)[:, 1:]
-        c00, c01, c10, c11 = (g[i].to(x.dtype) for i in (i00, i00 + 1, i00 + nx, i00 + nx + 1))
-        fx, fz = fx[:, None], fz[:, None]
-        a = c00 + (c01 - c00) * fx
-        b = c10 + (c11 - c10) * fx
-        v = a + (b - a) * fz
-        s, d, dist = v[:, 0], v[:, 1], v[:, 2]
-        # Bilinear |d| exceeds |bilinear d| only where d changes sign in the cell: by less than a
-        # cell at the centreline, by metres where the nearest pass jumps (d flips from +D to -D).
-        torn = (dist - d.abs()) > 2.0 * self.grid_cell
-        d = torch.where(torn, torch.full_like(d, 1e4), d)
-        return s, d, dist
+    def road_coordinates(self, x: torch.Tensor, z: torch.Tensor, frame: int = 0):
+        """:meth:`Ground.road_coordinates` of the ground frame ``frame`` sees."""
+        return self.ground(frame).road_coordinates(x, z)
 
     def path_at(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Centreline ground point ``(n, 3)`` and heading ``(n, 2)`` (unit dx, dz) at arc lengths
@@ -475,14 +544,24 @@ class World:
         h /= np.linalg.norm(h, axis=-1, keepdims=True).clip(1e-9)
         return xyz, h
 
-    def _ground_y(self, x: np.ndarray, z: np.ndarray) -> np.ndarray:
-        return self.ground_height(torch.from_numpy(x), torch.from_numpy(z))[0].numpy()
+    def static_boxes(self, frame: int | float) -> tuple[np.ndarray, np.ndarray]:
+        """The static boxes frame ``frame`` sees: indices into :attr:`static` ``(m,)`` and
+        their centres ``(m, 3)`` standing on that frame's ground."""
+        ground = self.ground(frame)
+        return ground.static_index, ground.static_centre
+
+    def object_arc(self, frame: int | float) -> np.ndarray:
+        """Arc length ``(M,)`` of every moving object at a frame."""
+        m = self.moving
+        lo, hi = self.path_s[0] + 20.0, self.path_s[-1] - 20.0
+        return lo + np.mod(m.s0 + m.direction * m.speed * float(frame) - lo, hi - lo)
 
     def object_poses(self, frame: int | float) -> torch.Tensor:
         """Poses of every moving object at a frame (continuous in ``frame``).
 
         Args:
-            frame: frame index (fractional frames interpolate the motion).
+            frame: frame index (fractional frames interpolate the motion; the ground the
+                objects stand on is that of the nearest frame).
 
         Returns:
             ``(M, 4, 4)`` float64 ``T_world_obj`` (box centre; x right, y down, z heading),
@@ -491,37 +570,39 @@ class World:
         m = self.moving
         if not len(m):
             return torch.zeros(0, 4, 4, dtype=torch.float64)
-        lo, hi = self.path_s[0] + 20.0, self.path_s[-1] - 20.0
-        s = lo + np.mod(m.s0 + m.direction * m.speed * float(frame) - lo, hi - lo)
-        xyz, heading = self.path_at(s)
+        xyz, heading = self.path_at(self.object_arc(frame))
         right = np.stack([heading[:, 1], -heading[:, 0]], -1)  # (dz, -dx): x = y × z, y down
         x = xyz[:, 0] + m.lateral * right[:, 0]
         z = xyz[:, 2] + m.lateral * right[:, 1]
-        y = self._ground_y(x, z) - m.boxes.base
+        y = self.ground(frame).height(torch.from_numpy(x), torch.from_numpy(z))[0].numpy()
         yaw = np.arctan2(heading[:, 0] * m.direction, heading[:, 1] * m.direction)
-        return yaw_pose(np.stack([x, y, z], -1), yaw)
+        return yaw_pose(np.stack([x, y - m.boxes.base, z], -1), yaw)
 
     # ----------------------------------------------------------------------------------------
     # Placement
     # ----------------------------------------------------------------------------------------
 
-    def _owned_and_clear(
-        self, x: np.ndarray, z: np.ndarray, s_own: np.ndarray, clearance: float
-    ) -> np.ndarray:
-        """Which candidate footprints keep ``clearance`` from every pass of the path and stand
-        where their own pass is the nearest one (so revisited streets are furnished once).
-
-        Args:
-            x, z: ``(n, k)`` sample points of each candidate's footprint.
-            s_own: ``(n,)`` arc length the candidate was placed at.
-        """
-        tx, tz = torch.from_numpy(x.ravel()), torch.from_numpy(z.ravel())
-        s, _, dist = self.road_coordinates(tx, tz)
-        dist = dist.numpy().reshape(x.shape)
-        s = s.numpy().reshape(x.shape)
-        clear = (dist >= clearance).all(1)
-        owned = np.abs(s[:, 0] - s_own) < 15.0
-        return clear & owned
+    def _static_in(self, ground: Ground) -> tuple[np.ndarray, np.ndarray]:
+        """Static boxes of a section: placed within its arc range, clear of every pass of the
+        path in it and standing where their own pass is the nearest one (so revisited streets
+        are furnished once), with centres on its ground."""
+        st = self.static
+        inside = np.nonzero((self.static_s >= ground.lo + 5) & (self.static_s <= ground.hi - 5))[0]
+        px, pz = self._footprint_x[inside], self._footprint_z[inside]
+        s, _, dist = ground.road_coordinates(
+            torch.from_numpy(px.ravel()), torch.from_numpy(pz.ravel())
+        )
+        dist = dist.numpy().reshape(px.shape)
+        s = s.numpy().reshape(px.shape)
+        clear = (dist >= self.static_clearance[inside, None]).all(1)
+        owned = np.abs(s[:, 0] - self.static_s[inside]) < 15.0
+        keep = inside[clear & owned]
+        centre = st.centre[keep].copy()
+        centre[:, 1] = (
+            ground.height(torch.from_numpy(centre[:, 0]), torch.from_numpy(centre[:, 2]))[0].numpy()
+            - st.base[keep]
+        )
+        return keep, centre
 
     def _footprints(self, s: np.ndarray, lateral: np.ndarray, half: np.ndarray):
         """Centres, yaws and 9 footprint points ``(n, 9)`` of boxes at road coordinates; point 0
@@ -545,36 +626,34 @@ class World:
         s: np.ndarray,
         lateral: np.ndarray,
         size: np.ndarray,
-        bury: np.ndarray,
+        bury: float,
         kind: int,
         colour: np.ndarray,
         colour2: np.ndarray,
         params: np.ndarray,
         clearance: float,
-    ) -> tuple[Boxes, np.ndarray]:
-        """Boxes at road coordinates ``(s, lateral)`` resting on the ground, and which of the
-        candidates were kept (clear of every pass of the path by ``clearance``)."""
+    ) -> tuple[Boxes, np.ndarray, np.ndarray]:
+        """Candidate boxes at road coordinates ``(s, lateral)`` (their centre y is set per
+        section), with their footprints ``(n, 9)`` x and z."""
         half = size / 2
         cx, cz, yaw, px, pz = self._footprints(s, lateral, half)
-        keep = self._owned_and_clear(px, pz, s, clearance)
-        base = half[:, 1] - bury
-        cy = self._ground_y(cx, cz) - base
         boxes = Boxes(
-            centre=np.stack([cx, cy, cz], -1),
+            centre=np.stack([cx, np.zeros_like(cx), cz], -1),
             yaw=yaw,
             half=half,
-            base=base,
+            base=half[:, 1] - bury,
             kind=np.full(len(s), kind, dtype=np.int64),
             colour=colour,
             colour2=colour2,
             params=params,
         )
-        return boxes.select(keep), keep
+        self._candidates.append((boxes, s, np.full(len(s), clearance), px, pz))
+        return boxes
 
-    def _place_static(self, rng: np.random.Generator) -> Boxes:
+    def _place_static(self, rng: np.random.Generator) -> None:
         cfg = self.config
         s_lo, s_hi = float(self.path_s[0]), float(self.path_s[-1])
-        parts = []
+        self._candidates: list = []
         for side in (-1.0, 1.0):
             # Facades: a sequence of blocks and gaps along the path.
             s_list, length, depth, setback = [], [], [], []
@@ -610,18 +689,17 @@ class World:
                     ],
                     -1,
                 )
-                facades, _ = self._boxes_at(
+                self._boxes_at(
                     np.asarray(s_list),
                     lateral,
                     size,
-                    np.full(k, 1.5),
+                    1.5,
                     FACADE,
                     wall,
                     glass,
                     params,
                     cfg.building_line - 0.3,
                 )
-                parts.append(facades)
             # Parked boxes in the parking strip: gaps of at least 5.5 m between centres.
             rate = cfg.parked_per_100m / 100.0
             if rate > 0:
@@ -656,21 +734,29 @@ class World:
                 )
                 # Parked cars stand either way round.
                 flip = rng.random(k) < 0.3
-                boxes, keep = self._boxes_at(
+                boxes = self._boxes_at(
                     pos,
                     lateral,
                     size,
-                    np.full(k, 0.25),
+                    0.25,
                     PARKED_CAR,
                     paint,
                     glass,
                     params,
                     cfg.road_half_width + 0.1,
                 )
-                boxes.kind = np.where(crate[keep], CRATE, PARKED_CAR)
-                boxes.yaw = boxes.yaw + np.pi * flip[keep]
-                parts.append(boxes)
-        return Boxes.concat(parts) if parts else _empty_boxes()
+                boxes.kind = np.where(crate, CRATE, PARKED_CAR)
+                boxes.yaw = boxes.yaw + np.pi * flip
+        parts = self._candidates
+        del self._candidates
+        if not parts:
+            self._footprint_x = self._footprint_z = np.zeros((0, 9))
+            return
+        self.static = Boxes.concat([p[0] for p in parts])
+        self.static_s = np.concatenate([p[1] for p in parts])
+        self.static_clearance = np.concatenate([p[2] for p in parts])
+        self._footprint_x = np.concatenate([p[3] for p in parts])
+        self._footprint_z = np.concatenate([p[4] for p in parts])
 
     def _place_moving(self, rng: np.random.Generator) -> MovingObjects:
         cfg = self.config
@@ -741,22 +827,26 @@ def _empty_boxes() -> Boxes:
     )
 
 
-def _road_centreline(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _road_centreline(
+    poses: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The road centreline under a trajectory, resampled every ``PATH_STEP`` metres.
 
     The ground point of every frame is the camera position moved ``CAMERA_HEIGHT`` down the
     camera's own y axis. Frames where the car stands still add nothing; heights are smoothed
-    along the path over a few metres (suspension bumps and pitch jitter are not the road's), the
-    horizontal course over a metre. The path is extended ``EXTENSION`` metres straight beyond
-    both ends.
+    along the path over a couple of metres (suspension bumps and pitch jitter are not the
+    road's), the horizontal course over a metre. The path is extended ``EXTENSION`` metres
+    straight beyond both ends.
 
     Returns:
-        ``(s, xyz, heading)``: ``(P,)`` arc length (horizontal; 0 at the first frame),
-        ``(P, 3)`` ground points, ``(P, 2)`` unit horizontal heading ``(dx, dz)``.
+        ``(s, xyz, heading, frame_s)``: ``(P,)`` arc length (horizontal; 0 at the first frame),
+        ``(P, 3)`` ground points, ``(P, 2)`` unit horizontal heading ``(dx, dz)``, ``(N,)`` arc
+        length of every frame.
     """
     ground = poses[:, :3, 3] + CAMERA_HEIGHT * poses[:, :3, 1]
     step = np.linalg.norm(np.diff(ground[:, [0, 2]], axis=0), axis=1)
     arc = np.concatenate([[0.0], np.cumsum(step)])
+    frame_arc = arc
     moving = np.concatenate([[True], np.diff(arc) > 1e-3])
     arc, ground = arc[moving], ground[moving]
     if arc[-1] < 1.0:
@@ -769,12 +859,14 @@ def _road_centreline(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndar
         s = np.linspace(0.0, arc[-1], max(int(np.ceil(arc[-1] / PATH_STEP)), 1) + 1)
         xyz = np.stack([np.interp(s, arc, ground[:, i]) for i in range(3)], -1)
         xyz[:, [0, 2]] = gaussian_filter1d(xyz[:, [0, 2]], 1.0 / PATH_STEP, axis=0, mode="nearest")
-        xyz[:, 1] = gaussian_filter1d(xyz[:, 1], 4.0 / PATH_STEP, mode="nearest")
+        xyz[:, 1] = gaussian_filter1d(xyz[:, 1], 2.0 / PATH_STEP, mode="nearest")
     heading = np.gradient(xyz[:, [0, 2]], axis=0)
     norm = np.linalg.norm(heading, axis=1, keepdims=True)
     heading = np.where(norm > 1e-9, heading / norm.clip(1e-12), np.array([0.0, 1.0]))
     # Recompute the arc length of the smoothed course, then extend both ends straight.
+    raw = s
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xyz[:, [0, 2]], axis=0), axis=1))])
+    frame_s = np.interp(frame_arc, raw, s)
     ext = np.arange(PATH_STEP, EXTENSION + 1e-9, PATH_STEP)
     h0, h1 = heading[0], heading[-1]
     before = xyz[0] - ext[::-1, None] * np.array([h0[0], 0.0, h0[1]])
@@ -784,11 +876,15 @@ def _road_centreline(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndar
     heading = np.concatenate(
         [np.repeat(h0[None], len(ext), 0), heading, np.repeat(h1[None], len(ext), 0)]
     )
-    return s, xyz, heading
+    return s, xyz, heading, frame_s
 
 
 def _ground_grid(
-    s: np.ndarray, xyz: np.ndarray, heading: np.ndarray, cfg: WorldConfig
+    s: np.ndarray,
+    xyz: np.ndarray,
+    heading: np.ndarray,
+    cfg: WorldConfig,
+    extension: np.ndarray,
 ) -> tuple[tuple[float, float], float, np.ndarray]:
     """The ground grid: per cell the ground y, and s, d, |d| of the nearest centreline point.
 
@@ -815,8 +911,7 @@ def _ground_grid(
     # where they cross the real path. Away from the path the weights fade (through ``floor``)
     # into a broadly smoothed field of the nearest centreline heights, so the ground is smooth
     # everywhere.
-    weight = np.full(len(s), 1.0)
-    weight[(s < 0) | (s > s[-1] - EXTENSION)] = 0.05
+    weight = np.where(extension, 0.05, 1.0)
     num = np.zeros(nz * nx)
     den = np.zeros(nz * nx)
     fx = (xyz[:, 0] - lo[0]) / cell
