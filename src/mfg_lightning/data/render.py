@@ -174,6 +174,7 @@ def _cast_ground(
     active = (dy > -(ground.max_slope + 0.01) * horizontal).nonzero(as_tuple=True)[0]
     x, y, z = dx.index_select(0, active), dy.index_select(0, active), dz.index_select(0, active)
     den = y - float(gx0[0]) * x - float(gz0[0]) * z
+    below_plane = active[den > 0.02]
     t = torch.where(den > 0.02, below / den.clamp_min(0.02), torch.full_like(den, 60.0))
     t = t.clamp(NEAR, 2 * FAR_PLANE)
     for _ in range(8):
@@ -189,14 +190,44 @@ def _cast_ground(
         more = (~done & ~lost).nonzero(as_tuple=True)[0]
         if not len(more):
             break
-        active, x, y, z = (
-            active.index_select(0, more),
-            x.index_select(0, more),
-            y.index_select(0, more),
-            z.index_select(0, more),
-        )
+        active = active.index_select(0, more)
+        x, y, z = x.index_select(0, more), y.index_select(0, more), z.index_select(0, more)
         t = (t.index_select(0, more) - step.index_select(0, more)).clamp(NEAR, 2 * FAR_PLANE)
+    # Rays that point below the ground under the camera but found no hit (Newton thrown off by
+    # a fold of the ground): march out geometrically to the first point below the ground, then
+    # bisect.
+    missed = below_plane[torch.isinf(depth.index_select(0, below_plane))]
+    if len(missed):
+        depth.index_copy_(0, missed, _march_ground(ground, origin, dx, dy, dz, missed))
     return depth
+
+
+def _march_ground(
+    ground: Ground,
+    origin: np.ndarray,
+    dx: torch.Tensor,
+    dy: torch.Tensor,
+    dz: torch.Tensor,
+    rays: torch.Tensor,
+) -> torch.Tensor:
+    """First ground hit of a few rays by marching (32 steps from 0.5 m to the culling distance,
+    geometric) and bisection (10 steps); inf where the ray stays above the ground."""
+    ox, oy, oz = (float(v) for v in origin)
+    x, y, z = (d.index_select(0, rays)[:, None] for d in (dx, dy, dz))
+    ts = torch.logspace(np.log10(0.5), np.log10(CULL_DISTANCE), 32)[None]
+    f = ground.height(ox + ts * x, oz + ts * z)[0] - oy - ts * y  # (n, 48), > 0 above ground
+    under = f <= 0
+    first = torch.where(under.any(1), under.float().argmax(1), -1)
+    found = first > 0
+    i = first.clamp_min(1)
+    lo = ts[0].index_select(0, i - 1)
+    hi = ts[0].index_select(0, i)
+    x, y, z = x[:, 0], y[:, 0], z[:, 0]
+    for _ in range(10):
+        mid = (lo + hi) / 2
+        above = ground.height(ox + mid * x, oz + mid * z)[0] - oy - mid * y > 0
+        lo, hi = torch.where(above, mid, lo), torch.where(above, hi, mid)
+    return torch.where(found, (lo + hi) / 2, torch.full_like(lo, float("inf")))
 
 
 @dataclass
@@ -688,7 +719,7 @@ def _shade_sky(table: torch.Tensor, dx: torch.Tensor, dy: torch.Tensor, dz: torc
     cloud = _noise(table, dx * k / 900.0, dz * k / 900.0) + 0.5 * _noise(
         table, dx * k / 300.0 + 50.0, dz * k / 300.0
     )
-    cover = (cloud - 0.3).clamp(0, 1)[:, None] * 0.5
+    cover = ((cloud - 0.3).clamp(0, 1) * (up / 0.2).clamp(0, 1))[:, None] * 0.5
     return colour + cover * (torch.tensor([236.0, 238.0, 242.0]) - colour)
 
 
@@ -1078,3 +1109,64 @@ def picture_grid(
     if not columns or any(len(c) != len(columns[0]) for c in columns):
         raise ValueError("picture_grid needs columns with the same, non-zero number of panels")
     return _render(columns, list(headers) if headers is not None else [""] * len(columns))
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Write example picture grids of rendered worlds (the ones in ``docs/img/``).
+
+    ``python -m mfg_lightning.data.render --out docs/img [--poses .../poses/00.txt]``: a grid of
+    four frames of a procedural trajectory's world, the same of a KITTI trajectory's world when
+    ``--poses`` is given, and one frame at KITTI's full 1241 × 376.
+    """
+    import argparse
+    from pathlib import Path
+
+    from mfg_lightning.object_motion_viz import save_png
+    from mfg_lightning.pose_io import read_kitti_poses
+    from mfg_lightning.runs import exit_on_user_error
+
+    parser = argparse.ArgumentParser(description=main.__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, required=True, help="folder for the PNGs")
+    parser.add_argument("--poses", type=Path, help="a KITTI poses/XX.txt file")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--height", type=int, default=192)
+    parser.add_argument("--width", type=int, default=512)
+    args = parser.parse_args(argv)
+
+    @exit_on_user_error
+    def run() -> int:
+        from mfg_lightning.data.synthetic import kitti_like_intrinsics, procedural_trajectory
+
+        check_render_size(args.height, args.width)
+        trajectories = [
+            ("procedural", procedural_trajectory(_rng(args.seed, "trajectory", "demo"), 400))
+        ]
+        if args.poses is not None:
+            if not args.poses.is_file():
+                raise FileNotFoundError(f"--poses: no such file: {args.poses}")
+            trajectories.append((args.poses.stem, torch.from_numpy(read_kitti_poses(args.poses))))
+        K = kitti_like_intrinsics(args.height, args.width)
+        for name, poses in trajectories:
+            world = World.generate(poses, args.seed, name)
+            picks = np.linspace(0, world.num_frames - 2, 6).round().astype(int)[1:-1]
+            columns, headers = [], []
+            for k in picks:
+                frame = render_frame(world, int(k), K, args.height, args.width)
+                flow = exact_flow(world, int(k), int(k) + 1, K, args.height, args.width, frame)
+                columns.append(frame_panels(frame, flow))
+                headers.append(f"{name} {k}→{k + 1}")
+            path = save_png(picture_grid(columns, headers), args.out / f"rendered_{name}.png")
+            print(path)
+        world = World.generate(trajectories[-1][1], args.seed, trajectories[-1][0])
+        k = world.num_frames // 3
+        h, w = 376, 1241
+        frame = render_frame(world, k, kitti_like_intrinsics(h, w), h, w)
+        path = args.out / f"rendered_{trajectories[-1][0]}_{w}x{h}.png"
+        print(save_png(frame.rgb.permute(1, 2, 0).numpy(), path))
+        return 0
+
+    return run()
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
