@@ -37,6 +37,7 @@ between the two frames, through :func:`mfg_lightning.geometry.reprojection_flow`
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -421,8 +422,20 @@ def _cast_boxes(
 
 def _noise_table(world: World) -> torch.Tensor:
     """The world's lattice of random values in [-1, 1] (flat, ``_NOISE_SIZE²``)."""
-    rng = _rng(world.seed, "world", world.name, "texture")
-    return torch.from_numpy(rng.uniform(-1, 1, _NOISE_SIZE * _NOISE_SIZE).astype(np.float32))
+    return _random_table(world.seed, world.name, "texture")
+
+
+@functools.lru_cache(maxsize=64)
+def _random_table(seed: int, name: str, what: str) -> torch.Tensor:
+    """A world's table of random float32 values: uniform in [-1, 1] (``"texture"``,
+    ``_NOISE_SIZE²``) or standard normal (``"sensor"``, 2¹⁶). Kept per world (tables are small
+    and a trajectory's frames are rendered in bulk)."""
+    rng = _rng(seed, "world", name, what)
+    if what == "texture":
+        values = rng.uniform(-1, 1, _NOISE_SIZE * _NOISE_SIZE)
+    else:
+        values = rng.standard_normal(1 << 16)
+    return torch.from_numpy(values.astype(np.float32))
 
 
 def _lookup(table: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
@@ -438,8 +451,7 @@ def _sensor_noise(world: World, frame: int, height: int, width: int) -> torch.Te
     coordinates per frame and channel (odd multipliers, so every row is a permutation of a
     stretch of the table): as good as fresh noise for an optical-flow estimator, and cheaper.
     """
-    table = _rng(world.seed, "world", world.name, "sensor").standard_normal(1 << 16)
-    table = torch.from_numpy(table.astype(np.float32))
+    table = _random_table(world.seed, world.name, "sensor")
     coeff = _rng(world.seed, "world", world.name, "sensor", frame).integers(0, 1 << 16, (3, 3))
     u = torch.arange(width)[None]
     v = torch.arange(height)[:, None]
@@ -517,9 +529,14 @@ def _fbm(
 def _coverage(dist: torch.Tensor, width: float | torch.Tensor, footprint: torch.Tensor):
     """Fraction of a pixel's footprint (an interval of ``footprint`` metres centred ``dist``
     from a line's centre) covered by the line of ``width`` metres: box-filtered edges."""
-    lo = torch.maximum(dist - footprint / 2, -width / 2 + 0 * dist)
-    hi = torch.minimum(dist + footprint / 2, width / 2 + 0 * dist)
-    return (hi - lo).clamp_min(0.0) / footprint.clamp_min(1e-6)
+    half_fp = footprint * 0.5
+    if isinstance(width, torch.Tensor):
+        lo = torch.maximum(dist - half_fp, -0.5 * width)
+        hi = torch.minimum(dist + half_fp, 0.5 * width)
+    else:
+        lo = (dist - half_fp).clamp_min(-0.5 * width)
+        hi = (dist + half_fp).clamp_max(0.5 * width)
+    return (hi - lo).clamp_min_(0.0).div_(footprint.clamp_min(1e-6))
 
 
 def _periodic_dist(x: torch.Tensor, period: float | torch.Tensor, centre: float | torch.Tensor):
