@@ -87,6 +87,7 @@ def test_prepare_renders_every_frame_once_and_a_second_run_nothing(
     assert len(dm.dataset("train")) + len(dm.dataset("val")) == 7
     before = _files(cache)
     assert len([p for p in before if p.suffix == ".npz"]) == 14
+    assert len([p for p in before if p.name.startswith("picture-")]) == 2  # one per trajectory
     # a second run on the same cache: nothing rendered, nothing estimated, nothing written
     count_renders.clear()
     again = _dm(cache, _Counting("medium"))
@@ -101,6 +102,19 @@ def test_prepare_renders_every_frame_once_and_a_second_run_nothing(
     # a setting that changes the flow gets its own cache entry
     other = _dm(cache, DISFlowEstimator("fast")).dataset("test")
     assert other.cache.root != again.dataset("test").cache.root
+
+
+@pytest.mark.slow
+def test_worker_processes_fill_the_cache_with_the_same_pairs(tmp_path: Path) -> None:
+    """``dataset.num_workers=2``: two processes render a sequence each (spawned: seconds)."""
+    parallel = _dm(tmp_path / "parallel", num_workers=2, train_sequences=2)
+    parallel.prepare_data()
+    ds = parallel.dataset("train")
+    assert ds.missing() == [] and len({seq for seq, _, _ in ds.index}) == 2
+    assert len(list(ds.cache.root.glob("picture-*.npy"))) == 2
+    serial = _dm(tmp_path / "serial", train_sequences=2).dataset("train")
+    for i in (0, len(ds) - 1):
+        assert torch.equal(ds[i]["flow"], serial[i]["flow"])  # computed here, on a miss
 
 
 def test_samples_carry_estimated_and_exact_flow_and_the_quality_is_stored(

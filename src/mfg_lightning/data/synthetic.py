@@ -773,12 +773,12 @@ class RenderedDrivingDataset(TrajectoryDataset):
             "quality": quality,
             "nonfinite": np.int64((~finite).sum()),
             "full": {
-                "rgb": rgb,
+                "frame": a.rendered,
+                "exact": exact,
                 "exact_flow": exact_flow,
                 "exact_valid": exact_valid,
                 "flow": est,
-                "object_mask": mask,
-                "region": region,
+                "flow_valid": finite,
             },
         }
 
@@ -795,44 +795,88 @@ class RenderedDrivingDataset(TrajectoryDataset):
         self.cache.store_arrays(self.pair_path(i), packed)
         return _unpack(packed)
 
-    def precompute_flow(self, progress: bool = True, on_pair=None) -> int:
+    def __getstate__(self) -> dict[str, Any]:
+        # Worlds are rebuilt where they are needed (a worker renders its own sequences).
+        return {**self.__dict__, "_worlds": {}}
+
+    def _compute(self, indices: Sequence[int], bar: Any = None) -> int:
+        """Render, estimate and cache the pairs ``indices`` in sequence and frame order, each
+        frame rendered once and kept while a later pair (up to the largest offset ahead) can
+        use it; the middle pair of each sequence also leaves its picture grid
+        (:meth:`picture_path`). Returns how many frames were rendered."""
+        frames: dict[tuple[str, int], _Frame] = {}
+        rendered = self.rendered_frames
+        middle = {ix[len(ix) // 2]: seq for seq, ix in self.sequences().items()}
+        for i in sorted(indices, key=lambda k: self.index[k][:2]):
+            seq, src, tgt = self.index[i]
+            for key in [k for k in frames if k[0] != seq or k[1] < src - self.span]:
+                del frames[key]
+            for f in (src, tgt):
+                if (seq, f) not in frames:
+                    frames[(seq, f)] = self.render(seq, f)
+            pair = self.compute_pair(seq, src, tgt, frames[(seq, src)], frames[(seq, tgt)])
+            self._store(i, pair)
+            if i in middle:
+                self.cache.store(self.picture_path(seq), flow_picture(pair["full"]))
+            if bar is not None:
+                bar.update(1)
+        return self.rendered_frames - rendered
+
+    def precompute_flow(self, progress: bool = True, workers: int = 0) -> int:
         """Render, estimate and cache every pair not cached yet; return how many.
 
-        Pairs go in sequence and frame order and each frame is rendered once, kept while a later
-        pair (up to the largest offset ahead) can use it, whichever pairs share it.
-
-        Args:
-            progress: show a progress bar.
-            on_pair: called as ``on_pair(index, pair)`` after each computed pair (pictures).
+        Every frame is rendered once (:meth:`_compute`). With ``workers > 1`` the sequences
+        are shared among that many processes (one torch and OpenCV thread each: on a few
+        cores, processes scale better than threads); the progress bar then advances per
+        finished sequence.
         """
         from tqdm.auto import tqdm
 
         todo = self.missing()
         if not todo:
             return 0
-        frames: dict[tuple[str, int], _Frame] = {}
         bar = tqdm(
             total=len(todo),
             desc=f"render + {self.estimator.name} flow ({self.name})",
             unit="pair",
             disable=not progress,
         )
+        by_seq: dict[str, list[int]] = {}
+        for i in todo:
+            by_seq.setdefault(self.index[i][0], []).append(i)
         try:
-            for i in sorted(todo, key=lambda k: self.index[k][:2]):
-                seq, src, tgt = self.index[i]
-                for key in [k for k in frames if k[0] != seq or k[1] < src - self.span]:
-                    del frames[key]
-                for f in (src, tgt):
-                    if (seq, f) not in frames:
-                        frames[(seq, f)] = self.render(seq, f)
-                pair = self.compute_pair(seq, src, tgt, frames[(seq, src)], frames[(seq, tgt)])
-                self._store(i, pair)
-                if on_pair is not None:
-                    on_pair(i, pair)
-                bar.update(1)
+            if workers <= 1 or len(by_seq) == 1:
+                self._compute(todo, bar)
+                return len(todo)
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor, as_completed
+
+            context = multiprocessing.get_context("spawn")  # no forked torch or OpenCV state
+            with ProcessPoolExecutor(min(workers, len(by_seq)), mp_context=context) as pool:
+                # the longest sequences first, so that the last one to finish is a short one
+                jobs = {
+                    pool.submit(_compute_in_worker, self, part): len(part)
+                    for part in sorted(by_seq.values(), key=len, reverse=True)
+                }
+                for job in as_completed(jobs):
+                    self.rendered_frames += job.result()
+                    self.estimated_pairs += jobs[job]
+                    bar.update(jobs[job])
         finally:
             bar.close()
         return len(todo)
+
+    def picture_path(self, seq: str) -> Path:
+        """Where the picture grid of ``seq`` is cached (``(H', W', 3)`` uint8 ``.npy``)."""
+        return self.cache.root / f"picture-{seq}.npy"
+
+    def picture(self, seq: str) -> np.ndarray:
+        """The picture grid (:func:`flow_picture`) of the middle pair of ``seq``, at the image
+        size (renders its two frames)."""
+        indices = self.sequences()[seq]
+        _, src, tgt = self.index[indices[len(indices) // 2]]
+        pair = self.compute_pair(seq, src, tgt, self.render(seq, src), self.render(seq, tgt))
+        return flow_picture(pair["full"])
 
     def quality(self) -> dict[str, Any]:
         """The flow quality of this split (pooled over its pairs) and its non-finite pixels,
@@ -870,6 +914,15 @@ class RenderedDrivingDataset(TrajectoryDataset):
         }
         sample.update(self._identity(seq, src, tgt, self._pose(seq, src, tgt)))
         return sample
+
+
+def _compute_in_worker(dataset: RenderedDrivingDataset, indices: list[int]) -> int:
+    """:meth:`RenderedDrivingDataset._compute` in a worker process, on one thread."""
+    import cv2
+
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+    return dataset._compute(indices)
 
 
 def _unpack(packed: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -1098,8 +1151,9 @@ class SyntheticDataModule(MFGDataModule):
     def prepare_data(self) -> None:
         """``flow=dis``: render and estimate every missing pair of every split into the cache
         (train and validation pairs of one trajectory in one pass, so that each frame is
-        rendered once), then write each split's flow quality beside it. Lightning calls this on
-        one process per node; ``flow=exact`` has nothing to prepare."""
+        rendered once; ``dataset.num_workers`` processes when above 1), then write each split's
+        flow quality and a picture per trajectory beside it. Lightning calls this on one process
+        per node; ``flow=exact`` has nothing to prepare."""
         if not isinstance(self.flow, EstimatedFlow) or not self.precompute:
             return
         import json
@@ -1108,8 +1162,7 @@ class SyntheticDataModule(MFGDataModule):
 
         for part in ("train+val", "test"):
             ds = self.build_dataset(part)
-            pictures: dict[str, np.ndarray] = {}
-            n = ds.precompute_flow(progress=True, on_pair=self._picture_hook(ds, pictures))
+            n = ds.precompute_flow(progress=True, workers=self.num_workers)
             if n:
                 log.info(
                     "rendered %d frames and estimated the %s flow of %d %s pairs under %s",
@@ -1119,8 +1172,10 @@ class SyntheticDataModule(MFGDataModule):
                     part,
                     ds.cache.root,
                 )
-            for name, grid in pictures.items():
-                FlowCache(ds.cache.root).store(ds.cache.root / f"{name}.npy", grid)
+            for seq in ds.sequences():
+                # (the middle pair was cached before without its picture: a run that read it)
+                if not ds.picture_path(seq).exists():
+                    ds.cache.store(ds.picture_path(seq), ds.picture(seq))
         for split in ("train", "val", "test"):
             path = self.quality_path(split)
             if path.exists():
@@ -1134,20 +1189,6 @@ class SyntheticDataModule(MFGDataModule):
                     split,
                 )
             log.info("flow quality (%s): %s", split, _quality_line(quality["regions"]))
-
-    def _picture_hook(self, ds: RenderedDrivingDataset, pictures: dict[str, np.ndarray]):
-        """``on_pair`` for :meth:`RenderedDrivingDataset.precompute_flow`: the picture grid of
-        the middle pair of each trajectory, kept as ``pictures[<name>]``."""
-        middle = {}
-        for seq, indices in ds.sequences().items():
-            middle[indices[len(indices) // 2]] = seq
-
-        def hook(i: int, pair: dict) -> None:
-            if i in middle:
-                seq, src, tgt = ds.index[i]
-                pictures[f"picture-{seq}-{src:06d}-{tgt:06d}"] = flow_picture(pair["full"])
-
-        return hook
 
     def setup(self, stage: str | None = None) -> None:
         super().setup(stage)
@@ -1179,9 +1220,9 @@ class SyntheticDataModule(MFGDataModule):
                 logger.log_metrics(metrics, step=0)
             if split == "val":
                 continue  # the validation tails share the training split's pictures
-            for picture in sorted(ds.cache.root.glob("picture-*.npy")):
-                seq = picture.stem.split("-")[1]
-                if seq not in ds.trajectories:
+            for seq in ds.sequences():
+                picture = ds.picture_path(seq)
+                if not picture.exists():
                     continue
                 grid = np.load(picture)
                 for logger in trainer.loggers:
@@ -1201,22 +1242,47 @@ def _quality_line(regions: dict[str, dict[str, float | None]]) -> str:
     return " · ".join(one(k, v) for k, v in regions.items())
 
 
-def flow_picture(full: dict[str, np.ndarray]) -> np.ndarray:
-    """The picture grid of one rendered pair at the image size: RGB, exact flow, estimated
-    flow (one colour scale), end-point error map, object mask. ``(H', W', 3)`` uint8."""
-    from mfg_lightning.visualization import flow_to_rgb, scalar_to_rgb
+#: End-point errors at or above this many pixels get the brightest colour of the EPE panel.
+PICTURE_MAX_EPE = 10.0
 
+
+def flow_picture(full: dict[str, Any]) -> np.ndarray:
+    """The picture grid of one rendered pair at the image size, with the renderer's panels
+    (:func:`~mfg_lightning.data.render.frame_panels`: RGB, exact flow, regions, object mask)
+    and two more: the estimated flow in the exact flow's colour scale and its end-point error
+    against it (magma, 0 to :data:`PICTURE_MAX_EPE` px; black where the exact flow is
+    unknown).
+
+    Args:
+        full: the ``"full"`` entry of :meth:`RenderedDrivingDataset.compute_pair`.
+
+    Returns:
+        ``(H', W', 3)`` uint8.
+    """
+    from matplotlib import colormaps
+
+    from mfg_lightning.visualization import flow_to_rgb
+
+    _, render = _renderer()
     valid = full["exact_valid"]
-    exact = np.moveaxis(full["exact_flow"], 2, 0)
-    est = np.moveaxis(full["flow"], 2, 0)
-    scale = float(np.linalg.norm(full["exact_flow"], axis=2)[valid].max(initial=1.0))
-    epe = np.where(valid, np.linalg.norm(full["flow"] - full["exact_flow"], axis=2), 0.0)
-    mask = np.repeat((full["object_mask"][..., None] * 255).astype(np.uint8), 3, axis=2)
-    panels = [
-        full["rgb"],
-        flow_to_rgb(exact, scale),
-        flow_to_rgb(est, scale),
-        scalar_to_rgb(np.minimum(epe, 10.0)),
-        mask,
-    ]
-    return np.concatenate(panels, axis=0)
+    magnitude = np.linalg.norm(full["exact_flow"], axis=2)[valid]
+    max_flow = float(magnitude.max()) if magnitude.size else 1.0
+    estimated = flow_to_rgb(np.moveaxis(full["flow"], 2, 0), max_flow)
+    estimated[~full["flow_valid"]] = 0
+    epe = np.linalg.norm(full["flow"] - full["exact_flow"], axis=2)
+    error = (colormaps["magma"](np.clip(epe / PICTURE_MAX_EPE, 0, 1))[..., :3] * 255).astype(
+        np.uint8
+    )
+    error[~(valid & full["flow_valid"])] = 0
+    shown = valid & full["flow_valid"]
+    mean = float(epe[shown].mean()) if shown.any() else float("nan")
+    panels = render.frame_panels(
+        full["frame"],
+        full["exact"],
+        extra=[
+            ("estimated flow (same colours)", estimated),
+            (f"end-point error (0-{PICTURE_MAX_EPE:g} px, mean {mean:.2f})", error),
+        ],
+        max_flow=max_flow,
+    )
+    return render.picture_grid([panels])
