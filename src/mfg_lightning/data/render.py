@@ -265,18 +265,62 @@ def _frame_boxes(world: World, frame: int, origin: np.ndarray) -> _FrameBoxes:
     def cat(a: np.ndarray, b: np.ndarray, dtype=torch.float32) -> torch.Tensor:
         return torch.from_numpy(np.concatenate([a, b])).to(dtype)
 
-    return _FrameBoxes(
-        centre=torch.from_numpy(np.concatenate([centre, poses[:, :3, 3]]) - origin).float(),
-        cos=cat(np.cos(st.yaw[index]), poses[:, 0, 0]),
-        sin=cat(np.sin(st.yaw[index]), poses[:, 0, 2]),
-        half=cat(st.half[index], mv.half[moving]),
-        base=cat(st.base[index], mv.base[moving]),
-        kind=cat(st.kind[index], mv.kind[moving], torch.long),
-        colour=cat(st.colour[index], mv.colour[moving]),
-        colour2=cat(st.colour2[index], mv.colour2[moving]),
-        params=cat(st.params[index], mv.params[moving]),
-        instance=cat(np.full(len(index), -1), moving, torch.long),
+    return _split_cars(
+        _FrameBoxes(
+            centre=torch.from_numpy(np.concatenate([centre, poses[:, :3, 3]]) - origin).float(),
+            cos=cat(np.cos(st.yaw[index]), poses[:, 0, 0]),
+            sin=cat(np.sin(st.yaw[index]), poses[:, 0, 2]),
+            half=cat(st.half[index], mv.half[moving]),
+            base=cat(st.base[index], mv.base[moving]),
+            kind=cat(st.kind[index], mv.kind[moving], torch.long),
+            colour=cat(st.colour[index], mv.colour[moving]),
+            colour2=cat(st.colour2[index], mv.colour2[moving]),
+            params=cat(st.params[index], mv.params[moving]),
+            instance=cat(np.full(len(index), -1), moving, torch.long),
+        )
     )
+
+
+#: Renderer-only kind: the cabin (glasshouse) on top of a car's body.
+CABIN = 5
+#: A car's beltline (top of the body) as a fraction of its height above the ground, and its
+#: cabin's length as a fraction of the car's, set back by ``_CABIN_SHIFT`` of the length.
+_BELT, _CABIN_LENGTH, _CABIN_SHIFT = 0.6, 0.55, 0.06
+
+
+def _split_cars(boxes: _FrameBoxes) -> _FrameBoxes:
+    """Each car box becomes a body (ground to beltline) and a narrower, shorter cabin on top,
+    both with the car's instance id."""
+    car = ((boxes.kind == CAR) | (boxes.kind == PARKED_CAR)).nonzero(as_tuple=True)[0]
+    if not len(car):
+        return boxes
+    half, base = boxes.half[car], boxes.base[car]
+    top = base + half[:, 1]  # height of the roof above the ground
+    belt_y = base - _BELT * top  # the beltline in the box's own y (down)
+    body_half = half.clone()
+    body_half[:, 1] = (half[:, 1] - belt_y) / 2
+    body_dy = (half[:, 1] + belt_y) / 2
+    cabin_half = half.clone()
+    cabin_half[:, 0] = 0.88 * half[:, 0]
+    cabin_half[:, 1] = (belt_y + half[:, 1]) / 2
+    cabin_half[:, 2] = _CABIN_LENGTH * half[:, 2]
+    cabin_dy = (belt_y - half[:, 1]) / 2
+    cabin_dz = -_CABIN_SHIFT * 2 * half[:, 2]
+    c, s = boxes.cos[car], boxes.sin[car]
+    body_centre = boxes.centre[car] + torch.stack([0 * c, body_dy, 0 * c], -1)
+    cabin_centre = boxes.centre[car] + torch.stack([s * cabin_dz, cabin_dy, c * cabin_dz], -1)
+    out = {f: getattr(boxes, f).clone() for f in boxes.__dataclass_fields__}
+    out["centre"][car] = body_centre
+    out["half"][car] = body_half
+    out["base"][car] = base - body_dy
+    extra = {f: getattr(boxes, f)[car] for f in boxes.__dataclass_fields__}
+    extra.update(
+        centre=cabin_centre,
+        half=cabin_half,
+        base=base - cabin_dy,
+        kind=torch.full_like(extra["kind"], CABIN),
+    )
+    return _FrameBoxes(**{f: torch.cat([out[f], extra[f]]) for f in out})
 
 
 # The 12 edges of a box whose corners are numbered by the bits (x, y, z) of 0 … 7.
@@ -662,42 +706,53 @@ def _shade_facade(table, p, face, hh, fp, colour, colour2, params, top):
     return rgb * (1 - 0.3 * plinth)
 
 
-def _shade_car(table, p, face, hh, fp, half, colour, colour2, params, front_sign):
-    """Car bodies: nearly uniform paint, dark glass, wheels, lights."""
-    top = half[:, 1] * 2
+def _shade_car(table, p, face, hh, fp, half, colour, params, front_sign):
+    """Car bodies (ground to beltline): nearly uniform paint, wheels, lights, a dark sill."""
     along = p[:, 2]
+    belt = half[:, 1] * 2 - 0.25  # body height above the ground (0.25 m are buried)
     paint = (
         colour
         * (1.0 + _fbm(table, p[:, 0] + params[:, 0], along + hh, fp, [(0.8, 0.02), (0.2, 0.015)]))[
             :, None
         ]
     )
-    paint = paint * (0.85 + 0.15 * (hh / top).clamp(0, 1))[:, None]
+    paint = paint * (0.8 + 0.2 * (hh / belt).clamp(0, 1))[:, None]
     side = face == 0
     endf = face == 2
-    glass_band = _coverage((hh - 0.79 * top).abs(), 0.26 * top, fp)
-    glass_side = glass_band * _coverage(along.abs(), 2 * half[:, 2] - 1.0, fp) * side
-    glass_end = glass_band * _coverage(p[:, 0].abs(), 2 * half[:, 0] - 0.3, fp) * endf
-    glass_cov = torch.maximum(glass_side, glass_end)
-    glass = colour2 + 20.0 * ((hh / top - 0.66) / 0.26).clamp(0, 1)[:, None]
-    wheel_z = half[:, 2] - 0.85
+    wheel_z = half[:, 2] - 0.8
     wheel = (
         torch.minimum(
             _coverage((along.abs() - wheel_z).abs(), 0.62, fp), _coverage((hh - 0.3).abs(), 0.6, fp)
         )
         * side
     )
-    under = _coverage((hh - 0.1).abs(), 0.2, fp)
+    under = _coverage((hh - 0.08).abs(), 0.16, fp)
     lamp_x = _coverage((p[:, 0].abs() - (half[:, 0] - 0.25)).abs(), 0.3, fp)
-    lamp = lamp_x * _coverage((hh - 0.62 * top).abs(), 0.12 * top, fp) * endf
+    lamp = lamp_x * _coverage((hh - 0.62).abs(), 0.12, fp) * endf
+    plate = _coverage(p[:, 0].abs(), 0.5, fp) * _coverage((hh - 0.42).abs(), 0.12, fp) * endf
     is_front = (p[:, 2] * front_sign) > 0
     lamp_colour = torch.where(
         is_front[:, None], torch.tensor([225.0, 225.0, 205.0]), torch.tensor([170.0, 25.0, 20.0])
     )
-    rgb = paint + glass_cov[:, None] * (glass - paint)
-    rgb = rgb + lamp[:, None] * (lamp_colour - rgb)
+    rgb = paint + lamp[:, None] * (lamp_colour - paint)
+    rgb = rgb + plate[:, None] * (torch.tensor([225.0, 225.0, 220.0]) - rgb)
     dark = torch.maximum(wheel, under)[:, None]
     return rgb + dark * (torch.tensor([22.0, 22.0, 24.0]) - rgb)
+
+
+def _shade_cabin(table, p, face, hh, fp, half, colour, colour2):
+    """Car cabins: dark glass all round between painted pillars, a painted roof."""
+    pillar_side = torch.maximum(
+        _coverage(half[:, 2] - p[:, 2].abs(), 0.3, fp), _coverage(p[:, 2].abs(), 0.12, fp)
+    )
+    pillar_end = _coverage(half[:, 0] - p[:, 0].abs(), 0.16, fp)
+    pillar = torch.where(face == 0, pillar_side, pillar_end)
+    rail = _coverage(half[:, 1] + p[:, 1], 0.08, fp)  # the roof's edge, just below the roof
+    frame = torch.maximum(pillar, rail)
+    shine = ((half[:, 1] - p[:, 1]) / (2 * half[:, 1])).clamp(0, 1)  # 0 at the belt, 1 at roof
+    glass = colour2 + (25.0 * shine)[:, None]
+    rgb = glass + frame[:, None] * (colour - glass)
+    return torch.where((face == 1)[:, None], colour, rgb)
 
 
 def _shade_crate(table, p, face, hh, fp, half, colour, params):
@@ -916,7 +971,7 @@ def _shade_boxes(
     hh = boxes.base.index_select(0, b) - p[:, 1]
     kind = boxes.kind.index_select(0, b)
     rgb = torch.empty(len(b), 3)
-    for k in (FACADE, PARKED_CAR, CRATE, CAR, PEDESTRIAN):
+    for k in (FACADE, PARKED_CAR, CRATE, CAR, PEDESTRIAN, CABIN):
         sel = (kind == k).nonzero(as_tuple=True)[0]
         if not len(sel):
             continue
@@ -945,9 +1000,15 @@ def _shade_boxes(
                 *args,
                 half.index_select(0, sel),
                 boxes.colour.index_select(0, bs),
-                boxes.colour2.index_select(0, bs),
                 boxes.params.index_select(0, bs),
                 1.0,
+            )
+        elif k == CABIN:
+            out = _shade_cabin(
+                *args,
+                half.index_select(0, sel),
+                boxes.colour.index_select(0, bs),
+                boxes.colour2.index_select(0, bs),
             )
         elif k == CRATE:
             out = _shade_crate(
