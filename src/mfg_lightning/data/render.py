@@ -628,8 +628,15 @@ def _shade_ground(
     # lanes (3 m on, 6 m off) and solid along the road's edges.
     idx, px, pz, ps, pd, pad, pfl, pf = part(ad < kerb)
     if len(idx):
+        # Grain is filtered with the geometric mean of the footprint across and along the ray:
+        # a little blur along it at grazing angles, as a real lens and sensor give.
+        grain = torch.sqrt(pfl * pf)
         grey = 94.0 + _fbm(
-            table, px, pz, pf, [(7.0, 6.0), (1.6, 5.0), (0.4, 5.0), (0.12, 6.0), (0.035, 8.0)]
+            table,
+            px,
+            pz,
+            grain,
+            [(7.0, 6.0), (1.6, 5.0), (0.4, 5.0), (0.12, 6.0), (0.035, 9.0), (0.012, 7.0)],
         )
         grey = grey - 6.0 * _coverage((_periodic_dist(pd, L, 0.0) - 0.8).abs(), 0.5, pfl)
         paint = _coverage((pad - (half - 0.15)).abs(), 0.15, pfl)
