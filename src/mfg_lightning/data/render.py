@@ -150,7 +150,12 @@ def _check_frame(world: World, frame: int) -> int:
 
 
 def _cast_ground(
-    ground: Ground, origin: np.ndarray, dx: torch.Tensor, dy: torch.Tensor, dz: torch.Tensor
+    ground: Ground,
+    origin: np.ndarray,
+    dx: torch.Tensor,
+    dy: torch.Tensor,
+    dz: torch.Tensor,
+    t_box: torch.Tensor,
 ) -> torch.Tensor:
     """Depth of the first ground hit of every ray (inf where there is none).
 
@@ -160,8 +165,12 @@ def _cast_ground(
     which can still meet a hill ahead); a ray is done once its step is below 0.05 % of its
     depth, and has no ground hit if it has not converged after eight steps.
 
+    Rays that hit a box at a point above the ground cannot have met the ground before (the
+    ground is smooth and boxes stand on it) and are skipped.
+
     Args:
         dx, dy, dz: ``(n,)`` world-axis ray directions.
+        t_box: ``(n,)`` depth of each ray's box hit (inf: none).
 
     Returns:
         ``(n,)`` depth in metres.
@@ -172,7 +181,16 @@ def _cast_ground(
     depth = torch.full_like(dx, float("inf"))
     # A ray can reach the ground only if it climbs less steeply than the steepest ground.
     horizontal = torch.sqrt(dx * dx + dz * dz)
-    active = (dy > -(ground.max_slope + 0.01) * horizontal).nonzero(as_tuple=True)[0]
+    candidate = dy > -(ground.max_slope + 0.01) * horizontal
+    boxed = torch.isfinite(t_box).nonzero(as_tuple=True)[0]
+    if len(boxed):
+        tb = t_box.index_select(0, boxed)
+        h = ground.height(ox + tb * dx.index_select(0, boxed), oz + tb * dz.index_select(0, boxed))[
+            0
+        ]
+        above = h - oy - tb * dy.index_select(0, boxed) > 0.01
+        candidate.index_fill_(0, boxed[above], False)
+    active = candidate.nonzero(as_tuple=True)[0]
     x, y, z = dx.index_select(0, active), dy.index_select(0, active), dz.index_select(0, active)
     den = y - float(gx0[0]) * x - float(gz0[0]) * z
     below_plane = active[den > 0.02]
@@ -843,7 +861,7 @@ def render_frame(
     dx, dy, dz = (r.reshape(-1) for r in rays)
     t_box, box = t_box.reshape(-1), box.reshape(-1)
     ground = world.ground(frame)
-    t_ground = _cast_ground(ground, origin, dx, dy, dz)
+    t_ground = _cast_ground(ground, origin, dx, dy, dz, t_box)
 
     on_box = (t_box < t_ground) & (t_box < FAR_PLANE)
     on_ground = ~on_box & (t_ground < FAR_PLANE)
