@@ -43,6 +43,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from torch import Tensor
 
 from mfg_lightning import geometry
 from mfg_lightning.data.synthetic import FAR_PLANE, _reciprocal, _rng, _slab
@@ -689,9 +690,25 @@ def _shade_ground(
     return out
 
 
-def _shade_facade(table, p, face, hh, fp, colour, colour2, params, top):
-    """Facade walls with windows. ``p`` ``(n, 3)`` box-local hit points, ``face`` the axis hit,
-    ``hh`` height above the ground, ``top`` the facade's height above the ground."""
+def _shade_facade(
+    table: Tensor,
+    p: Tensor,
+    face: Tensor,
+    hh: Tensor,
+    fp: Tensor,
+    colour: Tensor,
+    colour2: Tensor,
+    params: Tensor,
+    top: Tensor,
+) -> Tensor:
+    """Facade walls with windows, ``(n, 3)`` RGB.
+
+    The box shaders share their arguments: ``p`` ``(n, 3)`` box-local hit points (metres),
+    ``face`` ``(n,)`` the axis of the face hit (0 sides, 1 top or bottom, 2 ends), ``hh`` height
+    above the ground, ``fp`` the pixel footprint on the face (metres), ``half`` the box's half
+    sizes, ``colour``/``colour2``/``params`` the box's (see :class:`~.worlds.Boxes`); here
+    ``top`` is the facade's height above the ground.
+    """
     floor_h, spacing = params[:, 0], params[:, 1]
     win_w, win_h = params[:, 2] * spacing, params[:, 3] * floor_h
     style, shop = params[:, 4], params[:, 7] < 0.4
@@ -731,7 +748,17 @@ def _shade_facade(table, p, face, hh, fp, colour, colour2, params, top):
     return rgb * (1 - 0.3 * plinth)
 
 
-def _shade_car(table, p, face, hh, fp, half, colour, params, front_sign):
+def _shade_car(
+    table: Tensor,
+    p: Tensor,
+    face: Tensor,
+    hh: Tensor,
+    fp: Tensor,
+    half: Tensor,
+    colour: Tensor,
+    params: Tensor,
+    front_sign: float,
+) -> Tensor:
     """Car bodies (ground to beltline): nearly uniform paint, wheels, lights, a dark sill."""
     along = p[:, 2]
     belt = half[:, 1] * 2 - 0.25  # body height above the ground (0.25 m are buried)
@@ -765,7 +792,16 @@ def _shade_car(table, p, face, hh, fp, half, colour, params, front_sign):
     return rgb + dark * (torch.tensor([22.0, 22.0, 24.0]) - rgb)
 
 
-def _shade_cabin(table, p, face, hh, fp, half, colour, colour2):
+def _shade_cabin(
+    table: Tensor,
+    p: Tensor,
+    face: Tensor,
+    hh: Tensor,
+    fp: Tensor,
+    half: Tensor,
+    colour: Tensor,
+    colour2: Tensor,
+) -> Tensor:
     """Car cabins: dark glass all round between painted pillars, a painted roof."""
     pillar_side = torch.maximum(
         _coverage(half[:, 2] - p[:, 2].abs(), 0.3, fp), _coverage(p[:, 2].abs(), 0.12, fp)
@@ -780,7 +816,16 @@ def _shade_cabin(table, p, face, hh, fp, half, colour, colour2):
     return torch.where((face == 1)[:, None], colour, rgb)
 
 
-def _shade_crate(table, p, face, hh, fp, half, colour, params):
+def _shade_crate(
+    table: Tensor,
+    p: Tensor,
+    face: Tensor,
+    hh: Tensor,
+    fp: Tensor,
+    half: Tensor,
+    colour: Tensor,
+    params: Tensor,
+) -> Tensor:
     """Containers and vans: corrugated, weathered walls, some with a light label."""
     u = torch.where(face == 0, p[:, 2], p[:, 0])
     period = params[:, 2]
@@ -797,7 +842,16 @@ def _shade_crate(table, p, face, hh, fp, half, colour, params):
     return rgb + label[:, None] * (torch.tensor([235.0, 235.0, 228.0]) - rgb)
 
 
-def _shade_pedestrian(table, p, hh, fp, half, colour, colour2, params):
+def _shade_pedestrian(
+    table: Tensor,
+    p: Tensor,
+    hh: Tensor,
+    fp: Tensor,
+    half: Tensor,
+    colour: Tensor,
+    colour2: Tensor,
+    params: Tensor,
+) -> Tensor:
     """Pedestrians: legs, torso, head."""
     top = half[:, 1] * 2
     cloth = 1.0 + _fbm(table, p[:, 0] + p[:, 2] + params[:, 0], hh, fp, [(0.3, 0.08), (0.08, 0.06)])
@@ -805,7 +859,7 @@ def _shade_pedestrian(table, p, hh, fp, half, colour, colour2, params):
     return torch.where((hh > 0.85 * top)[:, None], params[:, 2:5], rgb)
 
 
-def _shade_sky(table: torch.Tensor, dx: torch.Tensor, dy: torch.Tensor, dz: torch.Tensor):
+def _shade_sky(table: Tensor, dx: Tensor, dy: Tensor, dz: Tensor) -> Tensor:
     """Sky colour ``(n, 3)`` for world ray directions: a gradient and faint clouds."""
     norm = torch.sqrt(dx * dx + dy * dy + dz * dz)
     up = (-dy / norm).clamp(0, 1)

@@ -311,6 +311,9 @@ class Ground:
         grid: ``(nz, nx, 4)`` float32 per cell: ground y, and the arc length ``s``, lateral
             offset ``d`` and ``|d|`` of the nearest centreline point.
         max_slope: the steepest ground slope (rise over run).
+        static_index, static_centre: the static boxes standing in this section (indices into
+            ``World.static``, ``(m,)``) and their centres on this ground (``(m, 3)``), set by
+            :meth:`World.ground`.
     """
 
     def __init__(
