@@ -396,9 +396,10 @@ class World:
     section ``⌊s_k / SECTION⌋`` (``s_k`` its arc length), built from the centreline within
     ``SECTION_MARGIN`` of that section. A street the trajectory drives again much later (KITTI
     loops) thus keeps the height and lanes of the pass being driven, even where the ground-truth
-    poses of the two passes disagree by metres in height (KITTI 08: up to 6 m); the world near
-    the camera is the same in both sections at a switch, and whatever differs is at least
-    ``SECTION_MARGIN`` of path away.
+    poses of the two passes disagree by metres in height (KITTI 08: up to 6 m). Sections share
+    one lattice of cells, so near the camera the ground of two sections at a switch agrees (to a
+    few centimetres in height, exactly in road coordinates) unless a revisited street enters
+    one of them; boxes that differ are at least ``SECTION_MARGIN`` of path away.
 
     Attributes:
         poses: ``(N, 4, 4)`` float64 camera poses ``T_world_cam``.
@@ -898,6 +899,8 @@ def _ground_grid(
     hi = xyz[:, [0, 2]].max(0) + cfg.margin
     area = float(np.prod(hi - lo))
     cell = max(cfg.grid_cell, math.sqrt(area / MAX_GRID_CELLS))
+    # Cells on one world-wide lattice: overlapping sections interpolate the same cell values.
+    lo = np.floor(lo / cell) * cell
     nx, nz = (np.ceil((hi - lo) / cell).astype(int) + 1).tolist()
     gx = lo[0] + cell * np.arange(nx)
     gz = lo[1] + cell * np.arange(nz)
@@ -929,7 +932,7 @@ def _ground_grid(
     den = gaussian_filter(den.reshape(nz, nx), 3.0 / cell, mode="nearest")
     far = gaussian_filter(xyz[idx, 1].reshape(nz, nx), 20.0 / cell, mode="nearest")
     # On the path den ≈ (1 / PATH_STEP) · cell² / (√(2π) · 3 m) ≈ 0.27 per m² of cell.
-    floor = 0.003 * cell * cell
+    floor = 0.0003 * cell * cell
     height = (num + floor * far) / (den + floor)
     grid = np.stack(
         [
