@@ -156,3 +156,18 @@ def test_a_standing_car_gets_a_straight_road():
     assert np.allclose(heading, heading[0]) and np.allclose(heading[0], [0.0, 1.0])
     y, _, _ = world.ground_height(torch.tensor([0.0]), torch.tensor([0.0]))
     assert float(y[0]) == pytest.approx(synthetic.CAMERA_HEIGHT, abs=1e-3)
+
+
+def test_sections_agree_around_the_camera_where_they_switch(poses, world):
+    switches = [k for k in range(1, len(poses)) if world.section_of(k) != world.section_of(k - 1)]
+    assert switches
+    for k in switches:
+        before, after = world.ground(k - 1), world.ground(k)
+        assert before is not after
+        c = poses[k, :3, 3].float()
+        xs = c[0] + torch.linspace(-20, 20, 41).repeat_interleave(41)
+        zs = c[2] + torch.linspace(-20, 20, 41).repeat(41)
+        assert float((before.height(xs, zs)[0] - after.height(xs, zs)[0]).abs().max()) < 0.01
+        pairs = zip(before.road_coordinates(xs, zs), after.road_coordinates(xs, zs), strict=True)
+        for a, b in pairs:
+            assert torch.allclose(a, b, atol=1e-3)
