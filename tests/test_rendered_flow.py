@@ -173,12 +173,17 @@ def test_non_finite_estimates_are_masked_and_counted(tmp_path: Path) -> None:
     assert quality["nonfinite_pixels"] == 16 * len(dm.dataset("test"))
 
 
-def test_render_sizes_the_scene_cannot_take_are_refused(tmp_path: Path) -> None:
+def test_render_sizes_and_world_settings_the_scene_cannot_take_are_refused(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="flow.width=8"):
         _dm(tmp_path, flow={"source": "dis", "height": 64, "width": 8})
     with pytest.raises(ValueError, match="flow.height=5000"):
         _dm(tmp_path, flow={"source": "dis", "height": 5000, "width": 512})
-    assert not tmp_path.joinpath("synthetic_flow").exists()
+    with pytest.raises(ValueError, match=r"unknown dataset.world setting\(s\) \['lanes'\]"):
+        _dm(tmp_path, world={"lanes": 2})
+    # a world setting is part of the cache key
+    wide = _dm(tmp_path, world={"lanes_per_side": 2}).build_dataset("test")
+    assert wide.cache.root != _dm(tmp_path).build_dataset("test").cache.root
+    assert not any(tmp_path.joinpath("synthetic_flow").rglob("*.npz"))
 
 
 @pytest.mark.slow
