@@ -185,7 +185,7 @@ def test_driving_a_real_kitti_trajectory_keeps_the_road_under_the_camera(shared_
     world = World.generate(poses, seed=0, name="00")
     h, w = 48, 128
     K = synthetic.kitti_like_intrinsics(h, w)
-    for k in range(0, len(poses), 8):
+    for k in range(0, len(poses), 16):
         f = render_frame(world, k, K, h, w)
         # Ground under the camera (a car in the next lane may cover part of the bottom row).
         bottom = f.region[-1, w // 4 : 3 * w // 4] == REGION_ROAD

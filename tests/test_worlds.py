@@ -121,17 +121,17 @@ def test_the_ground_is_under_the_camera_of_a_procedural_drive(poses, world):
 
 
 def test_the_ground_follows_a_real_kitti_trajectory(shared_poses):
-    poses = torch.from_numpy(read_kitti_poses(shared_poses / "00.txt"))[:1200]
+    poses = torch.from_numpy(read_kitti_poses(shared_poses / "00.txt"))[:500]
     world = World.generate(poses, seed=0, name="00")
     pos = poses[:, :3, 3]
-    frames = range(0, len(poses), 20)
+    frames = range(0, len(poses), 10)
     heights = np.array(
         [
             float(world.ground_height(pos[k : k + 1, 0], pos[k : k + 1, 2], k)[0][0] - pos[k, 1])
             for k in frames
         ]
     )
-    # Hills and pitch are followed; the ground is not a plane (KITTI 00 climbs ~20 m).
+    # Hills and pitch are followed; the ground is not a plane (KITTI 00 climbs 10 m here).
     assert np.abs(heights - synthetic.CAMERA_HEIGHT).max() < 0.25
     assert np.ptp(pos[:, 1].numpy()) > 5
     assert world.num_sections == int(np.ceil(world.frame_s.max() / SECTION))
