@@ -403,6 +403,63 @@ def stage_render(args: argparse.Namespace, max_frames: int | None) -> dict:
     return ledger
 
 
+def stage_breakdown(args: argparse.Namespace, max_frames: int | None, pairs: int = 20) -> dict:
+    """CPU time (``time.process_time``, one thread: what contention does not change) of each
+    step of a pair, on ``pairs`` consecutive pairs of sequence 00 (training data), rendered
+    into a scratch cache."""
+    path = args.work / f"breakdown-{_frames_tag(max_frames)}.json"
+    done = _read(path)
+    if done:
+        return done
+    import cv2
+
+    from mfg_lightning.data import render
+
+    threads = torch.get_num_threads(), cv2.getNumThreads()
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+    _, dm = datamodule_for(args, "dis", max_frames)
+    dm.cache_dir = str(args.work / "breakdown-cache")
+    ds = dm.build_dataset("train+val")
+    seq = next(iter(ds.trajectories))
+    first = ds.sequences()[seq][0]
+    clock = time.process_time
+    spent = {"render": 0.0, "exact flow": 0.0, "DIS": 0.0, "quality, resize": 0.0, "write": 0.0}
+    t = clock()
+    a = ds.render(seq, ds.index[first][1])
+    spent["render"] += clock() - t  # the first frame: one render per pair from here on
+    for i in range(first, first + pairs):
+        _, src, tgt = ds.index[i]
+        t = clock()
+        b = ds.render(seq, tgt)
+        spent["render"] += clock() - t
+        t = clock()
+        world, K, hw = ds.world(seq), ds.image_intrinsics, ds.image_hw
+        render.exact_flow(world, src, tgt, K, *hw, source=a.rendered)
+        spent["exact flow"] += clock() - t
+        t = clock()
+        ds.estimator(a.image, b.image)
+        spent["DIS"] += clock() - t
+        t = clock()
+        pair = ds.compute_pair(seq, src, tgt, a, b)  # exact flow + DIS again, then the rest
+        spent["quality, resize"] += clock() - t
+        t = clock()
+        ds._store(i, pair)
+        spent["write"] += clock() - t
+        a = b
+    spent["quality, resize"] -= spent["exact flow"] + spent["DIS"]
+    torch.set_num_threads(threads[0])
+    cv2.setNumThreads(threads[1])
+    result = {
+        "pairs": pairs,
+        "sequence": seq,
+        "ms_per_pair": {k: 1e3 * v / pairs for k, v in spent.items()},
+        "image_hw": list(ds.image_hw),
+    }
+    _write(path, result)
+    return result
+
+
 def stage_loading(args: argparse.Namespace, max_frames: int | None) -> dict:
     """Data-loading passes over the cached training split (what every epoch after the first
     costs), against the first pass (rendering and estimating, from ``render.json``)."""
@@ -489,6 +546,25 @@ def quality_table(rendered: dict) -> str:
         row.append(str(q["nonfinite_pixels"]))
         body.append(row)
     return markdown_table(header, body)
+
+
+def breakdown_section(breakdown: dict, rendered: dict) -> str:
+    ms = breakdown["ms_per_pair"]
+    total = sum(ms.values())
+    train_pairs = rendered["parts"]["train+val"]["pairs"]
+    rows = [[k, fmt(v, 1), f"{100 * v / total:.0f} %"] for k, v in ms.items()]
+    rows.append(["**total**", fmt(total, 1), "100 %"])
+    size = "×".join(str(x) for x in breakdown["image_hw"])
+    return (
+        markdown_table(["step", "CPU ms / pair", "share"], rows)
+        + f"\n{breakdown['pairs']} consecutive pairs of sequence {breakdown['sequence']} at "
+        f"{size}, one thread, `time.process_time` (CPU time: what a shared machine's "
+        "contention does not change, unlike the wall time below). A frame is rendered once per "
+        "pair (each is the target of one pair and the source of the next). The 00–08 split "
+        f"({train_pairs} pairs) at this CPU cost: {total * train_pairs / 6e4:.0f} CPU-minutes, "
+        f"**{total * train_pairs / 12e4:.0f} min on 2 cores** with `dataset.num_workers=2` "
+        "(two processes, one sequence each at a time; target ≤ 30 min)."
+    )
 
 
 def cost_section(rendered: dict, loading: dict | None) -> str:
@@ -600,12 +676,13 @@ def parse_runs(specs: list[str], default_frames: int | None) -> list[tuple[str, 
 def run(args: argparse.Namespace) -> Path:
     report = Report("accuracy", "Accuracy on real KITTI trajectories (synthetic flow)", args.out)
     runs = parse_runs(args.runs, args.max_frames)
-    rendered = loading = None
+    rendered = loading = breakdown = None
     for flow, frames in runs:
         if flow == "dis":
             # the longest stage first, so that its cost is known early
             rendered = stage_render(args, frames)
             loading = stage_loading(args, frames)
+            breakdown = stage_breakdown(args, frames, pairs=4 if args.tiny else 20)
     results = [stage_accuracy(args, flow, frames) for flow, frames in runs]
     protocol = "ATE over 5-frame snippets (frame by frame, †), RPE (Δ = 1)"
     titles = {
@@ -656,6 +733,7 @@ def run(args: argparse.Namespace) -> Path:
             "structure (facades, parked cars, crates), moving objects, far field (sky)."
         )
         quality.add("## Quality by region\n\n" + quality_table(rendered))
+        quality.add("## CPU time per pair, by step\n\n" + breakdown_section(breakdown, rendered))
         quality.add(
             "## Cost of rendering and estimating, and of a cached pass\n\n"
             + cost_section(rendered, loading)
