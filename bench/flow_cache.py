@@ -77,7 +77,12 @@ def main(argv: list[str] | None = None) -> Path:
 
         def dataset(cache: Path) -> KittiOdometryDataset:
             return KittiOdometryDataset(
-                fake.root, ["09"], height=48, width=128, cache_dir=cache, dis_preset=args.preset
+                fake.root,
+                ["09"],
+                height=48,
+                width=128,
+                cache_dir=cache,
+                flow={"source": "dis", "preset": args.preset},
             )
 
         ds = dataset(tmp / "cache")

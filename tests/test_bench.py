@@ -64,7 +64,6 @@ def _number(cell: str) -> float:
 
 def test_accuracy_benchmark(tmp_path: Path, shared_poses: Path) -> None:
     text = _run_bench("accuracy.py", tmp_path, "--poses-dir", str(shared_poses), "--threads", "1")
-    rows = {r[0]: r for r in _table_rows(text, "## ATE over 5-frame snippets")}
     expected = (
         "MFG (all units)",
         "MFG top-k 5 %",
@@ -73,16 +72,28 @@ def test_accuracy_benchmark(tmp_path: Path, shared_poses: Path) -> None:
         "continuous least squares (§3, Bruss–Horn)",
         "oracle: exact fields → recover_motion",
     )
-    for name in expected:
-        assert name in rows, name
-        ate09, ate10 = (re.match(r"([\d.e-]+) ± ([\d.e-]+)", rows[name][i]) for i in (1, 2))
-        assert ate09 and ate10, rows[name]
-        assert all(math.isfinite(float(x)) for x in (*ate09.groups(), *ate10.groups()))
-    # The oracle is the floor: the closed form itself, float32 rounding only.
-    assert float(rows["oracle: exact fields → recover_motion"][1].split(" ± ")[0]) < 1e-5
-    # The paper's numbers are quoted beside MFG, labelled as on real KITTI images.
-    assert rows["MFG (all units)"][6] == "0.012 ± 0.006"
+    # the same methods on the exact flow and on DIS flow of rendered worlds
+    for heading in ("## Exact flow", "## DIS flow of rendered worlds"):
+        rows = {r[0]: r for r in _table_rows(text, heading)}
+        for name in expected:
+            assert name in rows, (heading, name)
+            ate09, ate10 = (re.match(r"([\d.e-]+) ± ([\d.e-]+)", rows[name][i]) for i in (1, 2))
+            assert ate09 and ate10, rows[name]
+            assert all(math.isfinite(float(x)) for x in (*ate09.groups(), *ate10.groups()))
+        # The oracle is the floor: the closed form itself, float32 rounding only.
+        assert float(rows["oracle: exact fields → recover_motion"][1].split(" ± ")[0]) < 1e-5
+        # The paper's numbers are quoted beside MFG, labelled as on real KITTI images.
+        assert rows["MFG (all units)"][6] == "0.012 ± 0.006"
     assert "real KITTI images" in text
+    # the flow's own table: EPE and Fl per region, and the cost
+    quality = (tmp_path / "flow_quality.md").read_text()
+    splits = {r[0]: r for r in _table_rows(quality, "## Quality by region")}
+    assert set(splits) == {"train", "val", "test"}
+    assert splits["test"][1:3] == ["medium", "64×128"]
+    assert math.isfinite(_number(splits["test"][-3]))  # EPE over all pixels
+    parts = {r[0]: r for r in _table_rows(quality, "## Cost of rendering")}
+    assert set(parts) == {"train+val", "test"}
+    assert "faster** (target ≥ 50×)" in quality
 
 
 def test_throughput_benchmark(tmp_path: Path) -> None:

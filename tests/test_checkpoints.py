@@ -300,3 +300,29 @@ def test_settings_newer_than_a_checkpoint_keep_its_old_behaviour(
     with caplog.at_level("WARNING", logger="mfg_lightning.checkpoints"):
         assert module_from_checkpoint(path).net.align_corners is True
     assert "predates" not in caplog.text
+
+
+def test_dataset_configs_from_before_the_flow_group_read_their_flow(tmp_path: Path) -> None:
+    """Checkpoints written before ``conf/flow`` stored the flow settings as dataset keys."""
+    from mfg_lightning.checkpoints import with_legacy_dataset_settings
+    from mfg_lightning.data.synthetic import SyntheticDataModule
+
+    path = tmp_path / "old.ckpt"
+    ckpt = _tiny_checkpoint(path)
+    cfg = compose("train", ["debug=tiny", f"paths.output_dir={tmp_path}"])
+    old = OmegaConf.to_container(cfg.dataset, resolve=True)
+    del old["flow"]
+    old.update(noise_std=0.5, outlier_fraction=0.02)
+    ckpt["mfg_dataset_config"] = old
+    read = dataset_config(ckpt, path)
+    assert read["flow"] == {"source": "exact", "noise_std": 0.5, "outlier_fraction": 0.02}
+    assert "noise_std" not in read
+    dm = SyntheticDataModule(**{k: v for k, v in read.items() if k != "_target_"})
+    assert dm.flow.noise_std == 0.5
+    kitti = {"_target_": "mfg_lightning.data.kitti.KittiDataModule", "dis_preset": "fast"}
+    kitti.update(dis_params=None, flow_height=None, flow_width=None, flow_dir=None)
+    dis = {"source": "dis", "preset": "fast", "params": None, "height": None, "width": None}
+    assert with_legacy_dataset_settings(kitti, path)["flow"] == dis
+    kitti["flow_dir"] = "/data/flow"
+    files = {"source": "files", "dir": "/data/flow"}
+    assert with_legacy_dataset_settings(kitti, path)["flow"] == files

@@ -18,7 +18,7 @@ def test_kitti_check_reports_every_split_and_computes_only_a_few_flows(tmp_path:
     before = tree_snapshot(fake.root)
     proc = run_module(
         "mfg_lightning.data.check", "dataset=kitti", f"dataset.data_root={fake.root}",
-        "dataset.dis_preset=ultrafast", "+check.samples=3", cwd=tmp_path,
+        "flow.preset=ultrafast", "+check.samples=3", cwd=tmp_path,
     )  # fmt: skip
     report = json.loads(proc.stdout.strip().splitlines()[-1])
     assert report["ok"] and report["problems"] == []

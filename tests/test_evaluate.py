@@ -118,7 +118,7 @@ def test_object_motion_needs_depth(tmp_path: Path) -> None:
 
     fk = make_kitti(tmp_path / "kitti")
     run = tmp_path / "run"
-    common = [f"dataset.data_root={fk.root}", "dataset.dis_preset=ultrafast"]
+    common = [f"dataset.data_root={fk.root}", "flow.preset=ultrafast"]
     run_module("mfg_lightning.train", "dataset=kitti", *common, "model.net.hidden_units=16",
                "model.net.channels=[4,4,4,4,4]", "trainer.max_steps=1",
                "trainer.limit_val_batches=1", "trainer.val_check_interval=1", "test=false",

@@ -28,9 +28,12 @@ def fk(tmp_path_factory: pytest.TempPathFactory) -> FakeKitti:
     return make_kitti(tmp_path_factory.mktemp("kitti"))
 
 
-def _dataset(fake: FakeKitti, cache: Path, sequences=("09",), **kw) -> KittiOdometryDataset:
+def _dataset(
+    fake: FakeKitti, cache: Path, sequences=("09",), flow: dict | None = None, **kw
+) -> KittiOdometryDataset:
+    flow = {"source": "dis", "preset": "fast", **(flow or {})}
     return KittiOdometryDataset(
-        fake.root, sequences, height=H, width=W, cache_dir=cache, dis_preset="fast", **kw
+        fake.root, sequences, height=H, width=W, cache_dir=cache, flow=flow, **kw
     )
 
 
@@ -94,17 +97,18 @@ def test_dis_flow_matches_the_known_shift_and_is_cached(fk: FakeKitti, tmp_path:
     torch.testing.assert_close(again[0]["flow"], s["flow"])
     assert _CountingEstimator.calls == 2
     # a parameter that changes the flow gets its own cache directory
-    other = _dataset(fk, tmp_path / "cache", dis_params={"patch_size": 12})
+    other = _dataset(fk, tmp_path / "cache", flow={"params": {"patch_size": 12}})
     assert other.cache_path(0).parents[1] != path.parents[1]
-    smaller = _dataset(fk, tmp_path / "cache", flow_height=32, flow_width=100)
+    smaller = _dataset(fk, tmp_path / "cache", flow={"height": 32, "width": 100})
     assert smaller.cache_path(0).parent.name == "09@32x100"
     assert tree_snapshot(fk.root) == before  # nothing written into data_root
 
 
 def test_precompute_fills_the_cache_for_every_split(fk: FakeKitti, tmp_path: Path) -> None:
     dm = KittiDataModule(
-        fk.root, height=H, width=W, cache_dir=tmp_path, dis_preset="ultrafast",
-        train_sequences=["00", "01"], test_sequences=["09"], backward_flow=True,
+        fk.root, height=H, width=W, cache_dir=tmp_path,
+        flow={"source": "dis", "preset": "ultrafast"}, train_sequences=["00", "01"],
+        test_sequences=["09"], backward_flow=True,
     )  # fmt: skip
     dm.prepare_data()
     dm.setup("fit")
@@ -156,7 +160,10 @@ def test_user_supplied_flow(fk: FakeKitti, tmp_path: Path, ext: str) -> None:
     }[ext]
     for src in range(7):
         writer(flow_dir / "09" / f"{src:06d}_{src + 1:06d}.{ext}", flow)
-    ds = _dataset(fk, tmp_path / "cache", flow_dir=flow_dir)
+    files = {"source": "files", "dir": flow_dir}
+    ds = KittiOdometryDataset(
+        fk.root, ["09"], height=H, width=W, cache_dir=tmp_path / "cache", flow=files
+    )
     s = ds[2]
     expected = (
         torch.tensor([3.0 * W / fk.width, -1.5 * H / fk.height]).view(2, 1, 1).expand(2, H, W)
@@ -167,7 +174,7 @@ def test_user_supplied_flow(fk: FakeKitti, tmp_path: Path, ext: str) -> None:
     # a missing file: an error naming the expected file and the naming scheme
     (flow_dir / "09" / f"000004_000005.{ext}").unlink()
     with pytest.raises(DataFileError, match=r"09/000004_000005\.<flo\|png\|npy\|npz>") as err:
-        _dataset(fk, tmp_path / "cache", flow_dir=flow_dir)
+        KittiOdometryDataset(fk.root, ["09"], height=H, width=W, cache_dir=tmp_path, flow=files)
     assert "<flow_dir>/<seq>/<src:06d>_<tgt:06d>.<ext>" in str(err.value)
 
 
@@ -236,7 +243,7 @@ def test_training_runs_end_to_end(fk: FakeKitti, tmp_path: Path) -> None:
     run = tmp_path / "run"
     run_module(
         "mfg_lightning.train", "dataset=kitti", f"dataset.data_root={fk.root}",
-        "dataset.backward_flow=true", "dataset.dis_preset=ultrafast", "dataset.batch_size=2",
+        "dataset.backward_flow=true", "flow.preset=ultrafast", "dataset.batch_size=2",
         "dataset.eval_batch_size=4", "model.net.hidden_units=64", "trainer.max_steps=2",
         "trainer.val_check_interval=1", "trainer.limit_val_batches=1",
         "trainer.limit_test_batches=1", "logger=none", "callbacks=none", f"hydra.run.dir={run}",

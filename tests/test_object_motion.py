@@ -219,8 +219,7 @@ def test_oracle_on_synthetic_driving_dataset() -> None:
         width=128,
         sequence_length=60,
         test_sequences=1,
-        noise_std=0.0,
-        outlier_fraction=0.0,
+        flow={"source": "exact", "noise_std": 0.0, "outlier_fraction": 0.0},
     )
     dataset = dm.dataset("test")
     batch = collate_samples([dataset[i] for i in range(0, 59, 8)])

@@ -81,7 +81,7 @@ def test_predict_on_a_kitti_tree_without_poses(ckpt: Path, tmp_path: Path) -> No
     proc = run_module(
         "mfg_lightning.predict", f"ckpt_path={ckpt}", "dataset=kitti", f"dataset.data_root={root}",
         "dataset.test_sequences=[11,12]", f"dataset.height={H}", f"dataset.width={W}",
-        "dataset.dis_preset=ultrafast", f"hydra.run.dir={out}", cwd=tmp_path,
+        "flow.preset=ultrafast", f"hydra.run.dir={out}", cwd=tmp_path,
     )  # fmt: skip
     assert "11: 7 poses" in proc.stdout and "12: 7 poses" in proc.stdout
     for seq in ("11", "12"):

@@ -22,8 +22,7 @@ def _dm(**kw) -> SyntheticDataModule:
         train_sequences=2,
         test_sequences=1,
         sequence_length=20,
-        noise_std=0.0,
-        outlier_fraction=0.0,
+        flow={"source": "exact", "noise_std": 0.0, "outlier_fraction": 0.0},
     )
     base.update(kw)
     return SyntheticDataModule(**base)
@@ -90,7 +89,7 @@ def test_central_frame_offsets() -> None:
 
 def test_noise_and_outliers_corrupt_the_flow() -> None:
     clean = _dm().dataset("train")[0]
-    noisy = _dm(noise_std=1.0, outlier_fraction=0.1).dataset("train")[0]
+    noisy = _dm(flow={"noise_std": 1.0, "outlier_fraction": 0.1}).dataset("train")[0]
     diff = (clean["flow"] - noisy["flow"]).norm(dim=0)
     assert 0.5 < diff.median() < 2.0
     assert (diff > 5).float().mean() > 0.02

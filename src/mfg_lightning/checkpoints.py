@@ -54,6 +54,7 @@ __all__ = [
     "model_size",
     "module_from_checkpoint",
     "safe_unpickling",
+    "with_legacy_dataset_settings",
     "with_legacy_settings",
 ]
 
@@ -309,6 +310,41 @@ def with_legacy_settings(cfg: Mapping[str, Any], path: str | Path) -> dict[str, 
     return cfg
 
 
+#: Dataset keys that the ``flow`` config group replaced, by the flow setting each became.
+_LEGACY_FLOW_KEYS = {
+    "noise_std": "noise_std",
+    "outlier_fraction": "outlier_fraction",
+    "dis_preset": "preset",
+    "dis_params": "params",
+    "flow_height": "height",
+    "flow_width": "width",
+}
+
+
+def with_legacy_dataset_settings(cfg: dict[str, Any], path: str | Path) -> dict[str, Any]:
+    """A dataset config written before the ``flow`` group, rewritten into today's keys.
+
+    Such configs carried the flow settings as dataset keys (synthetic ``noise_std`` /
+    ``outlier_fraction``: exact flow; KITTI ``dis_preset`` / ``dis_params`` / ``flow_height`` /
+    ``flow_width``: DIS, or ``flow_dir``: the user's files); they become ``flow`` with the same
+    values, so the checkpoint is evaluated on the flow it was trained on. Logged.
+    """
+    if "flow" in cfg or not (set(cfg) & {*_LEGACY_FLOW_KEYS, "flow_dir"}):
+        return cfg
+    cfg = dict(cfg)
+    flow_dir = cfg.pop("flow_dir", None)
+    moved = {new: cfg.pop(old) for old, new in _LEGACY_FLOW_KEYS.items() if old in cfg}
+    if flow_dir is not None:
+        flow = {"source": "files", "dir": flow_dir}
+    elif "noise_std" in moved or "outlier_fraction" in moved:
+        flow = {"source": "exact", **moved}
+    else:
+        flow = {"source": "dis", **moved}
+    cfg["flow"] = flow
+    log.warning("checkpoint %s predates the flow config group: reading its flow as %s", path, flow)
+    return cfg
+
+
 def build_module(
     ckpt: Mapping[str, Any],
     path: str | Path,
@@ -376,7 +412,7 @@ def dataset_config(ckpt: Mapping[str, Any], path: str | Path) -> dict | None:
         UnsafeConfigError: the config names a target outside the allow-list.
     """
     if ckpt.get("mfg_dataset_config"):
-        stored = dict(ckpt["mfg_dataset_config"])
+        stored = with_legacy_dataset_settings(dict(ckpt["mfg_dataset_config"]), path)
         check_targets(stored, f"checkpoint {path} (mfg_dataset_config)")
         return stored
     run_config = Path(path).expanduser().resolve().parent.parent / "config.yaml"
@@ -393,4 +429,4 @@ def dataset_config(ckpt: Mapping[str, Any], path: str | Path) -> dict | None:
     except Exception as err:  # an interpolation into keys the file does not have
         raise CheckpointError(f"{run_config}: cannot resolve dataset: {err}") from err
     check_targets(stored, str(run_config), "dataset")
-    return stored
+    return with_legacy_dataset_settings(stored, run_config)

@@ -190,3 +190,45 @@ def exit_on_user_error(fn):
             sys.exit(2)
 
     return wrapper
+
+
+def unknown_choice(config_dir: str | Path, overrides: list[str]) -> str | None:
+    """The message for the first ``group=option`` override naming an option that
+    ``config_dir/<group>/`` does not have (e.g. ``flow=sift``), or None.
+
+    Only plain overrides of an existing group are checked; sweeps (``a,b``, ``choice(…)``),
+    packages (``group@pkg=``), additions and deletions are left to Hydra.
+    """
+    root = Path(config_dir)
+    for arg in overrides:
+        key, sep, value = arg.partition("=")
+        if not sep or key.startswith(("+", "~", "-")) or "@" in key:
+            continue
+        if any(c in value for c in ",()[]{}$*") or value in ("", "null"):
+            continue
+        group = root / key.replace(".", "/")
+        if not group.is_dir() or (group / f"{value}.yaml").is_file():
+            continue
+        options = sorted(p.stem for p in group.glob("*.yaml"))
+        return f"{key}={value}: no such option of the {key} group; options: {', '.join(options)}"
+    return None
+
+
+def exit_on_unknown_choice(fn):
+    """Decorator for ``@hydra.main`` entry points (put it outside): an override naming an option
+    a config group does not have is one ``error: …`` line and exit status 2, as other input
+    errors (Hydra itself prints its search path and exits with 1)."""
+    import functools
+    import sys
+
+    from mfg_lightning.config import CONFIG_DIR
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        message = unknown_choice(CONFIG_DIR, sys.argv[1:])
+        if message is not None:
+            print(f"error: {message}", file=sys.stderr)
+            sys.exit(2)
+        return fn(*args, **kwargs)
+
+    return wrapper

@@ -42,6 +42,7 @@ from mfg_lightning.config import CONFIG_DIR
 from mfg_lightning.runs import (
     atomic_write_text,
     build_model,
+    exit_on_unknown_choice,
     exit_on_user_error,
     finish_stale_logger_runs,
     instantiate_list,
@@ -177,6 +178,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     return {k: float(v) for k, v in metrics.items()}
 
 
+@exit_on_unknown_choice
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="train")
 @exit_on_user_error
 def main(cfg: DictConfig) -> float | None:

@@ -1,7 +1,19 @@
-"""Optical flow for datasets that ship none (KITTI odometry): an estimator and its disk cache.
+"""Where a dataset's input flow comes from (the ``flow`` config group), the estimators, the cache.
 
-The estimator is OpenCV's Dense Inverse Search (DIS), installed from the package registries with
-``opencv-python-headless``; :class:`FlowCache` stores what it computed once so that later epochs
+The ``flow`` group (``conf/flow/``) picks the source of the flow that ``dataset=synthetic`` and
+``dataset=kitti`` feed the model; :func:`parse_flow` turns its config into one of
+
+* :class:`ExactFlow` (``flow=exact``): the exact reprojection flow of a synthetic scene with
+  Gaussian noise and single-pixel outliers (the synthetic default);
+* :class:`EstimatedFlow` (``flow=dis``): an estimator run on images (rendered synthetic frames or
+  KITTI's real ones) at ``flow.height × flow.width``, resized to the model input with the vectors
+  rescaled, cached; the KITTI default. An estimator is any class in :data:`ESTIMATORS` with the
+  :class:`FlowEstimator` interface (a learned one registers itself there and gets a
+  ``conf/flow/<name>.yaml`` with ``source: <name>``);
+* :class:`FlowFiles` (``flow=files``): the user's own flow files.
+
+The DIS estimator is OpenCV's Dense Inverse Search, installed from the package registries with
+``opencv-python-headless``; :class:`FlowCache` stores what was computed once so that later epochs
 and runs read it back (atomic writes: concurrent runs sharing a cache never see half a file).
 """
 
@@ -11,23 +23,36 @@ import hashlib
 import io
 import json
 import os
+import zipfile
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar, Protocol
 
 import cv2
 import numpy as np
 
 from mfg_lightning.atomic import atomic_write_bytes
 
-__all__ = ["DIS_PRESETS", "DISFlowEstimator", "FlowCache"]
+__all__ = [
+    "DIS_PRESETS",
+    "ESTIMATORS",
+    "DISFlowEstimator",
+    "EstimatedFlow",
+    "ExactFlow",
+    "FlowCache",
+    "FlowEstimator",
+    "FlowFiles",
+    "flow_sources",
+    "parse_flow",
+]
 
 DIS_PRESETS = {
     "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
     "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
     "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
 }
-# dataset.dis_params keys → DISOpticalFlow setters (applied after the preset).
+# flow.params keys → DISOpticalFlow setters (applied after the preset).
 _DIS_SETTERS = {
     "finest_scale": "setFinestScale",
     "patch_size": "setPatchSize",
@@ -42,8 +67,27 @@ _DIS_SETTERS = {
 }
 
 
+class FlowEstimator(Protocol):
+    """What :class:`EstimatedFlow` needs of an estimator (DIS here; a learned one later).
+
+    ``name`` is its ``flow.source``; ``key()`` every setting and version that changes its output
+    (it goes into the cache key); ``prepare`` turns an ``(H, W, 3)`` uint8 RGB image into the
+    estimator's input (done once per frame, then resized to the estimation size if needed:
+    ``cv2.resize`` must accept it); ``__call__`` estimates the flow between two prepared images
+    as ``(H, W, 2)`` float32 pixels with ``image0(x) ≈ image1(x + flow(x))``.
+    """
+
+    name: str
+
+    def key(self) -> dict[str, Any]: ...
+
+    def prepare(self, rgb: np.ndarray) -> np.ndarray: ...
+
+    def __call__(self, image0: np.ndarray, image1: np.ndarray) -> np.ndarray: ...
+
+
 class DISFlowEstimator:
-    """OpenCV's Dense Inverse Search optical flow.
+    """OpenCV's Dense Inverse Search optical flow (``flow=dis``), on grey images.
 
     Args:
         preset: ``"ultrafast"``, ``"fast"`` or ``"medium"``.
@@ -55,13 +99,11 @@ class DISFlowEstimator:
 
     def __init__(self, preset: str = "medium", params: dict[str, Any] | None = None) -> None:
         if preset not in DIS_PRESETS:
-            raise ValueError(
-                f"dataset.dis_preset must be one of {sorted(DIS_PRESETS)}, got {preset!r}"
-            )
+            raise ValueError(f"flow.preset must be one of {sorted(DIS_PRESETS)}, got {preset!r}")
         params = dict(params or {})
         unknown = sorted(set(params) - set(_DIS_SETTERS))
         if unknown:
-            raise ValueError(f"unknown dataset.dis_params {unknown}; known: {sorted(_DIS_SETTERS)}")
+            raise ValueError(f"unknown flow.params {unknown}; known: {sorted(_DIS_SETTERS)}")
         self.preset = preset
         self.params = params
         self._dis: Any = None
@@ -74,6 +116,10 @@ class DISFlowEstimator:
             "params": {k: self.params[k] for k in sorted(self.params)},
             "opencv": cv2.__version__,
         }
+
+    def prepare(self, rgb: np.ndarray) -> np.ndarray:
+        """``(H, W, 3)`` uint8 RGB → the ``(H, W)`` uint8 grey image DIS works on."""
+        return cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
 
     def __call__(self, gray0: np.ndarray, gray1: np.ndarray) -> np.ndarray:
         """Flow from ``gray0`` to ``gray1`` (``(H, W)`` uint8 each): ``(H, W, 2)`` float32 pixels
@@ -90,6 +136,140 @@ class DISFlowEstimator:
         return {**self.__dict__, "_dis": None}
 
 
+#: ``flow.source`` of an estimator → its class; its constructor takes the rest of ``flow.*`` but
+#: ``height`` and ``width``. A learned estimator adds itself here.
+ESTIMATORS: dict[str, type] = {"dis": DISFlowEstimator}
+
+
+@dataclass(frozen=True)
+class ExactFlow:
+    """``flow=exact``: the exact reprojection flow of a synthetic scene, corrupted.
+
+    Attributes:
+        noise_std: standard deviation of the Gaussian noise added to every vector, pixels of the
+            model input.
+        outlier_fraction: fraction of pixels whose vector is replaced by a uniform random one.
+    """
+
+    noise_std: float = 0.3
+    outlier_fraction: float = 0.01
+    source: ClassVar[str] = "exact"
+
+    def __post_init__(self) -> None:
+        if not self.noise_std >= 0:
+            raise ValueError(f"flow.noise_std must be ≥ 0 pixels, got {self.noise_std}")
+        if not 0.0 <= self.outlier_fraction <= 1.0:
+            raise ValueError(
+                f"flow.outlier_fraction must be in [0, 1], got {self.outlier_fraction}"
+            )
+
+
+@dataclass(frozen=True)
+class EstimatedFlow:
+    """Flow estimated from images (``flow=dis``): the estimator and the image size it runs at.
+
+    Attributes:
+        estimator: a :class:`FlowEstimator`.
+        height, width: the size of the images the estimator sees, pixels (synthetic: the render
+            size; KITTI: the size the real images are resized to). None: the dataset's own
+            (synthetic :data:`~mfg_lightning.data.synthetic.RENDER_SIZE`, KITTI native).
+    """
+
+    estimator: FlowEstimator
+    height: int | None = None
+    width: int | None = None
+
+    def __post_init__(self) -> None:
+        if (self.height is None) != (self.width is None):
+            raise ValueError("set both flow.height and flow.width, or neither")
+        for key in ("height", "width"):
+            value = getattr(self, key)
+            if value is not None and (isinstance(value, bool) or int(value) != value or value <= 0):
+                raise ValueError(f"flow.{key} must be a positive number of pixels, got {value!r}")
+
+    @property
+    def source(self) -> str:
+        return self.estimator.name
+
+    def image_hw(self, native: tuple[int, int]) -> tuple[int, int]:
+        """The estimation size: ``(flow.height, flow.width)``, or ``native`` where unset."""
+        if self.height is None or self.width is None:
+            return native
+        return int(self.height), int(self.width)
+
+    def key(self) -> dict[str, Any]:
+        return {**self.estimator.key(), "source": self.source}
+
+
+@dataclass(frozen=True)
+class FlowFiles:
+    """``flow=files``: the user's own flow, ``<dir>/<seq>/<src:06d>_<tgt:06d>.<ext>``."""
+
+    dir: str
+    source: ClassVar[str] = "files"
+
+    def __post_init__(self) -> None:
+        if self.dir is None or str(self.dir).strip() in ("", "???", "None", "null"):
+            raise ValueError(
+                "flow=files needs flow.dir: the directory holding "
+                "<flow.dir>/<seq>/<src:06d>_<tgt:06d>.<flo|png|npy|npz>"
+            )
+
+
+FlowSource = ExactFlow | EstimatedFlow | FlowFiles
+
+
+def flow_sources() -> list[str]:
+    """Every valid ``flow.source``: ``exact``, ``files`` and the estimators."""
+    return sorted({"exact", "files", *ESTIMATORS})
+
+
+def parse_flow(cfg: Mapping[str, Any] | FlowSource | None, default: str) -> FlowSource:
+    """The flow source a ``flow`` config (a ``conf/flow/*.yaml``) describes.
+
+    Args:
+        cfg: ``{"source": <name>, **settings}``; None: ``{"source": default}`` with the
+            settings' defaults. A parsed source is returned as it is.
+        default: the dataset's default source.
+
+    Raises:
+        ValueError: an unknown source or setting, naming the ``flow.*`` key.
+    """
+    if isinstance(cfg, (ExactFlow, EstimatedFlow, FlowFiles)):
+        return cfg
+    settings = dict(cfg or {})
+    source = settings.pop("source", default)
+    known = flow_sources()
+    if source not in known:
+        raise ValueError(
+            f"flow.source={source!r} is not a flow source; choose one of {', '.join(known)} "
+            "(flow=<name>, the files of conf/flow/)"
+        )
+    fields: dict[str, Any] = {}
+    if source == "exact":
+        cls: Any = ExactFlow
+    elif source == "files":
+        cls = FlowFiles
+    else:
+        fields = {k: settings.pop(k) for k in ("height", "width") if k in settings}
+        cls = ESTIMATORS[source]
+    import inspect
+
+    accepted = set(inspect.signature(cls).parameters)
+    unknown = sorted(set(settings) - accepted)
+    if unknown:
+        extra = {"height", "width"} if source in ESTIMATORS else set()
+        known_keys = sorted(accepted | extra)
+        raise ValueError(
+            f"unknown setting(s) {', '.join(f'flow.{k}' for k in unknown)} for "
+            f"flow.source={source}; known: {', '.join(known_keys)}"
+        )
+    made = cls(**settings)
+    if source in ESTIMATORS:
+        return EstimatedFlow(made, **fields)
+    return made
+
+
 @dataclass(frozen=True)
 class FlowCache:
     """On-disk cache of computed flow (and resized RGB) at the model's input size.
@@ -97,17 +277,20 @@ class FlowCache:
     ``<root>/<seq>@<H>x<W>/<src:06d>_<tgt:06d>.npy`` holds ``(h, w, 2)`` float32 flow (pixels of
     the ``h × w`` input size) computed on ``H × W`` images; ``<root>/<seq>_rgb/<frame:06d>.npy``
     the ``(h, w, 3)`` uint8 source image at the input size, so that a cached epoch decodes no
-    PNG at all. ``root`` is ``<cache_dir>/kitti_flow/<key>`` and ``<root>/meta.json`` records
-    what the key stands for.
+    PNG at all. ``root`` is ``<cache_dir>/<namespace>/<key>`` (``kitti_flow`` for KITTI,
+    ``synthetic_flow`` for rendered synthetic worlds) and ``<root>/meta.json`` records what the
+    key stands for. Several arrays of one sample go into one ``.npz`` (:meth:`store_arrays`).
     """
 
     root: Path
 
     @classmethod
-    def create(cls, cache_dir: str | os.PathLike, key: dict[str, Any]) -> FlowCache:
+    def create(
+        cls, cache_dir: str | os.PathLike, key: dict[str, Any], namespace: str = "kitti_flow"
+    ) -> FlowCache:
         text = json.dumps(key, sort_keys=True)
         digest = hashlib.sha256(text.encode()).hexdigest()[:16]
-        root = Path(cache_dir).expanduser() / "kitti_flow" / digest
+        root = Path(cache_dir).expanduser() / namespace / digest
         meta = root / "meta.json"
         if not meta.exists():
             atomic_write_bytes(meta, json.dumps(key, sort_keys=True, indent=2).encode())
@@ -132,4 +315,22 @@ class FlowCache:
     def store(self, path: Path, array: np.ndarray) -> None:
         buf = io.BytesIO()
         np.save(buf, np.ascontiguousarray(array), allow_pickle=False)
+        atomic_write_bytes(path, buf.getvalue())
+
+    def load_arrays(self, path: Path, names: tuple[str, ...]) -> dict[str, np.ndarray] | None:
+        """The named arrays of an ``.npz`` written by :meth:`store_arrays`, or None if the file
+        is absent, unreadable or lacks one of them (then it is recomputed)."""
+        try:
+            with np.load(path, allow_pickle=False) as archive:
+                return {name: archive[name] for name in names}
+        except (FileNotFoundError, ValueError, OSError, EOFError, KeyError):
+            return None
+        except zipfile.BadZipFile:
+            return None
+
+    def store_arrays(self, path: Path, arrays: dict[str, np.ndarray]) -> None:
+        """Write ``arrays`` as one uncompressed ``.npz`` (atomically)."""
+        buf = io.BytesIO()
+        # (ascontiguousarray would turn a 0-d array into a 1-d one)
+        np.savez(buf, **{k: np.require(v, requirements="C") for k, v in arrays.items()})
         atomic_write_bytes(path, buf.getvalue())

@@ -33,7 +33,12 @@ from mfg_lightning import pose_io
 from mfg_lightning.data import flow_io
 from mfg_lightning.data.base import MFGDataModule
 from mfg_lightning.data.flow_io import DataFileError, DataRootError
-from mfg_lightning.data.kitti import KittiOdometryDataset, _Sequence, normalize_sequence
+from mfg_lightning.data.kitti import (
+    KittiOdometryDataset,
+    _Sequence,
+    kitti_flow_source,
+    normalize_sequence,
+)
 
 __all__ = ["ImageFolderDataModule", "ImageFolderDataset", "NoGroundTruthError"]
 
@@ -82,8 +87,7 @@ class ImageFolderDataset(KittiOdometryDataset):
         times: a text file of one timestamp (seconds) per frame, or None.
         kwargs: the flow and input-size arguments of
             :class:`~mfg_lightning.data.kitti.KittiOdometryDataset` (``height``, ``width``,
-            ``dis_preset``, ``dis_params``, ``flow_height``, ``flow_width``, ``cache_dir``,
-            ``load_rgb``).
+            ``flow``, ``cache_dir``, ``load_rgb``).
     """
 
     name = "image_folder"
@@ -169,8 +173,8 @@ class ImageFolderDataModule(MFGDataModule):
         data_root: the folder of frames.
         fx, fy, cx, cy: the camera in pixels of the native image size (required).
         pattern, sequence, frame_rate, times: see :class:`ImageFolderDataset`.
-        dis_preset, dis_params, flow_height, flow_width, cache_dir, load_rgb: the flow
-            estimation, as for KITTI
+        flow, cache_dir, load_rgb: the flow source (the ``flow`` config group: ``flow=dis`` by
+            default, or ``flow=files``) and its cache, as for KITTI
             (:class:`~mfg_lightning.data.kitti.KittiOdometryDataset`).
         height, width, eval_batch_size, num_workers, pin_memory, persistent_workers: see
             :class:`~mfg_lightning.data.base.MFGDataModule` (batches of ``eval_batch_size``).
@@ -191,10 +195,7 @@ class ImageFolderDataModule(MFGDataModule):
         width: int = 128,
         eval_batch_size: int = 64,
         num_workers: int = 0,
-        dis_preset: str = "medium",
-        dis_params: dict[str, Any] | None = None,
-        flow_height: int | None = None,
-        flow_width: int | None = None,
+        flow: dict[str, Any] | None = None,
         cache_dir: str | None = None,
         load_rgb: bool = True,
         pin_memory: bool = False,
@@ -217,10 +218,7 @@ class ImageFolderDataModule(MFGDataModule):
             "times": times,
             "height": height,
             "width": width,
-            "dis_preset": dis_preset,
-            "dis_params": dict(dis_params) if dis_params else None,
-            "flow_height": flow_height,
-            "flow_width": flow_width,
+            "flow": kitti_flow_source(flow),
             "cache_dir": cache_dir,
             "load_rgb": load_rgb,
         }

@@ -1,4 +1,6 @@
-"""KITTI odometry as a Lightning DataModule, with optical flow from OpenCV's DIS, cached on disk.
+"""KITTI odometry as a Lightning DataModule, with optical flow from OpenCV's DIS (cached on
+disk) or the user's own files: the ``flow`` config group (``flow=dis``, the default, or
+``flow=files``).
 
 Layout read (``../shared/docs/formats.md``; ``data_root`` is the unpacked download, never
 written to)::
@@ -20,9 +22,10 @@ neighbours, for the central-frame ATE protocol.
 
 Flow, one of:
 
-* **computed** (default): OpenCV's DIS (``cv2.DISOpticalFlow``) on the grey images at
-  ``flow_height × flow_width`` (null: the native size), resized to the model's input size and
-  cached as ``.npy`` under ``<cache_dir>/kitti_flow/<key>/<seq>@<H>x<W>/<src:06d>_<tgt:06d>.npy``
+* **computed** (``flow=dis``, the default): OpenCV's DIS (``cv2.DISOpticalFlow``) on the grey
+  images at ``flow.height × flow.width`` (null: the native size), resized to the model's input
+  size and cached as ``.npy`` under
+  ``<cache_dir>/kitti_flow/<key>/<seq>@<H>x<W>/<src:06d>_<tgt:06d>.npy``
   where ``<key>`` hashes everything that changes the result (estimator, preset and parameters,
   OpenCV version, the output size, the resolved ``data_root``) and ``<H>x<W>`` is the size the
   flow was computed at. :meth:`KittiDataModule.prepare_data` fills the cache once (rank 0, with a
@@ -32,7 +35,7 @@ Flow, one of:
   Default preset ``medium`` at the native size: of the three presets it had the lowest error on
   a synthetic KITTI-sized pair with known flow (end-point error at 48×128 about 3× lower than
   ``fast``), at 25–40 ms per pair on two CPU cores; computed once, it costs nothing afterwards.
-* **user-supplied** (``flow_dir``): precomputed files named
+* **user-supplied** (``flow=files flow.dir=<flow_dir>``): precomputed files named
   ``<flow_dir>/<seq>/<src:06d>_<tgt:06d>.<ext>`` (e.g. ``flow/09/000000_000001.flo``), one file
   per sample (source → target, any offset), ``ext`` one of ``flo``, ``png`` (KITTI flow PNG),
   ``npy``, ``npz``. The flow may be at any resolution covering the whole image; it is resized
@@ -66,7 +69,15 @@ from tqdm.auto import tqdm
 from mfg_lightning import geometry, pose_io
 from mfg_lightning.data import flow_io, transforms
 from mfg_lightning.data.base import FileMotionDataset, MFGDataModule
-from mfg_lightning.data.flow_estimation import DIS_PRESETS, DISFlowEstimator, FlowCache
+from mfg_lightning.data.flow_estimation import (
+    DIS_PRESETS,
+    DISFlowEstimator,
+    EstimatedFlow,
+    FlowCache,
+    FlowFiles,
+    FlowSource,
+    parse_flow,
+)
 from mfg_lightning.data.flow_io import DataFileError, DataRootError, SkipCounter, report_skipped
 from mfg_lightning.data.sample import sanitize_flow
 
@@ -111,6 +122,18 @@ def default_cache_dir() -> Path:
     """``$MFG_CACHE_DIR`` or ``~/.cache/mfg_lightning`` (the ``paths.cache_dir`` default)."""
     env = os.environ.get("MFG_CACHE_DIR")
     return Path(env).expanduser() if env else Path.home() / ".cache" / "mfg_lightning"
+
+
+def kitti_flow_source(flow: FlowSource | dict[str, Any] | None) -> EstimatedFlow | FlowFiles:
+    """The ``flow`` config of ``dataset=kitti`` parsed (default DIS ``medium``); ``flow=exact``
+    is refused: real images have no exact flow."""
+    source = parse_flow(flow, default="dis")
+    if not isinstance(source, (EstimatedFlow, FlowFiles)):
+        raise ValueError(
+            f"flow.source={source.source}: dataset=kitti has no exact flow (it needs a synthetic "
+            "scene); use flow=dis (the default for KITTI) or flow=files flow.dir=<your flow>"
+        )
+    return source
 
 
 def normalize_sequence(seq: Any) -> str:
@@ -255,10 +278,12 @@ class KittiOdometryDataset(FileMotionDataset):
         portion: ``"all"`` frames of each sequence, or its ``"train"`` head / ``"val"`` tail
             (:func:`~mfg_lightning.data.transforms.holdout_ranges` with ``val_fraction``).
         val_fraction: fraction of each sequence held out as its validation tail.
-        flow_dir: user-supplied flow (``<flow_dir>/<seq>/<src:06d>_<tgt:06d>.<ext>``), or None to
-            compute it with DIS.
-        dis_preset, dis_params: the DIS estimator's preset and overrides.
-        flow_height, flow_width: the size the images are resized to before DIS (None: native).
+        flow: the flow source, a ``conf/flow`` config or its parsed form
+            (:func:`~mfg_lightning.data.flow_estimation.parse_flow`): ``{"source": "dis",
+            "preset": …, "params": …, "height": …, "width": …}`` (the default: DIS ``medium``
+            at the native size; ``height × width`` is the size the images are resized to before
+            estimation) or ``{"source": "files", "dir": <flow_dir>}`` (user-supplied flow,
+            ``<flow_dir>/<seq>/<src:06d>_<tgt:06d>.<ext>``).
         cache_dir: the user cache dir (``paths.cache_dir``); flow is cached under ``kitti_flow/``.
         load_rgb: deliver the source image as ``rgb`` (decoded once, then read from the cache).
         skip_bad_samples: warn and skip unreadable samples (``__getitem__`` returns None, the
@@ -279,11 +304,7 @@ class KittiOdometryDataset(FileMotionDataset):
         split: str = "train",
         portion: str = "all",
         val_fraction: float = 0.05,
-        flow_dir: str | os.PathLike | None = None,
-        dis_preset: str = "medium",
-        dis_params: dict[str, Any] | None = None,
-        flow_height: int | None = None,
-        flow_width: int | None = None,
+        flow: FlowSource | dict[str, Any] | None = None,
         cache_dir: str | os.PathLike | None = None,
         load_rgb: bool = True,
         skip_bad_samples: bool = False,
@@ -291,13 +312,12 @@ class KittiOdometryDataset(FileMotionDataset):
     ) -> None:
         super().__init__()
         self.require_poses = bool(require_poses)
+        source = kitti_flow_source(flow)
         offsets = [int(o) for o in offsets]
         if not offsets or 0 in offsets or len(set(offsets)) != len(offsets):
             raise ValueError(f"dataset.offsets must be distinct non-zero integers, got {offsets}")
         if portion not in ("all", "train", "val"):
             raise ValueError(f"portion must be 'all', 'train' or 'val', got {portion!r}")
-        if (flow_height is None) != (flow_width is None):
-            raise ValueError("set both dataset.flow_height and dataset.flow_width, or neither")
         self.sequence_names = [normalize_sequence(s) for s in sequences]
         self.root = self._check_root(data_root)
         self.height, self.width = int(height), int(width)
@@ -306,9 +326,15 @@ class KittiOdometryDataset(FileMotionDataset):
         self.load_rgb = load_rgb
         self.skip_bad_samples = skip_bad_samples
         self.skipped = SkipCounter()
-        self.flow_dir = Path(flow_dir).expanduser() if flow_dir else None
-        self.compute_hw = None if flow_height is None else (int(flow_height), int(flow_width))
-        self.estimator = DISFlowEstimator(dis_preset, dis_params)
+        self.flow_dir = Path(source.dir).expanduser() if isinstance(source, FlowFiles) else None
+        self.compute_hw: tuple[int, int] | None = None
+        self.estimator: Any = None
+        # pixels of estimated flow that were not finite (masked), at the estimation size
+        self.nonfinite_pixels = 0
+        if isinstance(source, EstimatedFlow):
+            self.estimator = source.estimator
+            if source.height is not None and source.width is not None:
+                self.compute_hw = (int(source.height), int(source.width))
         if self.flow_dir is None:
             flow_key: dict[str, Any] = {
                 **self.estimator.key(),
@@ -326,7 +352,7 @@ class KittiOdometryDataset(FileMotionDataset):
         self.cache = FlowCache.create(cache_dir or default_cache_dir(), key)
         if self.flow_dir is not None and not self.flow_dir.is_dir():
             raise DataRootError(
-                f"dataset.flow_dir={self.flow_dir} is not a directory; expected "
+                f"flow.dir={self.flow_dir} is not a directory; expected "
                 "<flow_dir>/<seq>/<src:06d>_<tgt:06d>.<flo|png|npy|npz>"
             )
 
@@ -421,7 +447,7 @@ class KittiOdometryDataset(FileMotionDataset):
         shown = "\n".join(f"  {m}" for m in missing[:10])
         more = f"\n  … and {len(missing) - 10} more" if len(missing) > 10 else ""
         return [
-            f"dataset.flow_dir: {len(missing)} flow file(s) missing for the {self.split} split "
+            f"flow.dir: {len(missing)} flow file(s) missing for the {self.split} split "
             f"(naming: <flow_dir>/<seq>/<src:06d>_<tgt:06d>.<ext>):\n{shown}{more}"
         ]
 
@@ -568,29 +594,42 @@ class KittiOdometryDataset(FileMotionDataset):
             self.cache.store(path, flow)
         return flow, np.isfinite(flow).all(axis=2)
 
-    def _decode(self, seq: str, frame: int) -> tuple[np.ndarray, np.ndarray]:
-        """Decode one frame: ``(rgb, gray)``, the ``(h, w, 3)`` uint8 image at the input size
-        (also cached, with ``load_rgb``) and the uint8 grey image at the flow computation size."""
+    def _decode(self, seq: str, frame: int) -> tuple[np.ndarray, np.ndarray | None]:
+        """Decode one frame: ``(rgb, image)``, the ``(h, w, 3)`` uint8 image at the input size
+        (also cached, with ``load_rgb``) and the estimator's input (DIS: the uint8 grey image) at
+        the flow computation size (None with ``flow=files``)."""
         rgb = flow_io.read_rgb(self.image_path(seq, frame))
         small = transforms.resize_rgb(rgb, self.height, self.width)
         if self.load_rgb:
             path = self.cache.rgb_path(seq, frame)
             if not path.exists():
                 self.cache.store(path, small)
-        gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+        if self.estimator is None:  # flow=files: the image is for the pictures only
+            return small, None
+        image = self.estimator.prepare(rgb)
         hw = self._compute_hw(seq)
-        if gray.shape != hw:
-            gray = cv2.resize(gray, (hw[1], hw[0]), interpolation=cv2.INTER_AREA)
-        return small, gray
+        if image.shape[:2] != hw:
+            image = cv2.resize(image, (hw[1], hw[0]), interpolation=cv2.INTER_AREA)
+        return small, image
 
     def _estimate(
         self, seq: str, src: int, tgt: int, gray0: np.ndarray, gray1: np.ndarray
     ) -> np.ndarray:
+        """The estimator's flow resized to the input size, ``(h, w, 2)`` float32; pixels where it
+        was not finite are NaN (masked when read, and counted in ``nonfinite_pixels``)."""
         flow = self.estimator(gray0, gray1)
-        resized, _ = transforms.resize_flow(
-            flow, np.ones(flow.shape[:2], bool), self.height, self.width
+        finite = np.isfinite(flow).all(axis=2)
+        if finite.all():
+            resized, _ = transforms.resize_flow(flow, finite, self.height, self.width)
+            return resized
+        self.nonfinite_pixels += int((~finite).sum())
+        resized, valid = transforms.resize_flow(
+            np.where(finite[..., None], flow, 0.0).astype(np.float32),
+            finite,
+            self.height,
+            self.width,
         )
-        return resized
+        return np.where(valid[..., None], resized, np.nan).astype(np.float32)
 
     def missing_flow(self) -> list[int]:
         """Indices of the samples whose computed flow is not cached yet (stat calls only)."""
@@ -611,7 +650,10 @@ class KittiOdometryDataset(FileMotionDataset):
         images: dict[tuple[str, int], np.ndarray] = {}
         done = 0
         bar = tqdm(
-            total=len(todo), desc=f"DIS flow ({self.split})", unit="pair", disable=not progress
+            total=len(todo),
+            desc=f"{self.estimator.name} flow ({self.split})",
+            unit="pair",
+            disable=not progress,
         )
         try:
             for i in sorted(todo, key=lambda k: self.samples[k][:2]):
@@ -657,8 +699,8 @@ class KittiDataModule(MFGDataModule):
         val_fraction: the validation tail of each training sequence (default 5 %).
         offsets: target offsets of every split (``[1]``; ``[-2, -1, 1, 2]`` for central-frame ATE).
         backward_flow: add the reversed offsets (``t → t − o``) to the training split.
-        flow_dir, dis_preset, dis_params, flow_height, flow_width, cache_dir, load_rgb,
-            skip_bad_samples: see :class:`KittiOdometryDataset`.
+        flow, cache_dir, load_rgb, skip_bad_samples: see :class:`KittiOdometryDataset` (``flow``:
+            the ``flow`` config group, ``flow=dis`` by default).
         precompute_flow: fill the flow cache in :meth:`prepare_data` (otherwise flow is computed
             on first use by each loader worker).
     """
@@ -677,11 +719,7 @@ class KittiDataModule(MFGDataModule):
         val_fraction: float = 0.05,
         offsets: Sequence[int] = (1,),
         backward_flow: bool = False,
-        flow_dir: str | None = None,
-        dis_preset: str = "medium",
-        dis_params: dict[str, Any] | None = None,
-        flow_height: int | None = None,
-        flow_width: int | None = None,
+        flow: dict[str, Any] | None = None,
         cache_dir: str | None = None,
         load_rgb: bool = True,
         skip_bad_samples: bool = False,
@@ -714,14 +752,12 @@ class KittiDataModule(MFGDataModule):
         self.offsets = [int(o) for o in offsets]
         self.backward_flow = bool(backward_flow)
         self.precompute = bool(precompute_flow)
+        # Parsed once here so that a bad flow config fails before anything is built or written.
+        self.flow = kitti_flow_source(flow)
         self.dataset_kwargs: dict[str, Any] = {
             "height": height,
             "width": width,
-            "flow_dir": flow_dir,
-            "dis_preset": dis_preset,
-            "dis_params": dict(dis_params) if dis_params else None,
-            "flow_height": flow_height,
-            "flow_width": flow_width,
+            "flow": self.flow,
             "cache_dir": cache_dir,
             "load_rgb": load_rgb,
             "skip_bad_samples": skip_bad_samples,
@@ -762,17 +798,24 @@ class KittiDataModule(MFGDataModule):
 
     def prepare_data(self) -> None:
         """Fill the flow cache for every split (Lightning calls this on one process per node)."""
-        if not self.precompute or self.dataset_kwargs["flow_dir"]:
+        if not self.precompute or isinstance(self.flow, FlowFiles):
             return
         for split in ("train", "val", "test"):
             ds = self.build_dataset(split)
             n = ds.precompute_flow(progress=True)
             if n:
                 log.info(
-                    "computed and cached the DIS flow of %d %s pairs under %s",
+                    "computed and cached the %s flow of %d %s pairs under %s",
+                    ds.estimator.name,
                     n,
                     split,
                     ds.cache.root,
+                )
+            if ds.nonfinite_pixels:
+                log.warning(
+                    "%d estimated flow pixels of the %s split were not finite: masked invalid",
+                    ds.nonfinite_pixels,
+                    split,
                 )
 
     def teardown(self, stage: str | None = None) -> None:

@@ -21,6 +21,8 @@ key                 shape / type         meaning
 ``object_flow``     ``(2, H, W)`` f32    (optional) flow due to object motion alone (flow minus
                                          the rigid flow), pixels; 0 off objects
 ``rgb``             ``(3, H, W)`` uint8  (optional) the source frame, for pictures
+``exact_flow``      ``(2, H, W)`` f32    (optional) the exact flow when ``flow`` was estimated
+                                         (``flow=dis`` on rendered worlds), 0 where unknown
 ``sequence``        ``str``              sequence / world name (e.g. ``"09"``, ``"0001"``)
 ``frame``           ``int``              index of the source frame in its sequence
 ``target``          ``int``              index of the target frame (``frame + 1`` usually)
@@ -45,7 +47,7 @@ REQUIRED_KEYS = (
     "target",
     "sample_id",
 )
-OPTIONAL_KEYS = ("depth", "object_mask", "object_flow", "rgb")
+OPTIONAL_KEYS = ("depth", "object_mask", "object_flow", "rgb", "exact_flow")
 
 
 class SampleError(ValueError):
@@ -92,6 +94,7 @@ def check_sample(sample: dict[str, Any], height: int, width: int) -> None:
         "object_mask": (height, width),
         "object_flow": (2, height, width),
         "rgb": (3, height, width),
+        "exact_flow": (2, height, width),
     }
     for key, shape in expected.items():
         if key in sample and tuple(sample[key].shape) != shape:

@@ -1,0 +1,208 @@
+"""``flow=dis`` on the synthetic dataset: rendered worlds, DIS, the cache, the flow quality."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from conftest import run_module
+from mfg_lightning.data import render
+from mfg_lightning.data.flow_estimation import DISFlowEstimator, EstimatedFlow
+from mfg_lightning.data.sample import check_sample
+from mfg_lightning.data.synthetic import (
+    QUALITY_REGIONS,
+    RenderedDrivingDataset,
+    SyntheticDataModule,
+    flow_quality,
+)
+
+H, W = 32, 64  # model input
+RH, RW = 64, 128  # render size
+# the render size of the tiny end-to-end trainings
+TINY_FLOW = ["flow=dis", f"flow.height={RH}", f"flow.width={RW}"]
+
+
+def _dm(cache: Path, estimator: DISFlowEstimator | None = None, **kw) -> SyntheticDataModule:
+    flow = EstimatedFlow(estimator or DISFlowEstimator("medium"), RH, RW)
+    base = dict(
+        height=H, width=W, train_sequences=1, test_sequences=1, sequence_length=8,
+        val_fraction=0.3, flow=flow, cache_dir=str(cache),
+    )  # fmt: skip
+    base.update(kw)
+    return SyntheticDataModule(**base)
+
+
+class _Counting(DISFlowEstimator):
+    """DIS that counts its calls (class-wide: prepare_data builds its own datasets)."""
+
+    calls = 0
+
+    def __call__(self, gray0: np.ndarray, gray1: np.ndarray) -> np.ndarray:
+        type(self).calls += 1
+        return super().__call__(gray0, gray1)
+
+
+class _Holes(DISFlowEstimator):
+    """DIS with a non-finite 4 × 4 block in every estimate."""
+
+    def __call__(self, gray0: np.ndarray, gray1: np.ndarray) -> np.ndarray:
+        flow = super().__call__(gray0, gray1).copy()
+        flow[8:12, 8:12] = np.nan
+        return flow
+
+
+def _files(root: Path) -> dict[Path, int]:
+    return {p: p.stat().st_mtime_ns for p in root.rglob("*") if p.is_file()}
+
+
+@pytest.fixture
+def count_renders(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    calls: list[int] = []
+    original = render.render_frame
+
+    def counting(world, frame, *args, **kwargs):
+        calls.append(frame)
+        return original(world, frame, *args, **kwargs)
+
+    monkeypatch.setattr(render, "render_frame", counting)
+    _Counting.calls = 0
+    return calls
+
+
+def test_prepare_renders_every_frame_once_and_a_second_run_nothing(
+    tmp_path: Path, count_renders: list[int]
+) -> None:
+    cache = tmp_path / "cache"
+    dm = _dm(cache, _Counting("medium"))
+    dm.prepare_data()
+    # train + val pairs of the 8-frame trajectory in one pass, the test trajectory in another:
+    # each frame rendered once although it is the target of one pair and the source of the next
+    assert sorted(count_renders) == sorted([*range(8), *range(8)])
+    assert _Counting.calls == 7 + 7
+    assert len(dm.dataset("train")) + len(dm.dataset("val")) == 7
+    before = _files(cache)
+    assert len([p for p in before if p.suffix == ".npz"]) == 14
+    assert len([p for p in before if p.name.startswith("picture-")]) == 2  # one per trajectory
+    # a second run on the same cache: nothing rendered, nothing estimated, nothing written
+    count_renders.clear()
+    again = _dm(cache, _Counting("medium"))
+    again.prepare_data()
+    again.setup("fit")
+    again.setup("test")
+    samples = [again.dataset(s)[i] for s in ("train", "val", "test") for i in range(2)]
+    assert count_renders == [] and _Counting.calls == 14
+    assert _files(cache) == before
+    for s in samples:
+        check_sample(s, H, W)
+    # a setting that changes the flow gets its own cache entry
+    other = _dm(cache, DISFlowEstimator("fast")).dataset("test")
+    assert other.cache.root != again.dataset("test").cache.root
+
+
+@pytest.mark.slow
+def test_worker_processes_fill_the_cache_with_the_same_pairs(tmp_path: Path) -> None:
+    """``dataset.num_workers=2``: two processes render a sequence each (spawned: seconds)."""
+    parallel = _dm(tmp_path / "parallel", num_workers=2, train_sequences=2)
+    parallel.prepare_data()
+    ds = parallel.dataset("train")
+    assert ds.missing() == [] and len({seq for seq, _, _ in ds.index}) == 2
+    assert len(list(ds.cache.root.glob("picture-*.npy"))) == 2
+    serial = _dm(tmp_path / "serial", train_sequences=2).dataset("train")
+    for i in (0, len(ds) - 1):
+        assert torch.equal(ds[i]["flow"], serial[i]["flow"])  # computed here, on a miss
+
+
+def test_samples_carry_estimated_and_exact_flow_and_the_quality_is_stored(
+    tmp_path: Path,
+) -> None:
+    dm = _dm(tmp_path / "cache")
+    dm.prepare_data()
+    ds = dm.dataset("test")
+    assert isinstance(ds, RenderedDrivingDataset) and ds.image_hw == (RH, RW)
+    s = ds[3]
+    assert s["sample_id"] == "synthetic/test/test00/000003->000004"
+    assert s["flow_valid"].all()  # DIS gives a vector everywhere
+    # the estimate follows the exact flow (a driving scene, not noise): most of the image
+    # within a pixel of the model input, and the two differ somewhere
+    err = (s["flow"] - s["exact_flow"]).norm(dim=0)
+    assert err.median() < 1.0 and err.max() > 0.05
+    assert s["exact_flow"].abs().max() > 0.5
+    # the ground truth sits beside it: depth, object mask and flow at the model input
+    assert (s["depth"] > 0).all() and s["object_flow"][:, ~s["object_mask"]].abs().max() == 0
+    quality = json.loads(dm.quality_path("test").read_text())
+    assert set(quality["regions"]) == set(QUALITY_REGIONS)
+    total = quality["regions"]["all"]
+    assert total["pixels"] == len(ds) * RH * RW  # every pixel's exact flow is known here
+    parts = [quality["regions"][r]["pixels"] for r in QUALITY_REGIONS[:-1]]
+    assert sum(parts) == total["pixels"]
+    assert 0 < total["epe"] < 5 and 0 <= total["fl"] < 50
+    assert quality["nonfinite_pixels"] == 0
+
+
+def test_flow_quality_is_the_kitti_outlier_definition() -> None:
+    exact = np.zeros((2, 4, 2))
+    exact[..., 0] = [[1.0, 100.0, 100.0, 10.0], [1.0, 1.0, 1.0, 1.0]]
+    est = exact.copy()
+    est[0, 0, 0] += 3.5  # > 3 px and > 5 % of 1 px: outlier
+    est[0, 1, 0] += 4.0  # > 3 px but < 5 % of 100 px: not an outlier
+    est[0, 2, 0] += 6.0  # > 3 px and > 5 % of 100 px: outlier
+    est[0, 3, 0] += 2.0  # < 3 px: not an outlier
+    region = np.array([[render.REGION_ROAD] * 4, [render.REGION_FAR] * 4], np.uint8)
+    valid = np.ones((2, 4), bool)
+    valid[1, 3] = False
+    q = flow_quality(est, exact, valid, region)
+    road, far, everything = (QUALITY_REGIONS.index(r) for r in ("road", "far", "all"))
+    np.testing.assert_allclose(q[road], [3.5 + 4.0 + 6.0 + 2.0, 2, 4])
+    np.testing.assert_allclose(q[far], [0.0, 0, 3])
+    np.testing.assert_allclose(q[everything], [15.5, 2, 7])
+
+
+def test_non_finite_estimates_are_masked_and_counted(tmp_path: Path) -> None:
+    dm = _dm(tmp_path / "cache", _Holes("ultrafast"), test_sequences=1, sequence_length=6)
+    dm.prepare_data()
+    s = dm.dataset("test")[0]
+    # 16 pixels of 64 × 128 cover one pixel of the 32 × 64 input (and touch its neighbours)
+    assert not s["flow_valid"].all() and s["flow_valid"].float().mean() > 0.98
+    assert torch.isfinite(s["flow"]).all()
+    quality = json.loads(dm.quality_path("test").read_text())
+    assert quality["nonfinite_pixels"] == 16 * len(dm.dataset("test"))
+
+
+def test_render_sizes_and_world_settings_the_scene_cannot_take_are_refused(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="flow.width=8"):
+        _dm(tmp_path, flow={"source": "dis", "height": 64, "width": 8})
+    with pytest.raises(ValueError, match="flow.height=5000"):
+        _dm(tmp_path, flow={"source": "dis", "height": 5000, "width": 512})
+    with pytest.raises(ValueError, match=r"unknown dataset.world setting\(s\) \['lanes'\]"):
+        _dm(tmp_path, world={"lanes": 2})
+    # a world setting is part of the cache key
+    wide = _dm(tmp_path, world={"lanes_per_side": 2}).build_dataset("test")
+    assert wide.cache.root != _dm(tmp_path).build_dataset("test").cache.root
+    assert not any(tmp_path.joinpath("synthetic_flow").rglob("*.npz"))
+
+
+@pytest.mark.slow
+def test_training_on_dis_flow_end_to_end_logs_quality_and_pictures(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    run_module(
+        "mfg_lightning.train", "debug=tiny", *TINY_FLOW, f"hydra.run.dir={run}", cwd=tmp_path
+    )
+    metrics = json.loads((run / "metrics.json").read_text())["metrics"]
+    assert np.isfinite(metrics["test/trans_err"])
+    events = EventAccumulator(str(run / "tensorboard"), size_guidance={"images": 0, "scalars": 0})
+    events.Reload()
+    scalars = set(events.Tags()["scalars"])
+    for split in ("train", "val", "test"):
+        for region in ("road", "structure", "all"):
+            assert f"{split}/flow_epe/{region}" in scalars, (split, region)
+            assert f"{split}/flow_fl/{region}" in scalars, (split, region)
+    images = set(events.Tags()["images"])
+    assert {"train/flow_picture/train00", "test/flow_picture/test00"} <= images
+    # one column of six titled panels: the renderer's four, the estimate and its error
+    picture = events.Images("train/flow_picture/train00")[0]
+    assert picture.width >= RW and picture.height > 3 * picture.width
