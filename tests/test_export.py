@@ -55,9 +55,7 @@ def _export_cfg(out: Path, poses_dir: Path, *overrides: str, train=("03",), test
     )
 
 
-def _source_worlds(
-    poses_dir: Path, frames: int = FRAMES
-) -> dict[str, tuple[World, torch.Tensor]]:
+def _source_worlds(poses_dir: Path, frames: int = FRAMES) -> dict[str, tuple[World, torch.Tensor]]:
     """The worlds the export renders, built independently: KITTI name → (world, raw poses)."""
     out = {}
     for name, seed in (("03", 0), ("07", 7919)):  # test trajectories get the test seed
@@ -266,9 +264,7 @@ def test_refuses_a_non_empty_out_and_overwrites_only_a_previous_export(
             export_module.export(_tiny(out, poses_dir, overwrite), progress=False)
         assert tree_snapshot(out) == before  # nothing written, nothing removed
     (out / "notes.txt").unlink()
-    export_module.export(
-        _tiny(out, poses_dir, "dataset.train_sequences=[03,07]"), progress=False
-    )
+    export_module.export(_tiny(out, poses_dir, "dataset.train_sequences=[03,07]"), progress=False)
     assert sorted(p.name for p in (out / "sequences").iterdir()) == ["03", "07"]
     (out / "notes.txt").write_text("mine")
     with pytest.raises(ValueError, match="overwrite=true"):
@@ -315,8 +311,12 @@ def test_an_interrupted_export_leaves_only_whole_files(
         (["layout=vkitti", "version=3"], "version=3"),
         (["height=8"], "height=8"),
         (
-            ["layout=vkitti", "dataset.trajectory=procedural", "dataset.train_sequences=5",
-             "dataset.test_sequences=1"],
+            [
+                "layout=vkitti",
+                "dataset.trajectory=procedural",
+                "dataset.train_sequences=5",
+                "dataset.test_sequences=1",
+            ],
             "6 trajectories",
         ),
         (["dataset.test_sequences=[03]"], "both dataset.train_sequences"),

@@ -238,9 +238,7 @@ class VkittiTree:
         flow_io.write_vkitti_depth(P.file("depth", seq.name, VARIATION, k), depth)
         if k + 1 >= len(seq.poses):
             return  # the last frame has no successor: no forward flow (2.0.3 ships none)
-        exact = exact_flow(
-            world, k, k + 1, self.intrinsics, self.height, self.width, source=frame
-        )
+        exact = exact_flow(world, k, k + 1, self.intrinsics, self.height, self.width, source=frame)
         flow = exact["flow"].permute(1, 2, 0).numpy()
         # Virtual KITTI's encoding spans ±(W − 1), ±(H − 1); the sky has no flow (B = 0)
         in_range = (np.abs(flow) <= np.array([self.width - 1, self.height - 1])).all(axis=2)
@@ -353,7 +351,9 @@ def export(cfg: DictConfig, progress: bool = True) -> dict[str, Any]:
         raise ValueError("out is not set: the directory to write the tree into, e.g. out=/data/x")
     target = cfg.dataset.get("_target_")
     if target is None or not issubclass(get_class(target), SyntheticDataModule):
-        raise ValueError(f"dataset={target}: the export writes the synthetic worlds (dataset=synthetic)")
+        raise ValueError(
+            f"dataset={target}: the export writes the synthetic worlds (dataset=synthetic)"
+        )
     height, width = _image_size(cfg)
     out = Path(str(cfg.out)).expanduser().absolute()
     if layout == "kitti":
