@@ -67,7 +67,6 @@ from mfg_lightning.runs import exit_on_unknown_choice, exit_on_user_error
 log = logging.getLogger(__name__)
 
 __all__ = [
-    "KITTI_SIZE",
     "MANIFEST",
     "KittiTree",
     "Sequence",
@@ -82,8 +81,6 @@ MANIFEST = "mfg_export.json"
 _MANIFEST_FORMAT = 1
 #: KITTI odometry's frame rate (times.txt).
 FRAME_RATE_HZ = 10.0
-#: KITTI 00–02's image size (height, width), whose P2 ``kitti_like_intrinsics`` reproduces.
-KITTI_SIZE = (376, 1241)
 #: Virtual KITTI's native image size (height, width).
 VKITTI_SIZE = (375, 1242)
 VARIATION = "clone"
@@ -401,7 +398,17 @@ def export(cfg: DictConfig, progress: bool = True) -> dict[str, Any]:
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="export")
 @exit_on_user_error
 def main(cfg: DictConfig) -> None:
-    manifest = export(cfg)
+    try:
+        manifest = export(cfg)
+    except KeyboardInterrupt:
+        import sys
+
+        print(
+            f"interrupted: the files in {cfg.out} are whole but the tree is not complete "
+            f"({MANIFEST} says so); run again with overwrite=true",
+            file=sys.stderr,
+        )
+        sys.exit(130)
     print(f"{cfg.out}: {manifest['layout']} tree, sequences {' '.join(manifest['sequences'])}")
 
 
