@@ -105,9 +105,10 @@ class Sequence:
     @property
     def relative_to_first(self) -> np.ndarray:
         """``(N, 4, 4)`` float64 poses in the first camera's coordinates (the first the
-        identity): what the pose files hold."""
+        identity), projected onto SE(3): what the pose files hold. KITTI's own pose files carry
+        rotations to ~7 digits; exact rotations make world-to-camera and back exact too."""
         first = geometry.invert_pose(self.poses[0])
-        return (first[None] @ self.poses).numpy()
+        return geometry.project_to_se3(first[None] @ self.poses).numpy()
 
 
 def synthetic_sequences(datamodule: Any, layout: str) -> list[Sequence]:
