@@ -121,14 +121,11 @@ def synthetic_sequences(datamodule: Any, layout: str) -> list[Sequence]:
     """
     from mfg_lightning.data.vkitti import WORLDS
 
-    parts = {
-        split: datamodule.build_dataset(split) for split in ("train+val", "test")
-    }  # flow=exact: only the index is built
     order = ("train+val", "test") if layout == "kitti" else ("test", "train+val")
-    found = [
-        (seq, ds.seed, poses) for split in order for ds in [parts[split]]
-        for seq, poses in ds.trajectories.items()
-    ]  # fmt: skip
+    found = []
+    for split in order:
+        ds = datamodule.build_dataset(split)  # flow=exact: only the index is built
+        found += [(seq, ds.seed, poses) for seq, poses in ds.trajectories.items()]
     if not found:
         raise ValueError("dataset.train_sequences / dataset.test_sequences: nothing to export")
     if layout == "vkitti":
