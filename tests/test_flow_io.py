@@ -132,6 +132,21 @@ def test_rgb_is_returned_in_rgb_order(tmp_path: Path) -> None:
     assert flow_io.image_size(tmp_path / "r.png") == (4, 5)
 
 
+def test_rgb_writer_round_trips_png_exactly_and_jpeg_closely(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    rgb = cv2.GaussianBlur(rng.integers(0, 256, (24, 40, 3), dtype=np.uint8), (0, 0), 3.0)
+    flow_io.write_rgb(tmp_path / "a.png", rgb)
+    np.testing.assert_array_equal(flow_io.read_rgb(tmp_path / "a.png"), rgb)
+    flow_io.write_rgb(tmp_path / "a.jpg", rgb)  # Virtual KITTI 2.0.3's RGB frames are JPEG
+    assert (tmp_path / "a.jpg").read_bytes()[:2] == b"\xff\xd8"
+    err = np.abs(flow_io.read_rgb(tmp_path / "a.jpg").astype(int) - rgb.astype(int))
+    assert err.mean() < 3.0
+    with pytest.raises(ValueError, match=r"\.tif"):
+        flow_io.write_rgb(tmp_path / "a.tif", rgb)
+    with pytest.raises(ValueError, match="uint8"):
+        flow_io.write_rgb(tmp_path / "b.png", rgb.astype(np.float32))
+
+
 # --------------------------------------------------------------------------------------------
 # Bad files
 # --------------------------------------------------------------------------------------------

@@ -53,6 +53,23 @@ def test_calibration_and_intrinsics_come_from_p2(fk: FakeKitti, tmp_path: Path) 
     torch.testing.assert_close(s["intrinsics"], expected.float())
 
 
+def test_calib_writer_round_trips_p2_exactly(tmp_path: Path) -> None:
+    K = np.array([718.856 * 512 / 1241, 718.856 * 192 / 376, 250.5, 94.5])  # not %.12e-exact
+    kitti.write_kitti_calib(tmp_path / "calib.txt", K)
+    np.testing.assert_array_equal(kitti.read_kitti_calib(tmp_path / "calib.txt"), K)
+    rows = {
+        line.split(":")[0]: np.array(line.split(":")[1].split(), float).reshape(3, 4)
+        for line in (tmp_path / "calib.txt").read_text().splitlines()
+    }
+    assert list(rows) == ["P0", "P1", "P2", "P3", "Tr"]
+    np.testing.assert_array_equal(rows["P0"], rows["P2"])
+    # the right cameras sit one baseline to the right: P[0, 3] = −fx · b
+    b = kitti.KITTI_STEREO_BASELINE
+    assert rows["P1"][0, 3] == rows["P3"][0, 3] == pytest.approx(-K[0] * b)
+    with pytest.raises(ValueError, match="fx, fy > 0"):
+        kitti.write_kitti_calib(tmp_path / "bad.txt", [0.0, 1.0, 1.0, 1.0])
+
+
 def test_pose_is_camera_at_target_in_camera_at_source(fk: FakeKitti, tmp_path: Path) -> None:
     ds = _dataset(fk, tmp_path, offsets=[1, -1, 2])
     T = torch.from_numpy(fk.poses["09"])

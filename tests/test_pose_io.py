@@ -119,6 +119,15 @@ def test_reads_kitti_times(tmp_path: Path) -> None:
     np.testing.assert_array_equal(read_kitti_times(path), [0.0, 1.036712e-01, 2.073425e-01])
 
 
+def test_kitti_times_round_trip_is_exact(tmp_path: Path) -> None:
+    times = np.arange(7) / 10.0  # 10 Hz, as the export writes them
+    pose_io.write_kitti_times(tmp_path / "times.txt", times)
+    np.testing.assert_array_equal(read_kitti_times(tmp_path / "times.txt"), times)
+    with pytest.raises(ValueError, match="finite"):
+        pose_io.write_kitti_times(tmp_path / "bad.txt", [0.0, float("nan")])
+    assert not (tmp_path / "bad.txt").exists()
+
+
 def test_crlf_blank_lines_and_missing_final_newline_are_fine(tmp_path: Path) -> None:
     text = KITTI_LINES.replace("\n", "\r\n", 1).rstrip("\n")
     path = _write(tmp_path / "poses.txt", "\n" + text)

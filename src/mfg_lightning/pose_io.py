@@ -307,6 +307,20 @@ def write_kitti_poses(path: str | os.PathLike[str], poses: object) -> None:
     atomic_write_text(Path(path), text)
 
 
+def write_kitti_times(path: str | os.PathLike[str], timestamps: object) -> None:
+    """Write a KITTI ``times.txt``: one timestamp in seconds per line (the inverse of
+    :func:`read_kitti_times`; the shortest text that reads back exactly).
+
+    Args:
+        path: the file (replaced atomically).
+        timestamps: ``(N,)`` seconds, finite, N >= 1.
+    """
+    times = np.asarray(timestamps, dtype=np.float64).reshape(-1)
+    if times.size == 0 or not np.isfinite(times).all():
+        raise ValueError(f"{path}: timestamps must be N >= 1 finite seconds, got {times[:5]}")
+    atomic_write_text(Path(path), "".join(f"{_format_number(t)}\n" for t in times))
+
+
 def write_tum_poses(path: str | os.PathLike[str], timestamps: object, poses: object) -> None:
     """Write a TUM trajectory file (``timestamp tx ty tz qx qy qz qw`` per line).
 

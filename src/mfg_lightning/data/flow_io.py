@@ -24,8 +24,9 @@ Virtual KITTI depth         16-bit, one channel, centimetres; 65535 (655.35 m) i
 OpenCV decodes colour PNGs as B, G, R, so "R" above is channel 2 of what ``cv2`` returns.
 Files are read through Python (``open``) and decoded with ``cv2.imdecode`` so that a missing file,
 a truncated PNG or a wrong bit depth become one :class:`DataFileError` naming the file, never a
-``None`` that fails later. Writers exist for the tests and for the flow cache; they write to a
-temporary file beside the target and ``os.replace`` it, so a reader never sees half a file.
+``None`` that fails later. Writers exist for the tests, the flow cache and the export
+(:mod:`mfg_lightning.data.export`); they write to a temporary file beside the target and
+``os.replace`` it, so a reader never sees half a file.
 """
 
 from __future__ import annotations
@@ -64,6 +65,7 @@ __all__ = [
     "write_flo",
     "write_kitti_flow_png",
     "write_npy_flow",
+    "write_rgb",
     "write_vkitti_depth",
     "write_vkitti_flow_png",
 ]
@@ -373,6 +375,23 @@ def read_rgb(path: str | os.PathLike) -> np.ndarray:
     if image.shape[2] != 3:
         raise DataFileError(f"{path}: expected 1, 3 or 4 channels, got {image.shape[2]}")
     return np.ascontiguousarray(image[..., ::-1])
+
+
+def write_rgb(path: str | os.PathLike, rgb: np.ndarray, jpeg_quality: int = 95) -> None:
+    """Write ``(H, W, 3)`` uint8 RGB as an 8-bit colour image, the format from the suffix:
+    ``.png`` (lossless; KITTI, Virtual KITTI 1.3.1) or ``.jpg``/``.jpeg`` (Virtual KITTI 2.0.3;
+    lossy, at ``jpeg_quality``). The inverse of :func:`read_rgb` (exactly, for PNG)."""
+    rgb = np.asarray(rgb)
+    if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise ValueError(f"{path}: RGB must be (H, W, 3) uint8, got {rgb.dtype} {rgb.shape}")
+    suffix = Path(path).suffix.lower()
+    if suffix not in (".png", ".jpg", ".jpeg"):
+        raise ValueError(f"{path}: write_rgb writes .png or .jpg, not {suffix or 'no suffix'}")
+    params = [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)] if suffix != ".png" else []
+    ok, buf = cv2.imencode(suffix, np.ascontiguousarray(rgb[..., ::-1]), params)
+    if not ok:
+        raise DataFileError(f"{path}: image encoding failed for {rgb.shape}")
+    atomic_write_bytes(path, buf.tobytes())
 
 
 def image_size(path: str | os.PathLike) -> tuple[int, int]:

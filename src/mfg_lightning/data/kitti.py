@@ -94,6 +94,7 @@ __all__ = [
     "normalize_sequence",
     "read_kitti_calib",
     "read_kitti_poses",
+    "write_kitti_calib",
 ]
 
 TRAIN_SEQUENCES = ("00", "01", "02", "03", "04", "05", "06", "07", "08")
@@ -175,6 +176,47 @@ def read_kitti_calib(path: str | os.PathLike) -> np.ndarray:
             P = P.reshape(3, 4)
             return np.array([P[0, 0], P[1, 1], P[0, 2], P[1, 2]])
     raise DataFileError(f"{path}: no 'P2:' line (the left colour camera's projection matrix)")
+
+
+#: KITTI's stereo baseline (metres, about 0.54 m): the right cameras' P1 and P3 in calib files
+#: this project writes (:func:`write_kitti_calib`).
+KITTI_STEREO_BASELINE = 0.54
+
+
+def write_kitti_calib(
+    path: str | os.PathLike, intrinsics: Any, baseline: float = KITTI_STEREO_BASELINE
+) -> None:
+    """Write a KITTI odometry ``calib.txt`` for one pinhole camera (the inverse of
+    :func:`read_kitti_calib`).
+
+    ``P0`` and ``P2`` (the left grey and colour cameras) are ``K [I | 0]``: the camera the poses
+    and ``image_2`` belong to; ``P1`` and ``P3`` (the right cameras) are ``K [I | (−baseline, 0,
+    0)]``, as KITTI's stereo rig; ``Tr`` (Velodyne to camera) is ``[I | 0]``. Numbers are
+    written as KITTI writes them (``%.12e``), with more digits where that would not read back
+    exactly.
+
+    Args:
+        path: the file (replaced atomically).
+        intrinsics: ``(4,)`` ``(fx, fy, cx, cy)`` in pixels, finite, ``fx, fy > 0``.
+        baseline: the stereo baseline in metres.
+    """
+    from mfg_lightning.atomic import atomic_write_text
+
+    fx, fy, cx, cy = (float(v) for v in np.asarray(intrinsics, np.float64).reshape(4))
+    if not (np.isfinite([fx, fy, cx, cy]).all() and fx > 0 and fy > 0):
+        raise ValueError(f"{path}: intrinsics must be finite (fx, fy, cx, cy), fx, fy > 0")
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    left = np.concatenate([K, np.zeros((3, 1))], axis=1)
+    right = np.concatenate([K, K @ np.array([[-float(baseline)], [0.0], [0.0]])], axis=1)
+    rows = {"P0": left, "P1": right, "P2": left, "P3": right, "Tr": np.eye(3, 4)}
+    text = "".join(f"{key}: {' '.join(map(_sci, M.ravel()))}\n" for key, M in rows.items())
+    atomic_write_text(path, text)
+
+
+def _sci(value: float) -> str:
+    """KITTI's ``%.12e`` when that reads back exactly, else the 17 digits that always do."""
+    text = f"{value:.12e}"
+    return text if float(text) == value else f"{value:.16e}"
 
 
 def read_kitti_poses(path: str | os.PathLike) -> np.ndarray:

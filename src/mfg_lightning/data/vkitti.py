@@ -76,6 +76,8 @@ __all__ = [
     "normalize_world",
     "read_vkitti_extrinsics",
     "read_vkitti_intrinsics",
+    "write_vkitti_extrinsics",
+    "write_vkitti_intrinsics",
 ]
 
 WORLDS = ("0001", "0002", "0006", "0018", "0020")
@@ -186,6 +188,60 @@ def read_vkitti_intrinsics(path: str | os.PathLike) -> dict[int, np.ndarray]:
     table = _numeric_rows(Path(path), 6)
     table = table[table[:, 1] == 0]
     return {int(row[0]): row[2:].copy() for row in table}
+
+
+_MATRIX_HEADER = "r1,1 r1,2 r1,3 t1 r2,1 r2,2 r2,3 t2 r3,1 r3,2 r3,3 t3 0 0 0 1"
+
+
+def _write_table(path: str | os.PathLike, header: str, rows: np.ndarray, ints: int) -> None:
+    """A header line, then one row per line: the first ``ints`` columns as integers, the rest as
+    the shortest text that reads back exactly (``repr``)."""
+    from mfg_lightning.atomic import atomic_write_text
+
+    lines = [header]
+    for row in rows:
+        lines.append(
+            " ".join([str(int(v)) for v in row[:ints]] + [repr(float(v)) for v in row[ints:]])
+        )
+    atomic_write_text(path, "\n".join(lines) + "\n")
+
+
+def write_vkitti_extrinsics(path: str | os.PathLike, extrinsics: Any, version: int = 1) -> None:
+    """Write world-to-camera extrinsics, one line per frame (the inverse of
+    :func:`read_vkitti_extrinsics`): 1.3.1 ``frame`` then 16 numbers; 2.0.3 ``frame cameraID``
+    (camera 0) then 16 numbers, each after its header line.
+
+    Args:
+        path: the file (replaced atomically).
+        extrinsics: ``(N, 4, 4)`` world-to-camera matrices ``T_cam_world`` of frames 0 … N−1
+            (metres), finite.
+        version: 1 (1.3.1) or 2 (2.0.3).
+    """
+    mats = np.asarray(extrinsics, np.float64)
+    if mats.ndim != 3 or mats.shape[1:] != (4, 4) or not np.isfinite(mats).all():
+        raise ValueError(f"{path}: extrinsics must be finite (N, 4, 4), got {mats.shape}")
+    frames = np.arange(len(mats), dtype=np.float64)[:, None]
+    if normalize_version(version) == 1:
+        _write_table(path, f"frame {_MATRIX_HEADER}", np.hstack([frames, mats.reshape(-1, 16)]), 1)
+    else:
+        table = np.hstack([frames, np.zeros_like(frames), mats.reshape(-1, 16)])
+        _write_table(path, f"frame cameraID {_MATRIX_HEADER}", table, 2)
+
+
+def write_vkitti_intrinsics(path: str | os.PathLike, intrinsics: Any) -> None:
+    """Write a 2.0.3 ``intrinsic.txt`` (the inverse of :func:`read_vkitti_intrinsics`): the
+    header, then ``frame cameraID K[0,0] K[1,1] K[0,2] K[1,2]`` per frame (camera 0).
+
+    Args:
+        path: the file (replaced atomically).
+        intrinsics: ``(N, 4)`` ``(fx, fy, cx, cy)`` of frames 0 … N−1 in pixels, finite.
+    """
+    K = np.asarray(intrinsics, np.float64)
+    if K.ndim != 2 or K.shape[1] != 4 or not np.isfinite(K).all():
+        raise ValueError(f"{path}: intrinsics must be finite (N, 4), got {K.shape}")
+    frames = np.arange(len(K), dtype=np.float64)[:, None]
+    table = np.hstack([frames, np.zeros_like(frames), K])
+    _write_table(path, "frame cameraID K[0,0] K[1,1] K[0,2] K[1,2]", table, 2)
 
 
 def _list_numbered(directory: Path, prefix: str, suffix: str) -> set[int]:
