@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from mfg_lightning import geometry
-from mfg_lightning.evaluation import TrajectoryEvaluator
 from mfg_lightning.metrics import relative_pose_error, snippet_ate
+from mfg_lightning.metrics.evaluator import TrajectoryEvaluator
 from mfg_lightning.trajectories import snippets_from_poses
 
 
