@@ -41,7 +41,7 @@ from torchmetrics import Metric
 
 from mfg_lightning import geometry
 from mfg_lightning.metrics.alignment import align_trajectory, check_align_options
-from mfg_lightning.metrics.stats import MetricValues, cat_state
+from mfg_lightning.metrics.stats import MetricValues, cat_state, summary
 from mfg_lightning.trajectories import evaluation_poses
 
 __all__ = [
@@ -123,11 +123,9 @@ def kitti_segment_errors(
 
 def _drift(t_err: Tensor, r_err: Tensor) -> MetricValues:
     """:data:`DRIFT_NAMES` from per-segment errors: the means in % and deg / 100 m (NaN: none)."""
-    if t_err.numel() == 0:
-        nan = torch.tensor(float("nan"), dtype=torch.float64, device=t_err.device)
-        return MetricValues(drift_t_err=nan, drift_r_err=nan.clone())
     return MetricValues(
-        drift_t_err=t_err.mean() * 100.0, drift_r_err=r_err.mean() * (180.0 / math.pi) * 100.0
+        drift_t_err=summary(t_err)["mean"] * 100.0,
+        drift_r_err=summary(r_err)["mean"] * (180.0 / math.pi) * 100.0,
     )
 
 
