@@ -255,7 +255,7 @@ def evaluate(model, datamodule, eval_batch_size: int) -> tuple[list[Method], int
 
     from mfg_lightning import geometry
     from mfg_lightning.data.base import collate_samples
-    from mfg_lightning.evaluation import TrajectoryEvaluator
+    from mfg_lightning.metrics.evaluator import TrajectoryEvaluator
 
     model.eval()
     dataset = datamodule.dataset("test")

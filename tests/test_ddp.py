@@ -21,7 +21,8 @@ from conftest import run_module
 pytestmark = pytest.mark.slow
 
 # What must be among the compared values: per-frame means, the mean-motion baseline, the
-# trajectory metrics (gathered across processes) and the object-motion scores.
+# trajectory metrics (gathered across processes, whole-trajectory ATE included) and the
+# object-motion scores.
 REQUIRED = (
     "test/trans_err",
     "test/rot_err",
@@ -32,6 +33,7 @@ REQUIRED = (
     "test/ate_std",
     "test/rpe_trans",
     "test/rpe_rot",
+    "test/ate_traj",
     "test/object/iou",
     "test/object/gt_pixels",
 )

@@ -1,4 +1,5 @@
-"""TrajectoryEvaluator: per-sample predictions → snippet ATE, RPE, drift, per sequence."""
+"""TrajectoryEvaluator: per-sample predictions → snippet ATE, RPE, drift, whole-trajectory ATE,
+per sequence and pooled, through the metric classes."""
 
 from __future__ import annotations
 
@@ -8,8 +9,16 @@ import pytest
 import torch
 
 from mfg_lightning import geometry
-from mfg_lightning.evaluation import TrajectoryEvaluator
-from mfg_lightning.metrics import relative_pose_error, snippet_ate
+from mfg_lightning.metrics import (
+    KittiDrift,
+    RelativePoseError,
+    SnippetATE,
+    TrajectoryATE,
+    ate_traj,
+    relative_pose_error,
+    snippet_ate,
+)
+from mfg_lightning.metrics.evaluator import TrajectoryEvaluator
 from mfg_lightning.trajectories import snippets_from_poses
 
 
@@ -111,3 +120,47 @@ def test_gaps_split_sequences_into_runs() -> None:
     assert res.metrics["ate"] == pytest.approx(0.0, abs=1e-9)
     # The longest run (frames 13 … 29) is kept as the sequence's trajectory.
     assert res.sequences["s"].frames.tolist() == list(range(13, 30))
+
+
+def test_values_are_those_of_the_metric_classes() -> None:
+    """Pooled and per-sequence values are the torchmetrics Metrics' own, fed the same whole
+    sequences (in sequence order), under one name each: RPE, drift and the whole-trajectory
+    ATE included."""
+    trajs = {"09": _trajectory(130, 7), "10": _trajectory(60, 8)}
+    ev = TrajectoryEvaluator()
+    pooled = {
+        "rpe": RelativePoseError(),
+        "drift": KittiDrift(),
+        "ate_traj": TrajectoryATE(),
+        "ate": SnippetATE(),
+    }
+    for name, traj in trajs.items():
+        src, tgt, pred, gt = _records(traj, noise=0.01, seed=int(name))
+        ev.update([name] * len(src), src, tgt, pred, gt)
+        pred_traj = geometry.trajectory_from_motions(pred)
+        gt_traj = geometry.trajectory_from_motions(gt)
+        for key, metric in pooled.items():
+            if key == "ate":
+                metric.update(snippets_from_poses(pred_traj, 5), snippets_from_poses(gt_traj, 5))
+            else:
+                metric.update(pred_traj, gt_traj)
+        alone = ate_traj(pred_traj, gt_traj)
+        assert ev.compute().metrics[f"{name}/ate_traj"] == pytest.approx(
+            float(alone["ate_traj"]), rel=1e-12
+        )
+    res = ev.compute()
+    assert res.samples == 129 + 59
+    for metric in pooled.values():
+        for key, value in metric.compute().items():
+            assert res.metrics[key] == pytest.approx(float(value), rel=1e-9, nan_ok=True), key
+    # 130 frames of ~0.85 m: one 100 m segment start every 10 frames, pooled over "09" only.
+    assert math.isfinite(res.metrics["drift_t_err"]) and math.isnan(res.metrics["10/drift_t_err"])
+    assert res.metrics["drift_t_err"] == res.metrics["09/drift_t_err"]
+    # One name per quantity: the published ones only, never the metrics' earlier short names.
+    assert not {"t_err", "trans", "kitti_t_err", "drift_t", "rpe_trans_err"} & res.metrics.keys()
+
+
+def test_an_empty_epoch_reports_no_sample() -> None:
+    res = TrajectoryEvaluator().compute()
+    assert res.samples == 0 and not res.sequences
+    assert math.isnan(res.metrics["ate"]) and math.isnan(res.metrics["ate_traj"])

@@ -15,6 +15,7 @@ from mfg_lightning.metrics import (
     KittiDrift,
     kitti_drift,
     kitti_drift_by_length,
+    kitti_drift_from_segments,
     kitti_segment_errors,
 )
 from mfg_lightning.pose_io import read_kitti_poses
@@ -90,9 +91,9 @@ def _drift(est: np.ndarray, gt: np.ndarray) -> dict[str, float]:
 def test_identical_trajectories_have_no_drift() -> None:
     gt = _drive(900, 0)
     result = _drift(gt, gt)
-    assert result["t_err"] == pytest.approx(0.0, abs=1e-9)
+    assert result["drift_t_err"] == pytest.approx(0.0, abs=1e-9)
     # arccos resolves angles only down to ~2e-8 rad in float64: ~1e-6 deg/100 m at 100 m.
-    assert result["r_err"] == pytest.approx(0.0, abs=1e-5)
+    assert result["drift_r_err"] == pytest.approx(0.0, abs=1e-5)
 
 
 def test_constant_scale_error_of_a_single_segment() -> None:
@@ -104,8 +105,8 @@ def test_constant_scale_error_of_a_single_segment() -> None:
     _, _, lengths = kitti_segment_errors(torch.from_numpy(est), torch.from_numpy(gt))
     assert lengths.tolist() == [100.0]
     result = _drift(est, gt)
-    assert result["t_err"] == pytest.approx(10.1, abs=1e-9)
-    assert result["r_err"] == pytest.approx(0.0, abs=1e-5)
+    assert result["drift_t_err"] == pytest.approx(10.1, abs=1e-9)
+    assert result["drift_r_err"] == pytest.approx(0.0, abs=1e-5)
 
 
 def test_constant_scale_error_over_many_segments() -> None:
@@ -120,7 +121,7 @@ def test_constant_scale_error_over_many_segments() -> None:
         for length in LENGTHS
         if first + length + 1 < n
     ]
-    assert _drift(est, gt)["t_err"] == pytest.approx(100 * np.mean(per_segment), rel=1e-12)
+    assert _drift(est, gt)["drift_t_err"] == pytest.approx(100 * np.mean(per_segment), rel=1e-12)
 
 
 def test_constant_rotation_rate_error() -> None:
@@ -132,7 +133,7 @@ def test_constant_rotation_rate_error() -> None:
     motion[2, 3] = 1.0
     est = _from_motions(np.tile(motion, (101, 1, 1)))
     expected = 101 * alpha / 100 * (180 / math.pi) * 100
-    assert _drift(est, _straight_line(102))["r_err"] == pytest.approx(expected, rel=1e-9)
+    assert _drift(est, _straight_line(102))["drift_r_err"] == pytest.approx(expected, rel=1e-9)
 
 
 def test_matches_the_devkit_loop_on_a_drifting_estimate() -> None:
@@ -144,8 +145,8 @@ def test_matches_the_devkit_loop_on_a_drifting_estimate() -> None:
     np.testing.assert_allclose(t_err.numpy(), t_loop, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(r_err.numpy(), r_loop, rtol=1e-6, atol=1e-10)
     result = _drift(est, gt)
-    assert result["t_err"] == pytest.approx(100 * np.mean(t_loop), rel=1e-9)
-    assert result["r_err"] == pytest.approx(np.mean(r_loop) * 180 / math.pi * 100, rel=1e-6)
+    assert result["drift_t_err"] == pytest.approx(100 * np.mean(t_loop), rel=1e-9)
+    assert result["drift_r_err"] == pytest.approx(np.mean(r_loop) * 180 / math.pi * 100, rel=1e-6)
 
 
 def test_matches_the_devkit_loop_on_kitti_09() -> None:
@@ -171,7 +172,10 @@ def test_metric_pools_segments_of_all_sequences() -> None:
     ]
     t_all = torch.cat([s[0] for s in per_sequence])
     r_all = torch.cat([s[1] for s in per_sequence])
-    expected = {"t_err": 100 * t_all.mean().item(), "r_err": r_all.mean().item() * 18000 / math.pi}
+    expected = {
+        "drift_t_err": 100 * t_all.mean().item(),
+        "drift_r_err": r_all.mean().item() * 18000 / math.pi,
+    }
 
     together = KittiDrift()
     for e, g in zip(ests, gts, strict=True):
@@ -182,7 +186,7 @@ def test_metric_pools_segments_of_all_sequences() -> None:
     merged.merge_state(other)  # the reductions a DDP sync applies
     for metric in (together, merged):
         result = metric.compute()
-        assert set(result) == {"t_err", "r_err"}
+        assert set(result) == {"drift_t_err", "drift_r_err"}
         for key, value in expected.items():
             assert result[key].item() == pytest.approx(value, rel=1e-12)
 
@@ -239,9 +243,13 @@ def test_aligned_drift_matches_the_devkit_loop() -> None:
         np.testing.assert_allclose(r_err.numpy(), r_loop, rtol=1e-6, atol=1e-10)
         metric = KittiDrift(align=mode)
         metric.update(P, Q)
-        assert metric.compute()["t_err"].item() == pytest.approx(100 * np.mean(t_loop), rel=1e-8)
+        assert metric.compute()["drift_t_err"].item() == pytest.approx(
+            100 * np.mean(t_loop), rel=1e-8
+        )
     # Unaligned, the 0.4 scale dominates; a rigid alignment changes no segment.
-    assert _drift(est, gt)["t_err"] > 50 > kitti_drift(P, Q, align="sim3")["t_err"].item()
+    assert (
+        _drift(est, gt)["drift_t_err"] > 50 > kitti_drift(P, Q, align="sim3")["drift_t_err"].item()
+    )
     for key, value in kitti_drift(P, Q, align="se3").items():
         assert value.item() == pytest.approx(_drift(est, gt)[key], rel=1e-9)
 
@@ -258,5 +266,21 @@ def test_drift_by_length_is_the_mean_of_each_length() -> None:
         t = [e for e, s in zip(t_loop, lengths, strict=True) if s == value]
         r = [e for e, s in zip(r_loop, lengths, strict=True) if s == value]
         assert int(result["count"]) == len(t) > 0
-        assert result["t_err"].item() == pytest.approx(100 * np.mean(t), rel=1e-9)
-        assert result["r_err"].item() == pytest.approx(np.mean(r) * 18000 / math.pi, rel=1e-6)
+        assert result["drift_t_err"].item() == pytest.approx(100 * np.mean(t), rel=1e-9)
+        assert result["drift_r_err"].item() == pytest.approx(np.mean(r) * 18000 / math.pi, rel=1e-6)
+
+
+def test_published_names_and_the_earlier_ones() -> None:
+    """``drift_t_err`` / ``drift_r_err`` (the README's names) from every drift function; the
+    names before them (``"t_err"``) still read the same values."""
+    gt = _drive(300, 8)
+    P, Q = torch.from_numpy(_perturbed_estimate(gt, 9)), torch.from_numpy(gt)
+    metric = KittiDrift()
+    metric.update(P, Q)
+    by_length = kitti_drift_by_length(*kitti_segment_errors(P, Q))
+    for result in (kitti_drift(P, Q), metric.compute(), *by_length.values()):
+        assert {"drift_t_err", "drift_r_err"} <= set(result) and "t_err" not in set(result)
+        assert result["t_err"] is result["drift_t_err"] and result["r_err"] is result["drift_r_err"]
+    assert tuple(metric.compute()) == KittiDrift.names
+    # The per-segment helper keeps the devkit's short names (mfg-eval-poses prefixes them).
+    assert kitti_drift_from_segments(*kitti_segment_errors(P, Q)[:2]).keys() == {"t_err", "r_err"}

@@ -63,7 +63,7 @@ def _assert_matches_evo(gt: np.ndarray, est: np.ndarray, delta: int) -> None:
     np.testing.assert_allclose(trans.numpy(), evo_trans, atol=1e-6, rtol=0)
     np.testing.assert_allclose(rot.numpy(), evo_rot, atol=1e-6, rtol=0)
     summary = relative_pose_error(torch.from_numpy(est), torch.from_numpy(gt), delta)
-    for name, values in (("trans", evo_trans), ("rot", evo_rot)):
+    for name, values in (("rpe_trans", evo_trans), ("rpe_rot", evo_rot)):
         # evo's statistics: mean, np.std (population) and RMSE.
         assert summary[name].item() == pytest.approx(values.mean(), abs=1e-6)
         assert summary[f"{name}_std"].item() == pytest.approx(values.std(), abs=1e-6)
@@ -123,12 +123,12 @@ def test_metric_over_sequences_in_any_split_or_merged() -> None:
     merged.merge_state(other)  # the reductions a DDP sync applies
 
     expected = {
-        "trans": trans.mean(),
-        "trans_std": trans.std(correction=0),
-        "trans_rmse": trans.square().mean().sqrt(),
-        "rot": rot.mean(),
-        "rot_std": rot.std(correction=0),
-        "rot_rmse": rot.square().mean().sqrt(),
+        "rpe_trans": trans.mean(),
+        "rpe_trans_std": trans.std(correction=0),
+        "rpe_trans_rmse": trans.square().mean().sqrt(),
+        "rpe_rot": rot.mean(),
+        "rpe_rot_std": rot.std(correction=0),
+        "rpe_rot_rmse": rot.square().mean().sqrt(),
     }
     for metric in (sequential, chunked, merged):
         result = metric.compute()
@@ -148,3 +148,21 @@ def test_short_sequences_and_bad_inputs() -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # torchmetrics warns about compute before update
         assert all(math.isnan(v.item()) for v in metric.compute().values())
+
+
+def test_published_names_and_the_earlier_ones() -> None:
+    """One name per quantity (``rpe_trans``, as logged and in the README); code written against
+    the names before them (``"trans"``) still reads the same values."""
+    gt = torch.from_numpy(_random_trajectory(20, 7))
+    est = torch.from_numpy(_perturb(gt.numpy(), 8, 0.02, 0.1))
+    metric = RelativePoseError()
+    metric.update(est, gt)
+    for result in (relative_pose_error(est, gt), metric.compute()):
+        assert tuple(result) == RelativePoseError.names
+        for part in ("trans", "rot"):
+            for stat in ("", "_std", "_rmse"):
+                assert f"{part}{stat}" in result
+                assert result[f"{part}{stat}"] is result[f"rpe_{part}{stat}"]
+        assert result.get("trans") is result["rpe_trans"] and result.get("ate") is None
+        with pytest.raises(KeyError):
+            result["t_err"]  # a name of another metric

@@ -37,7 +37,7 @@ from omegaconf import DictConfig, OmegaConf
 from mfg_lightning.atomic import atomic_write_bytes, atomic_write_text
 from mfg_lightning.checkpoints import module_from_checkpoint
 from mfg_lightning.config import CONFIG_DIR
-from mfg_lightning.evaluation import EvaluationResult
+from mfg_lightning.metrics.evaluator import EvaluationResult
 from mfg_lightning.models.mfg import validate_top_k
 from mfg_lightning.models.mfg_module import MFGLitModule
 from mfg_lightning.runs import exit_on_user_error, run_info, to_float, write_metrics

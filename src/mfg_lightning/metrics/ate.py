@@ -32,7 +32,10 @@ from mfg_lightning import geometry
 from mfg_lightning.metrics.stats import cat_state, summary
 from mfg_lightning.trajectories import evaluation_poses
 
-__all__ = ["SnippetATE", "snippet_ate", "snippet_ate_errors"]
+__all__ = ["ATE_NAMES", "SnippetATE", "snippet_ate", "snippet_ate_errors"]
+
+#: The published names of :func:`snippet_ate` and :class:`SnippetATE`.
+ATE_NAMES: tuple[str, ...] = ("ate", "ate_std", "ate_rmse")
 
 
 def _check_snippets(pred: Tensor, target: Tensor) -> None:
@@ -109,6 +112,7 @@ class SnippetATE(Metric):
     ``compute()`` returns ``{"ate", "ate_std", "ate_rmse"}`` (float64 scalars, pose units).
     """
 
+    names = ATE_NAMES
     is_differentiable = False
     higher_is_better = False
     full_state_update = False

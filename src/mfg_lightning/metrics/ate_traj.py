@@ -31,7 +31,10 @@ from torchmetrics import Metric
 from mfg_lightning.metrics.alignment import Alignment, align_trajectory, check_align_options
 from mfg_lightning.metrics.stats import cat_state, summary
 
-__all__ = ["TrajectoryATE", "ate_traj", "ate_traj_errors"]
+__all__ = ["ATE_TRAJ_NAMES", "TrajectoryATE", "ate_traj", "ate_traj_errors"]
+
+#: The published names of :class:`TrajectoryATE` (:func:`ate_traj` adds ``ate_traj_scale``).
+ATE_TRAJ_NAMES: tuple[str, ...] = ("ate_traj", "ate_traj_mean", "ate_traj_std")
 
 
 def ate_traj_errors(aligned: Alignment) -> Tensor:
@@ -86,6 +89,7 @@ class TrajectoryATE(Metric):
     metres; NaN before any update). The fitted scale is per sequence: :func:`ate_traj`.
     """
 
+    names = ATE_TRAJ_NAMES
     is_differentiable = False
     higher_is_better = False
     full_state_update = False

@@ -41,10 +41,11 @@ from torchmetrics import Metric
 
 from mfg_lightning import geometry
 from mfg_lightning.metrics.alignment import align_trajectory, check_align_options
-from mfg_lightning.metrics.stats import cat_state
+from mfg_lightning.metrics.stats import MetricValues, cat_state, summary
 from mfg_lightning.trajectories import evaluation_poses
 
 __all__ = [
+    "DRIFT_NAMES",
     "KITTI_SEGMENT_LENGTHS",
     "KITTI_STEP",
     "KittiDrift",
@@ -58,6 +59,8 @@ __all__ = [
 KITTI_SEGMENT_LENGTHS: tuple[float, ...] = (100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0)
 #: Frames between segment starts in the devkit ("every second" at 10 Hz).
 KITTI_STEP = 10
+#: The published names of the drift: translational error in %, rotational error in deg / 100 m.
+DRIFT_NAMES: tuple[str, ...] = ("drift_t_err", "drift_r_err")
 
 
 def kitti_segment_errors(
@@ -118,6 +121,14 @@ def kitti_segment_errors(
     return t_err, r_err, seg
 
 
+def _drift(t_err: Tensor, r_err: Tensor) -> MetricValues:
+    """:data:`DRIFT_NAMES` from per-segment errors: the means in % and deg / 100 m (NaN: none)."""
+    return MetricValues(
+        drift_t_err=summary(t_err)["mean"] * 100.0,
+        drift_r_err=summary(r_err)["mean"] * (180.0 / math.pi) * 100.0,
+    )
+
+
 def kitti_drift_from_segments(t_err: Tensor, r_err: Tensor) -> dict[str, Tensor]:
     """The devkit's overall numbers from per-segment errors (of one or several sequences).
 
@@ -126,12 +137,13 @@ def kitti_drift_from_segments(t_err: Tensor, r_err: Tensor) -> dict[str, Tensor]
 
     Returns:
         ``{"t_err", "r_err"}``: mean translational error in %, mean rotational error in degrees
-        per 100 m (float64 scalars; NaN when ``S == 0``).
+        per 100 m (float64 scalars; NaN when ``S == 0``). The devkit's own short names, kept
+        for ``mfg-eval-poses``, which prefixes them itself; :class:`KittiDrift`,
+        :func:`kitti_drift` and :func:`kitti_drift_by_length` report the published
+        :data:`DRIFT_NAMES` of the same values.
     """
-    if t_err.numel() == 0:
-        nan = torch.tensor(float("nan"), dtype=torch.float64, device=t_err.device)
-        return {"t_err": nan, "r_err": nan.clone()}
-    return {"t_err": t_err.mean() * 100.0, "r_err": r_err.mean() * (180.0 / math.pi) * 100.0}
+    drift = _drift(t_err, r_err)
+    return {"t_err": drift["drift_t_err"], "r_err": drift["drift_r_err"]}
 
 
 def kitti_drift_by_length(
@@ -145,16 +157,13 @@ def kitti_drift_by_length(
             several sequences).
 
     Returns:
-        ``{length (m): {"t_err" (%), "r_err" (deg/100 m), "count"}}`` for every length that has
-        at least one segment, in increasing length.
+        ``{length (m): {"drift_t_err" (%), "drift_r_err" (deg/100 m), "count"}}`` for every length
+        that has at least one segment, in increasing length (``"t_err"``, ``"r_err"`` still read).
     """
     out: dict[float, dict[str, Tensor]] = {}
     for value in torch.unique(length).tolist():
         keep = length == value
-        out[float(value)] = {
-            **kitti_drift_from_segments(t_err[keep], r_err[keep]),
-            "count": keep.sum(),
-        }
+        out[float(value)] = MetricValues(**_drift(t_err[keep], r_err[keep]), count=keep.sum())
     return out
 
 
@@ -165,7 +174,7 @@ def kitti_drift(
     step: int = KITTI_STEP,
     align: str = "none",
     n_to_align: int | None = None,
-) -> dict[str, Tensor]:
+) -> MetricValues:
     """KITTI drift of one sequence: the functional twin of :class:`KittiDrift`.
 
     Args:
@@ -174,11 +183,13 @@ def kitti_drift(
         align, n_to_align: alignment of the estimate first (:func:`kitti_segment_errors`).
 
     Returns:
-        ``{"t_err", "r_err"}``: float64 scalars, the mean translational error in % of the distance
-        travelled and the mean rotational error in degrees per 100 m; NaN without segments.
+        ``{"drift_t_err", "drift_r_err"}`` (:data:`DRIFT_NAMES`): float64 scalars, the mean
+        translational error in % of the distance travelled and the mean rotational error in
+        degrees per 100 m; NaN without segments. ``"t_err"``, ``"r_err"`` (the names before
+        issue 15) still read.
     """
     t_err, r_err, _ = kitti_segment_errors(pred, target, lengths, step, align, n_to_align)
-    return kitti_drift_from_segments(t_err, r_err)
+    return _drift(t_err, r_err)
 
 
 class KittiDrift(Metric):
@@ -193,9 +204,11 @@ class KittiDrift(Metric):
         align, n_to_align: alignment of each sequence's estimate first (module docstring).
         kwargs: passed to :class:`torchmetrics.Metric`.
 
-    ``compute()`` returns ``{"t_err", "r_err"}`` (% and deg/100 m; NaN without segments).
+    ``compute()`` returns ``{"drift_t_err", "drift_r_err"}`` (% and deg/100 m; NaN without
+    segments).
     """
 
+    names = DRIFT_NAMES
     is_differentiable = False
     higher_is_better = False
     full_state_update = False
@@ -230,6 +243,6 @@ class KittiDrift(Metric):
         self.t_values.append(t_err)
         self.r_values.append(r_err)
 
-    def compute(self) -> dict[str, Tensor]:
-        """``{"t_err", "r_err"}`` over every segment seen."""
-        return kitti_drift_from_segments(cat_state(self.t_values), cat_state(self.r_values))
+    def compute(self) -> MetricValues:
+        """``{"drift_t_err", "drift_r_err"}`` over every segment seen."""
+        return _drift(cat_state(self.t_values), cat_state(self.r_values))

@@ -23,10 +23,10 @@ from torch import Tensor
 from torchmetrics import Metric
 
 from mfg_lightning import geometry
-from mfg_lightning.metrics.stats import cat_state, summary
+from mfg_lightning.metrics.stats import MetricValues, cat_state, summary
 from mfg_lightning.trajectories import evaluation_poses
 
-__all__ = ["RelativePoseError", "relative_pose_error", "relative_pose_errors"]
+__all__ = ["RPE_NAMES", "RelativePoseError", "relative_pose_error", "relative_pose_errors"]
 
 
 def _check_sequence(pred: Tensor, target: Tensor, delta: int) -> None:
@@ -60,10 +60,16 @@ def relative_pose_errors(pred: Tensor, target: Tensor, delta: int = 1) -> tuple[
     return error[:, :3, 3].norm(dim=-1), geometry.rotation_angle(error[:, :3, :3])
 
 
-def _summary(trans: Tensor, rot: Tensor) -> dict[str, Tensor]:
+#: The published names of :func:`relative_pose_error` and :class:`RelativePoseError`.
+RPE_NAMES: tuple[str, ...] = tuple(
+    f"rpe_{part}{stat}" for part in ("trans", "rot") for stat in ("", "_std", "_rmse")
+)
+
+
+def _summary(trans: Tensor, rot: Tensor) -> MetricValues:
     """Mean, population std and RMSE of each error; NaN when there are no pairs."""
-    out: dict[str, Tensor] = {}
-    for name, values in (("trans", trans), ("rot", rot)):
+    out = MetricValues()
+    for name, values in (("rpe_trans", trans), ("rpe_rot", rot)):
         stats = summary(values)
         out.update(
             {name: stats["mean"], f"{name}_std": stats["std"], f"{name}_rmse": stats["rmse"]}
@@ -71,7 +77,7 @@ def _summary(trans: Tensor, rot: Tensor) -> dict[str, Tensor]:
     return out
 
 
-def relative_pose_error(pred: Tensor, target: Tensor, delta: int = 1) -> dict[str, Tensor]:
+def relative_pose_error(pred: Tensor, target: Tensor, delta: int = 1) -> MetricValues:
     """RPE of one sequence: the functional twin of :class:`RelativePoseError`.
 
     Args:
@@ -79,8 +85,10 @@ def relative_pose_error(pred: Tensor, target: Tensor, delta: int = 1) -> dict[st
         delta: ``Δ`` in frames (the paper: 1).
 
     Returns:
-        ``{"trans", "trans_std", "trans_rmse", "rot", "rot_std", "rot_rmse"}``: float64 scalars,
-        translations in pose units, rotations in radians; NaN when ``N <= Δ``.
+        ``{"rpe_trans", "rpe_trans_std", "rpe_trans_rmse", "rpe_rot", "rpe_rot_std",
+        "rpe_rot_rmse"}`` (:data:`RPE_NAMES`): float64 scalars, translations in pose units,
+        rotations in radians; NaN when ``N <= Δ``. The names before issue 15 (``"trans"``, …)
+        still read (:class:`~mfg_lightning.metrics.stats.MetricValues`).
     """
     return _summary(*relative_pose_errors(pred, target, delta))
 
@@ -97,10 +105,11 @@ class RelativePoseError(Metric):
         delta: ``Δ`` in frames (the paper: 1).
         kwargs: passed to :class:`torchmetrics.Metric`.
 
-    ``compute()`` returns ``{"trans", "trans_std", "trans_rmse", "rot", "rot_std", "rot_rmse"}``
-    (float64 scalars; pose units and radians).
+    ``compute()`` returns the six :data:`RPE_NAMES` (``rpe_trans``, ``rpe_trans_std``, …; float64
+    scalars; pose units and radians).
     """
 
+    names = RPE_NAMES
     is_differentiable = False
     higher_is_better = False
     full_state_update = False
@@ -124,6 +133,6 @@ class RelativePoseError(Metric):
         self.trans_values.append(trans)
         self.rot_values.append(rot)
 
-    def compute(self) -> dict[str, Tensor]:
+    def compute(self) -> MetricValues:
         """The six RPE statistics over every pair seen (NaN if none)."""
         return _summary(cat_state(self.trans_values), cat_state(self.rot_values))

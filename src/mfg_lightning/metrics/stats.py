@@ -1,25 +1,33 @@
-"""The statistics every metric reports, computed in one place.
+"""The statistics every metric reports, computed in one place, and the names they are read by.
 
-* :func:`summary`: mean, population standard deviation (``np.std``, as Zhou et al. and ``evo``)
-  and root mean square of a set of per-element errors; NaN for each when the set is empty (an
-  undefined metric, e.g. a path shorter than a drift segment), never an exception.
+* :func:`summary`: mean, standard deviation (population, ``np.std``, as Zhou et al. and ``evo``,
+  unless ``correction`` says otherwise) and root mean square of a set of per-element errors; NaN
+  for each when the set is empty (an undefined metric, e.g. a path shorter than a drift segment),
+  never an exception.
 * :func:`cat_state`: a torchmetrics list state as one tensor (a tensor already after a DDP sync).
+* :class:`MetricValues`: a metric's results under their published names (the README's metric
+  table), which also answers to the names used before them.
 """
 
 from __future__ import annotations
+
+from typing import Any
 
 import torch
 from torch import Tensor
 from torchmetrics.utilities import dim_zero_cat
 
-__all__ = ["cat_state", "summary"]
+__all__ = ["RENAMED", "MetricValues", "cat_state", "summary"]
 
 
-def summary(values: Tensor) -> dict[str, Tensor]:
-    """Mean, population std and RMSE of per-element errors.
+def summary(values: Tensor, correction: int = 0) -> dict[str, Tensor]:
+    """Mean, standard deviation and RMSE of per-element errors.
 
     Args:
         values: ``(S,)`` errors in any unit (any float dtype; computed in float64).
+        correction: ``0`` (default) the population standard deviation of every protocol;
+            ``1`` the sample standard deviation (a spread over runs or seeds). NaN when
+            ``S <= correction``.
 
     Returns:
         ``{"mean", "std", "rmse"}``: float64 scalars in the unit of ``values``; NaN when ``S == 0``.
@@ -28,7 +36,11 @@ def summary(values: Tensor) -> dict[str, Tensor]:
     if v.numel() == 0:
         nan = torch.tensor(float("nan"), dtype=torch.float64, device=v.device)
         return {"mean": nan, "std": nan.clone(), "rmse": nan.clone()}
-    return {"mean": v.mean(), "std": v.std(correction=0), "rmse": v.square().mean().sqrt()}
+    if v.numel() <= correction:
+        std = torch.tensor(float("nan"), dtype=torch.float64, device=v.device)
+    else:
+        std = v.std(correction=correction)
+    return {"mean": v.mean(), "std": std, "rmse": v.square().mean().sqrt()}
 
 
 def cat_state(state: list[Tensor] | Tensor) -> Tensor:
@@ -36,3 +48,42 @@ def cat_state(state: list[Tensor] | Tensor) -> Tensor:
     if isinstance(state, list) and not state:
         return torch.zeros(0, dtype=torch.float64)
     return dim_zero_cat(state)
+
+
+#: Names the metric functions returned before issue 15 → the published name of the same quantity.
+RENAMED: dict[str, str] = {
+    **{
+        f"{part}{stat}": f"rpe_{part}{stat}"
+        for part in ("trans", "rot")
+        for stat in ("", "_std", "_rmse")
+    },
+    "t_err": "drift_t_err",
+    "r_err": "drift_r_err",
+}
+
+
+class MetricValues(dict):
+    """A metric's results keyed by their published names, also readable by earlier names.
+
+    Iterating, ``keys()``, ``items()`` and ``len()`` see the published names only (one name per
+    quantity); ``values[old]``, ``values.get(old)`` and ``old in values`` still answer for the
+    names of :data:`RENAMED` (``"trans"`` for ``"rpe_trans"``, ``"t_err"`` for ``"drift_t_err"``,
+    …), so code written against them keeps working. A plain ``dict`` subclass: torchmetrics'
+    ``compute`` rebuilds it as ``MetricValues(mapping)``, and it pickles as a dict does.
+    """
+
+    def __missing__(self, key: str) -> Any:
+        if key in RENAMED and dict.__contains__(self, RENAMED[key]):
+            return self[RENAMED[key]]
+        raise KeyError(key)
+
+    def __contains__(self, key: object) -> bool:
+        return dict.__contains__(self, key) or (
+            key in RENAMED and dict.__contains__(self, RENAMED[key])  # type: ignore[index]
+        )
+
+    def get(self, key: str, default: Any = None) -> Any:
+        try:
+            return self[key]
+        except KeyError:
+            return default

@@ -20,8 +20,8 @@ from torchmetrics import MeanMetric, SumMetric
 
 from mfg_lightning import geometry
 from mfg_lightning.data.sample import sanitize_flow
-from mfg_lightning.evaluation import EvaluationResult, TrajectoryEvaluator
 from mfg_lightning.losses import LossTerms, MFGLoss
+from mfg_lightning.metrics.evaluator import EvaluationResult, TrajectoryEvaluator
 from mfg_lightning.metrics.frame_errors import constant_motion_errors, frame_errors
 from mfg_lightning.metrics.object_motion import ObjectMotionScores
 from mfg_lightning.models.mfg import MFG, MFGOutput, validate_top_k
@@ -121,8 +121,8 @@ class MFGLitModule(L.LightningModule):
         #: non-finite input-flow pixels masked during training so far (this process)
         self.nonfinite_flow_pixels = 0
         self.object_motion = object_motion
-        # Trajectory metrics (ATE over snippets, RPE, drift) need whole sequences: collected
-        # over an epoch, scored at its end.
+        # Trajectory metrics (ATE over snippets, RPE, drift, whole-trajectory ATE) need whole
+        # sequences: collected over an epoch, scored at its end by the metrics they feed.
         self.trajectory_evaluators = {s: TrajectoryEvaluator() for s in ("val", "test")}
         #: the last epoch's trajectory evaluation per stage (evaluate.py writes its poses)
         self.last_evaluation: dict[str, EvaluationResult] = {}
@@ -292,14 +292,15 @@ class MFGLitModule(L.LightningModule):
                 )
             metric.reset()
         evaluator = self.trajectory_evaluators[stage]
-        if len(evaluator):
-            evaluator.sync()
-            res = evaluator.compute()
+        # Every process computes (the evaluator gathers all processes' samples, a collective
+        # call), even one that saw no sample; the numbers are the same on every process.
+        res = evaluator.compute()
+        evaluator.reset()
+        if res.samples:
             self.last_evaluation[stage] = res
-            metrics = {f"{stage}/{k}": float(v) for k, v in res.metrics.items()}
+            metrics = {f"{stage}/{k}": v for k, v in res.metrics.items()}
             self.log(f"{stage}/ate", metrics.pop(f"{stage}/ate"), prog_bar=True)
             self.log_dict(metrics)
-        evaluator.reset()
         for method in ("object", "object_baseline"):
             metric = self.object_scores[f"{stage}_{method}"]
             if metric.update_count:
