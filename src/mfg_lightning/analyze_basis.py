@@ -61,7 +61,7 @@ from mfg_lightning.checkpoints import (
 )
 from mfg_lightning.config import CONFIG_DIR
 from mfg_lightning.data.sample import sanitize_flow
-from mfg_lightning.runs import exit_on_user_error
+from mfg_lightning.errors import exit_on_user_error
 from mfg_lightning.visualization import flow_to_rgb, scalar_to_rgb
 
 if TYPE_CHECKING:

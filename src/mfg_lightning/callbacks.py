@@ -39,7 +39,7 @@ from lightning.pytorch.trainer.states import TrainerFn
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from mfg_lightning.atomic import atomic_write_bytes
-from mfg_lightning.runs import UserError
+from mfg_lightning.errors import UserError
 
 log = logging.getLogger(__name__)
 

@@ -69,6 +69,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from mfg_lightning.errors import report_user_error
 from mfg_lightning.pose_io import PoseFile, PoseFileError, read_poses
 
 if TYPE_CHECKING:
@@ -684,20 +685,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _usage_error(parser, "--n-to-align must be >= 1")
     try:
         return _run(args)
-    except (PoseFileError, InputError) as exc:
-        # The common input errors answer before torch and the metrics are imported.
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
     except Exception as exc:
-        # Everything else is classified as every entry point does (runs.exit_on_user_error):
-        # imported only now, since it pulls in Lightning and Hydra.
-        from mfg_lightning.runs import user_error_message
-
-        message = user_error_message(exc)
-        if message is None:
-            raise
-        print(f"error: {message}", file=sys.stderr)
-        return 2
+        # PoseFileError and InputError answer before torch and the metrics are imported;
+        # everything is classified as every entry point does (mfg_lightning.errors).
+        return report_user_error(exc)
 
 
 if __name__ == "__main__":

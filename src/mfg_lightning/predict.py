@@ -56,11 +56,12 @@ from mfg_lightning.atomic import atomic_write_bytes, atomic_write_text
 from mfg_lightning.checkpoints import module_from_checkpoint
 from mfg_lightning.config import CONFIG_DIR
 from mfg_lightning.data.sample import sanitize_flow
+from mfg_lightning.errors import UserError, exit_on_user_error
 from mfg_lightning.models.mfg import validate_top_k
 from mfg_lightning.models.mfg_module import MFGLitModule
 from mfg_lightning.object_motion import ObjectMotionConfig, extract_object_motion
 from mfg_lightning.pose_io import write_kitti_poses, write_tum_poses
-from mfg_lightning.runs import UserError, exit_on_user_error, run_info
+from mfg_lightning.runs import run_info
 
 log = logging.getLogger("mfg_lightning.predict")
 

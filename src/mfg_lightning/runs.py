@@ -18,6 +18,14 @@ from omegaconf import DictConfig, OmegaConf
 
 from mfg_lightning.atomic import atomic_write_text
 
+# The user-error helpers moved to mfg_lightning.errors; re-exported for code written against runs.
+from mfg_lightning.errors import (  # noqa: F401
+    UserError,
+    exit_on_user_error,
+    in_multirun,
+    user_error_message,
+)
+
 log = logging.getLogger(__name__)
 
 
@@ -129,64 +137,3 @@ def run_info() -> dict[str, Any]:
         "torch": torch.__version__,
         "lightning": L.__version__,
     }
-
-
-class UserError(Exception):
-    """Base class marker: errors whose message is the whole story (bad input, not a bug)."""
-
-
-def user_error_message(err: BaseException) -> str | None:
-    """The one-line message for an error caused by the user's input, or None for a bug.
-
-    Input errors are the project's own ``ValueError`` subclasses (bad config values, malformed
-    files, checkpoints that do not fit) and missing files; Hydra wraps errors raised while
-    building objects from the config in ``InstantiationException``, whose cause is unwrapped.
-    """
-    from hydra.errors import InstantiationException
-
-    if isinstance(err, InstantiationException) and err.__cause__ is not None:
-        return user_error_message(err.__cause__)
-    if isinstance(err, (ValueError, FileNotFoundError, UserError)):
-        return (
-            " ".join(str(err).split("\n")[:1]) if isinstance(err, FileNotFoundError) else str(err)
-        )
-    return None
-
-
-def in_multirun() -> bool:
-    """Whether the calling code runs as one job of a Hydra multirun (``-m``)."""
-    from hydra.core.hydra_config import HydraConfig
-    from hydra.types import RunMode
-
-    return HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
-
-
-def exit_on_user_error(fn):
-    """Decorator for entry points: input errors print ``error: …`` and exit with status 2;
-    anything else (a bug) propagates with its traceback.
-
-    Inside a multirun the error is logged (into the job's ``<job>/<task>.log``, where
-    ``mfg_lightning.report`` finds the reason) and re-raised instead: exiting would kill the
-    whole sweep, while Hydra records a raised error as this job's failure, runs the remaining
-    jobs and fails the sweep at the end.
-    """
-    import functools
-    import sys
-
-    @functools.wraps(fn)
-    def wrapper(*args, **kwargs):
-        try:
-            return fn(*args, **kwargs)
-        except Exception as err:
-            message = user_error_message(err)
-            if message is None:
-                if in_multirun():
-                    log.exception("job failed: %s: %s", type(err).__name__, err)
-                raise
-            if in_multirun():
-                log.error("error: %s", message)
-                raise
-            print(f"error: {message}", file=sys.stderr)
-            sys.exit(2)
-
-    return wrapper

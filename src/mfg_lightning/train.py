@@ -39,10 +39,10 @@ from mfg_lightning.callbacks import (
 )
 from mfg_lightning.checkpoints import CheckpointError
 from mfg_lightning.config import CONFIG_DIR
+from mfg_lightning.errors import exit_on_user_error
 from mfg_lightning.runs import (
     atomic_write_text,
     build_model,
-    exit_on_user_error,
     finish_stale_logger_runs,
     instantiate_list,
     log_final_metrics,
