@@ -37,6 +37,7 @@ __all__ = [
     "method_colour",
     "save_figures",
     "sequence_figures",
+    "top_k_figure",
     "trajectory_curves",
     "trajectory_figure",
     "write_trajectory_figures",
@@ -313,3 +314,36 @@ def write_trajectory_figures(
         if experiment is not None:
             log_figures(experiment, figs, f"{tag}/{seq}")
     return paths
+
+
+def top_k_figure(
+    results: Mapping[float, Mapping[str, float | None]], sequences: list[str]
+) -> Figure:
+    """ATE against k % (log axis), one line per sequence and a dashed one over all: the paper's
+    supplementary Figure 4.
+
+    Args:
+        results: k (fraction of hidden units kept) → the test metrics of that k
+            (``test/<seq>/ate``, ``test/<seq>/ate_std``, ``test/ate``, ``test/ate_std``; metres).
+        sequences: the test sequences, one line each.
+    """
+    fig = _new_figure(5.5, 3.5)
+    ax = fig.add_subplot()
+    ks = sorted(results)
+    for s in [*sequences, None]:
+        key = f"test/{s}/ate" if s else "test/ate"
+        y = [results[k].get(key) for k in ks]
+        if all(v is None for v in y):
+            continue
+        e = [results[k].get(f"{key}_std") or 0.0 for k in ks]
+        y = [float("nan") if v is None else v for v in y]
+        ax.errorbar(
+            [100 * k for k in ks], y, yerr=e, marker="o", capsize=3,
+            label=f"sequence {s}" if s else "all", linestyle="-" if s else "--",
+        )  # fmt: skip
+    ax.set_xscale("log")
+    ax.set_xlabel("hidden units kept, k (%)")
+    ax.set_ylabel("ATE over 5-frame snippets (m)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    return fig

@@ -14,9 +14,11 @@ from typing import Any
 
 import lightning as L
 from hydra.utils import instantiate
-from omegaconf import DictConfig, OmegaConf
+from lightning.fabric.plugins.io.checkpoint_io import CheckpointIO
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from mfg_lightning.atomic import atomic_write_text
+from mfg_lightning.callbacks import AtomicCheckpointIO
 
 # The user-error helpers moved to mfg_lightning.errors; re-exported for code written against runs.
 from mfg_lightning.errors import (  # noqa: F401
@@ -42,6 +44,69 @@ def build_model(cfg: DictConfig) -> L.LightningModule:
     model.model_config = OmegaConf.to_container(cfg.model, resolve=True)
     model.dataset_config = OmegaConf.to_container(cfg.dataset, resolve=True)
     return model
+
+
+def build_trainer(cfg: DictConfig, callbacks: list[Any], loggers: list[Any]) -> L.Trainer:
+    """The configured ``lightning.Trainer``, writing checkpoints atomically unless the config
+    brings its own checkpoint IO plugin (``trainer.plugins``: one or a list, configs with a
+    ``_target_`` or Lightning's plugin names)."""
+    given = cfg.trainer.get("plugins") or []
+    given = list(given) if isinstance(given, (list, ListConfig)) else [given]
+    plugins = [instantiate(p) if isinstance(p, DictConfig) else p for p in given]
+    if not any(isinstance(p, CheckpointIO) for p in plugins):
+        plugins.append(AtomicCheckpointIO())
+    return instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False, plugins=plugins)
+
+
+def tensorboard_writer(trainer: L.Trainer) -> Any | None:
+    """The ``SummaryWriter`` of the trainer's TensorBoard logger, or None without one (images
+    go only to TensorBoard; other loggers get the files in the run directory)."""
+    from lightning.pytorch.loggers import TensorBoardLogger
+
+    tb = [lg for lg in trainer.loggers if isinstance(lg, TensorBoardLogger)]
+    return tb[0].experiment if tb else None
+
+
+def checkpoint_datamodule(
+    dataset_cfg: DictConfig | None,
+    stored: dict[str, Any] | None,
+    ckpt_path: str | Path,
+    size: Any | None = None,
+    **overrides: Any,
+) -> L.LightningDataModule:
+    """The datamodule of a run that reads a checkpoint: ``dataset=`` when given, else the dataset
+    the checkpoint was trained on (``stored``: :func:`mfg_lightning.checkpoints.dataset_config`,
+    which falls back to the run directory's ``config.yaml``).
+
+    Args:
+        dataset_cfg: the composed ``dataset`` group, or None.
+        stored: the checkpoint's dataset config, or None.
+        ckpt_path: the checkpoint, for the error messages.
+        size: the checkpoint's :class:`mfg_lightning.checkpoints.ModelSize`, checked against a
+            given dataset's ``height`` × ``width``; None: not checked.
+        overrides: keys set on the dataset config (e.g. ``eval_batch_size``).
+
+    Raises:
+        CheckpointSizeError: the given dataset delivers another resolution than the model takes.
+        ValueError: neither is there.
+    """
+    from mfg_lightning.checkpoints import CheckpointSizeError
+
+    if dataset_cfg is not None and size is not None:
+        given = (int(dataset_cfg.height), int(dataset_cfg.width))
+        if given != (size.height, size.width):
+            raise CheckpointSizeError(
+                f"checkpoint {ckpt_path} holds an MFG with {size}, but the dataset delivers "
+                f"{given[0]}×{given[1]} inputs: pass dataset.height={size.height} "
+                f"dataset.width={size.width}, or omit dataset= to use the checkpoint's own"
+            )
+    if dataset_cfg is None and stored is None:
+        raise ValueError(
+            f"{ckpt_path} stores no dataset config and has no run directory config.yaml "
+            "beside it: pass dataset=<name> (e.g. dataset=synthetic)"
+        )
+    chosen = dataset_cfg if dataset_cfg is not None else OmegaConf.create(stored)
+    return instantiate(OmegaConf.merge(chosen, overrides) if overrides else chosen)
 
 
 def log_hyperparameters(loggers: list[Any], hparams: dict[str, Any]) -> None:
@@ -99,6 +164,11 @@ def to_float(value: Any) -> float | None:
     except (TypeError, ValueError):
         return None
     return f if math.isfinite(f) else None
+
+
+def test_metrics(trainer: L.Trainer) -> dict[str, float | None]:
+    """The ``test/*`` metrics of the trainer's last ``test`` as JSON-safe floats."""
+    return {k: to_float(v) for k, v in trainer.callback_metrics.items() if k.startswith("test/")}
 
 
 def write_metrics(path: Path, metrics: dict[str, Any], extra: dict[str, Any] | None = None) -> dict:

@@ -19,7 +19,7 @@ from pathlib import Path
 
 from mfg_lightning.atomic import atomic_write_text
 
-__all__ = ["Column", "Table", "fmt"]
+__all__ = ["Column", "Table", "fmt", "pm"]
 
 Cell = str | float | int | None
 
@@ -39,6 +39,16 @@ def fmt(x: float | int | None, digits: int = 4) -> str:
     if x != 0 and abs(x) < 0.5 * 10.0**-digits:
         return f"{x:.1e}"
     return f"{x:.{digits}f}"
+
+
+def pm(
+    mean: float | None, std: float | None, digits: int = 4, std_digits: int | None = None
+) -> str:
+    """``mean ± std`` for a table cell, each with :func:`fmt` (``std_digits`` defaults to
+    ``digits``); :data:`MISSING` alone when the mean is undefined."""
+    if fmt(mean) == MISSING:
+        return MISSING
+    return f"{fmt(mean, digits)} ± {fmt(std, digits if std_digits is None else std_digits)}"
 
 
 @dataclass(frozen=True)
