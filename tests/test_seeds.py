@@ -11,7 +11,8 @@ import pytest
 
 from conftest import run_module
 from mfg_lightning.config import compose
-from mfg_lightning.report import seed_groups, swept_keys, write_report
+from mfg_lightning.report import write_report
+from mfg_lightning.sweeps import seed_groups, swept_keys
 from test_sweeps import _fake_job, _metrics
 
 

@@ -1,4 +1,6 @@
-"""The tables of an evaluation, built from its logged ``test/*`` metrics (:mod:`~.tables`).
+"""The result tables (:class:`~mfg_lightning.tables.Table`): of an evaluation, from its logged
+``test/*`` metrics (:mod:`mfg_lightning.evaluate`), and of a multirun, from its jobs
+(:mod:`mfg_lightning.sweeps`, written by :mod:`mfg_lightning.report`).
 
 Metric names as the module logs them: ``test/<metric>`` over all test sequences and
 ``test/<seq>/<metric>`` per sequence; ``<metric>_std`` beside a mean is its standard deviation.
@@ -7,12 +9,25 @@ Units: ATE and RPE translation in metres, RPE rotation in radians, drift in % an
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from typing import Any
+from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING, Any
 
-from mfg_lightning.tables import Column, Table, pm
+from mfg_lightning.sweeps import CONFIG_COLUMNS, MAIN_METRICS, SEED_KEY
+from mfg_lightning.tables import Column, Table, finite_or_none, pm
 
-__all__ = ["object_motion_table", "scoped", "sequence_table", "top_k_table"]
+if TYPE_CHECKING:
+    from mfg_lightning.sweeps import JobRecord, SeedGroup
+
+__all__ = [
+    "object_motion_table",
+    "scoped",
+    "seeds_csv_table",
+    "seeds_table",
+    "sequence_table",
+    "sweep_csv_table",
+    "sweep_table",
+    "top_k_table",
+]
 
 #: The object-motion scores per method: (metric key, column).
 _OBJECT_COLUMNS = (
@@ -71,4 +86,102 @@ def object_motion_table(metrics: Mapping[str, float | None]) -> Table:
     for name, key in (("MFG + filters (paper §4)", "object"),
                       ("‖r‖ threshold baseline", "object_baseline")):  # fmt: skip
         table.add_row([name, *(metrics.get(f"test/{key}/{m}") for m, _ in _OBJECT_COLUMNS)])
+    return table
+
+
+# --------------------------------------------------------------------------------------------
+# The tables of a multirun (mfg_lightning.report)
+# --------------------------------------------------------------------------------------------
+
+#: The seed table's metrics in ``report.md``: (report column, column, scale).
+_SEED_COLUMNS = (
+    ("ate", Column("ATE", "m"), 1.0),
+    ("rpe_trans", Column("RPE trans", "m"), 1.0),
+    ("rpe_rot", Column("RPE rot", "rad", digits=5), 1.0),
+    ("trans_err", Column("trans err", "m"), 1.0),
+    ("rot_err", Column("rot err", "rad", digits=5), 1.0),
+    ("active_fraction", Column("active units", "%", digits=2), 100.0),
+)
+
+
+def _scaled(value: float | None, scale: float) -> float | None:
+    return None if value is None else scale * value
+
+
+def sweep_csv_table(jobs: Sequence[JobRecord], swept: Sequence[str]) -> Table:
+    """``report.csv``: a row per job: job, status, reason, the swept values, the config values
+    of :data:`~mfg_lightning.sweeps.CONFIG_COLUMNS`, the main metrics, ``train_seconds``,
+    ``global_step``, then every metric key found in any job (empty where a job has none)."""
+    metric_keys = sorted({k for j in jobs for k in j.metrics})
+    names = ["job", "status", "reason", *swept, *CONFIG_COLUMNS, *MAIN_METRICS, "train_seconds",
+             "global_step", *metric_keys]  # fmt: skip
+    table = Table([Column(n) for n in names])
+    for j in jobs:
+        table.add_row([
+            j.name, j.status, j.reason, *[j.overrides.get(k, "") for k in swept],
+            *[j.config_value(key) for key in CONFIG_COLUMNS.values()],
+            *[j.metric(c) for c in MAIN_METRICS], finite_or_none(j.extra.get("train_seconds")),
+            j.extra.get("global_step"), *[j.metrics.get(k) for k in metric_keys],
+        ])  # fmt: skip
+    return table
+
+
+def sweep_table(jobs: Sequence[JobRecord], swept: Sequence[str]) -> Table:
+    """``report.md``'s table: a row per job with the swept values and the main metrics; the ATE
+    and RPE columns only when some job has them."""
+    has = {c: any(j.metric(c) is not None for j in jobs) for c in MAIN_METRICS}
+    optional = [
+        ("ate", Column("ATE", "m")),
+        ("rpe_trans", Column("RPE trans", "m")),
+        ("rpe_rot", Column("RPE rot", "rad", digits=5)),
+    ]
+    shown = [(c, col) for c, col in optional if has[c]]
+    table = Table([
+        Column("job"), Column("status"), *[Column(f"`{k}`") for k in swept], *(c for _, c in shown),
+        Column("trans err", "m"), Column("rot err", "rad", digits=5),
+        Column("active units", "%", digits=1), Column("train time", "s", digits=1),
+    ])  # fmt: skip
+    for j in jobs:
+        cells: list[Any] = [j.name, "ok" if j.ok else "**failed**"]
+        cells += [j.overrides.get(k, "") for k in swept]
+        cells += [pm(j.metric("ate"), j.metric("ate_std")) if c == "ate" else j.metric(c)
+                  for c, _ in shown]  # fmt: skip
+        cells += [j.metric("trans_err"), j.metric("rot_err"),
+                  _scaled(j.metric("active_fraction"), 100.0),
+                  finite_or_none(j.extra.get("train_seconds"))]  # fmt: skip
+        table.add_row(cells)
+    return table
+
+
+def seeds_table(groups: Sequence[SeedGroup], swept: Sequence[str]) -> Table:
+    """``report.md``'s seed table: per group of jobs that differ only in ``seed``, the shared
+    swept values, the finished seeds and mean ± std (ddof = 1) over them of each metric."""
+    keys = [k for k in swept if k != SEED_KEY]
+    columns = [c for c in _SEED_COLUMNS if any(g.stats(c[0])[2] for g in groups)]
+    table = Table([*[Column(f"`{k}`") for k in keys], Column("n"), Column("seeds"),
+                   *(col for _, col, _ in columns)])  # fmt: skip
+    for g in groups:
+        cells: list[Any] = [g.overrides.get(k, "") for k in keys]
+        cells += [f"{len(g.finished)} of {len(g.jobs)}", " ".join(g.seeds) or "–"]
+        for c, col, scale in columns:
+            mean, std, _ = g.stats(c)
+            cells.append(pm(_scaled(mean, scale), _scaled(std, scale), col.digits))
+        table.add_row(cells)
+    return table
+
+
+def seeds_csv_table(groups: Sequence[SeedGroup], swept: Sequence[str]) -> Table:
+    """``seeds.csv``: per group, the shared swept values, n, the seeds, then the mean and the
+    std over seeds of the main metrics, ``train_seconds`` and every ``metrics.json`` key."""
+    keys = [k for k in swept if k != SEED_KEY]
+    raw = sorted({k for g in groups for j in g.finished for k in j.metrics})
+    metrics = [*MAIN_METRICS, "train_seconds", *raw]
+    names = [*keys, "n", "jobs", "seeds", *[f"{m} {s}" for m in metrics for s in ("mean", "std")]]
+    table = Table([Column(n) for n in names])
+    for g in groups:
+        row: list[Any] = [g.overrides.get(k, "") for k in keys]
+        row += [len(g.finished), len(g.jobs), " ".join(g.seeds)]
+        for m in metrics:
+            row += list(g.stats(m)[:2])
+        table.add_row(row)
     return table

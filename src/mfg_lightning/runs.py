@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import subprocess
 from pathlib import Path
 from typing import Any
@@ -27,6 +26,9 @@ from mfg_lightning.errors import (  # noqa: F401
     in_multirun,
     user_error_message,
 )
+
+#: A metric value as a JSON-safe float (None for NaN or infinity).
+from mfg_lightning.tables import finite_or_none as to_float
 
 log = logging.getLogger(__name__)
 
@@ -155,15 +157,6 @@ def finish_stale_logger_runs() -> None:
     if wandb is not None and getattr(wandb, "run", None) is not None:
         log.warning("finishing the W&B run %s left open by a failed job", wandb.run.id)
         wandb.finish(exit_code=1)
-
-
-def to_float(value: Any) -> float | None:
-    """A metric value as a JSON-safe float (None for NaN or infinity)."""
-    try:
-        f = float(value)
-    except (TypeError, ValueError):
-        return None
-    return f if math.isfinite(f) else None
 
 
 def test_metrics(trainer: L.Trainer) -> dict[str, float | None]:
