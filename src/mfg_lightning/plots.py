@@ -394,6 +394,7 @@ def _sweep_figure(
     title: str,
 ) -> Figure:
     """One figure of panels (metric against x), one line per value of the other swept keys."""
+    from matplotlib.figure import Figure as MplFigure
     group_keys = [k for k in swept if k != x_key]
     groups: dict[str, list[JobRecord]] = {}
     for j in jobs:
@@ -402,7 +403,7 @@ def _sweep_figure(
 
     xs_all = sorted({x for x in (x_of(j) for j in jobs) if x is not None})
     width = max(5.0, 4.2 * len(panels))
-    fig = Figure(figsize=(width, 3.6), dpi=110)  # tight layout below, not constrained
+    fig = MplFigure(figsize=(width, 3.6), dpi=110)
     axes = fig.subplots(1, len(panels), squeeze=False)
     for ax, (column, std_column, label) in zip(axes[0], panels, strict=True):
         for name, members in groups.items():
