@@ -9,6 +9,7 @@ then the script's tables and notes. Scripts print the same text they write.
 
 from __future__ import annotations
 
+import argparse
 import os
 import platform
 import shlex
@@ -31,6 +32,19 @@ TINY_OVERRIDES = (
     "model.net.hidden_units=64",
     "model.net.channels=[8,8,16,16,32]",
 )
+
+
+def add_common_arguments(
+    parser: argparse.ArgumentParser,
+    threads: str = "torch threads (default: all)",
+    tiny: str = "seconds-long smoke run (tiny model)",
+) -> argparse.ArgumentParser:
+    """The options every benchmark script takes: ``--threads``, ``--out`` (results directory,
+    default ``bench/results``) and ``--tiny``; ``threads`` and ``tiny`` are their help texts."""
+    parser.add_argument("--threads", type=int, default=None, help=threads)
+    parser.add_argument("--out", type=Path, default=None, help="results directory")
+    parser.add_argument("--tiny", action="store_true", help=tiny)
+    return parser
 
 
 def load_average() -> str:

@@ -346,12 +346,5 @@ class BatchChecks(L.Callback):
     ) -> None:
         self._check(pl_module, batch)
 
-    def on_test_batch_start(
-        self,
-        trainer: L.Trainer,
-        pl_module: L.LightningModule,
-        batch: Any,
-        batch_idx: int,
-        dataloader_idx: int = 0,
-    ) -> None:
-        self._check(pl_module, batch)
+    # Test batches are checked like validation batches (the same hook signature).
+    on_test_batch_start = on_validation_batch_start

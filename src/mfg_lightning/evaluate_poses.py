@@ -275,27 +275,20 @@ def summarise(errors: Sequence[SequenceErrors]) -> dict[str, float | int | None]
 
 
 def evaluate_trajectory(
-    gt: np.ndarray,
-    pred: np.ndarray,
-    delta: int = 1,
-    snippet_length: int = 5,
-    align: str = "none",
-    n_to_align: int | None = None,
+    gt: np.ndarray, pred: np.ndarray, **options: Any
 ) -> dict[str, float | int | None]:
     """ATE over snippets, whole-trajectory ATE, RPE and KITTI drift of one estimated trajectory.
 
     Args:
         gt: ``(N, 4, 4)`` ground-truth camera-to-world poses (metres), in frame order.
         pred: ``(N, 4, 4)`` estimated camera-to-world poses, any world frame, same frames.
-        delta: RPE frame gap.
-        snippet_length: frames per ATE snippet.
-        align, n_to_align: alignment for the whole-trajectory ATE, RPE and drift (``none``: the
-            poses as they are).
+        options: ``delta``, ``snippet_length``, ``align``, ``n_to_align`` as
+            :func:`sequence_errors` takes them.
 
     Returns:
         The flat dict of :func:`summarise`.
     """
-    return summarise([sequence_errors(gt, pred, delta, snippet_length, align, n_to_align)])
+    return summarise([sequence_errors(gt, pred, **options)])
 
 
 # ------------------------------------------------------------------------------------------------
