@@ -27,17 +27,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import Report, add_common_arguments, fmt, markdown_table
 
 #: Reported in the reduction table (all test metrics are compared).
-SHOWN = (
-    "test/trans_err",
-    "test/rot_err",
-    "test/loss",
-    "test/baseline_trans_err",
-    "test/ate",
-    "test/ate_std",
-    "test/rpe_trans",
-    "test/rpe_rot",
-    "test/object/iou",
-)
+SHOWN = ("test/trans_err", "test/rot_err", "test/loss", "test/baseline_trans_err", "test/ate",
+         "test/ate_std", "test/rpe_trans", "test/rpe_rot", "test/object/iou")  # fmt: skip
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:

@@ -36,15 +36,8 @@ def _compose_with_hydra(overrides: list[str]):
 @pytest.mark.slow
 def test_two_by_two_multirun_and_its_report(tmp_path: Path) -> None:
     sweep = tmp_path / "sweep"
-    run_module(
-        "mfg_lightning.train",
-        "-m",
-        "debug=tiny",
-        "model.loss.w_s=0,100",
-        "model.top_k=1.0,0.5",
-        f"hydra.sweep.dir={sweep}",
-        cwd=tmp_path,
-    )
+    run_module("mfg_lightning.train", "-m", "debug=tiny", "model.loss.w_s=0,100",
+               "model.top_k=1.0,0.5", f"hydra.sweep.dir={sweep}", cwd=tmp_path)  # fmt: skip
     assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == ["0", "1", "2", "3"]
 
     proc = run_module("mfg_lightning.report", str(sweep), cwd=tmp_path)
