@@ -71,6 +71,7 @@ import numpy as np
 
 from mfg_lightning.errors import report_user_error
 from mfg_lightning.pose_io import PoseFile, PoseFileError, read_poses
+from mfg_lightning.result_tables import pose_results_table
 
 if TYPE_CHECKING:
     from torch import Tensor
@@ -408,38 +409,6 @@ def read_inputs(
 # ------------------------------------------------------------------------------------------------
 
 
-def _columns() -> list:
-    from mfg_lightning.tables import Column
-
-    return [
-        Column("method"),
-        Column("ATE traj RMSE", "m", 4),
-        Column("ATE traj mean", "m", 4),
-        Column("ATE traj std", "m", 4),
-        Column("scale", "", 4),
-        Column("ATE 5-frame", "m", 4),
-        Column("ATE 5-frame std", "m", 4),
-        Column("RPE trans", "m", 4),
-        Column("RPE rot", "rad", 5),
-        Column("t_err", "%", 2),
-        Column("r_err", "deg/100m", 2),
-    ]
-
-
-def results_table(results: dict[str, dict[str, float | int | None]], title: str) -> Table:
-    """One row per method of the flat metrics of :func:`summarise`."""
-    from mfg_lightning.tables import Table
-
-    table = Table(_columns(), title=title)
-    for name, m in results.items():
-        table.add_row(
-            [name, m["ate_traj"], m["ate_traj_mean"], m["ate_traj_std"], m["ate_traj_scale"],
-             m["ate"], m["ate_std"], m["rpe_trans"], m["rpe_rot"], m["kitti_t_err"],
-             m["kitti_r_err"]]
-        )  # fmt: skip
-    return table
-
-
 def _print_table(result: dict[str, float | int | None], args: argparse.Namespace) -> None:
     from rich.console import Console
     from rich.table import Table
@@ -605,13 +574,13 @@ def _run(args: argparse.Namespace) -> int:
     if args.n_to_align is not None and args.align != "none":
         aligned += f" on the first {args.n_to_align} poses"
     tables = {
-        f"table_{seq}": results_table(
+        f"table_{seq}": pose_results_table(
             {name: per_sequence[name][seq] for name in inputs.methods},
             f"Sequence {seq} ({inputs.gt[seq].poses.shape[0]} poses), {aligned}",
         )
         for seq in inputs.gt
     }
-    tables["table_overall"] = results_table(
+    tables["table_overall"] = pose_results_table(
         overall, f"All sequences ({', '.join(inputs.gt)}), {aligned}; scale is per sequence"
     )
     if args.out is not None:

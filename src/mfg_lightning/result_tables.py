@@ -20,6 +20,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "object_motion_table",
+    "pose_results_table",
     "scoped",
     "seeds_csv_table",
     "seeds_table",
@@ -77,6 +78,25 @@ def top_k_table(results: Mapping[float, Mapping[str, float | None]], sequences: 
         per = [_pm(scoped(m, f"test/{s}/"), "ate") for s in sequences]
         table.add_row([f"{100 * k:g}", *per, _pm(overall, "ate"), overall.get("rpe_trans"),
                        overall.get("rpe_rot")])  # fmt: skip
+    return table
+
+
+def pose_results_table(
+    results: Mapping[str, Mapping[str, float | int | None]], title: str
+) -> Table:
+    """``mfg-eval-poses``: one row per method of the flat metrics of
+    :func:`mfg_lightning.evaluate_poses.summarise` (whole-trajectory ATE with its fitted scale,
+    5-frame snippet ATE, RPE, KITTI drift)."""
+    table = Table([
+        Column("method"), Column("ATE traj RMSE", "m"), Column("ATE traj mean", "m"),
+        Column("ATE traj std", "m"), Column("scale"), Column("ATE 5-frame", "m"),
+        Column("ATE 5-frame std", "m"), Column("RPE trans", "m"), Column("RPE rot", "rad", 5),
+        Column("t_err", "%", 2), Column("r_err", "deg/100m", 2),
+    ], title=title)  # fmt: skip
+    keys = ("ate_traj", "ate_traj_mean", "ate_traj_std", "ate_traj_scale", "ate", "ate_std",
+            "rpe_trans", "rpe_rot", "kitti_t_err", "kitti_r_err")  # fmt: skip
+    for name, m in results.items():
+        table.add_row([name, *(m[k] for k in keys)])
     return table
 
 
