@@ -395,6 +395,7 @@ def _sweep_figure(
 ) -> Figure:
     """One figure of panels (metric against x), one line per value of the other swept keys."""
     from matplotlib.figure import Figure as MplFigure
+
     group_keys = [k for k in swept if k != x_key]
     groups: dict[str, list[JobRecord]] = {}
     for j in jobs:
