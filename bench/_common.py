@@ -1,5 +1,7 @@
 """What every benchmark script shares: the environment record, Markdown tables, results files.
 
+Tables and numbers are :mod:`mfg_lightning.tables`' (``markdown_table`` and ``fmt`` here).
+
 A results file is Markdown: a title, the exact command that produced it, the machine (cores, CPU,
 load average at the start and the end, since the machine may be shared) and the library versions,
 then the script's tables and notes. Scripts print the same text they write.
@@ -7,6 +9,7 @@ then the script's tables and notes. Scripts print the same text they write.
 
 from __future__ import annotations
 
+import argparse
 import os
 import platform
 import shlex
@@ -14,6 +17,9 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
+
+# One number format for every table of the project: bench scripts import it from here.
+from mfg_lightning.tables import Column, Table, fmt  # noqa: F401
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS_DIR = REPO / "bench" / "results"
@@ -26,6 +32,19 @@ TINY_OVERRIDES = (
     "model.net.hidden_units=64",
     "model.net.channels=[8,8,16,16,32]",
 )
+
+
+def add_common_arguments(
+    parser: argparse.ArgumentParser,
+    threads: str = "torch threads (default: all)",
+    tiny: str = "seconds-long smoke run (tiny model)",
+) -> argparse.ArgumentParser:
+    """The options every benchmark script takes: ``--threads``, ``--out`` (results directory,
+    default ``bench/results``) and ``--tiny``; ``threads`` and ``tiny`` are their help texts."""
+    parser.add_argument("--threads", type=int, default=None, help=threads)
+    parser.add_argument("--out", type=Path, default=None, help="results directory")
+    parser.add_argument("--tiny", action="store_true", help=tiny)
+    return parser
 
 
 def load_average() -> str:
@@ -77,20 +96,10 @@ def command_line() -> str:
 
 
 def markdown_table(header: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
-    """A GitHub Markdown table (cells converted with ``str``)."""
-    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
-    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
-    return "\n".join(lines) + "\n"
-
-
-def fmt(x: float | None, digits: int = 4) -> str:
-    """A number for a table with ``digits`` decimals; scientific notation for a non-zero value
-    too small to show (an error floor of 1e-8 is not 0.0000); ``–`` for None or NaN."""
-    if x is None or x != x:
-        return "–"
-    if x != 0 and abs(x) < 0.5 * 10**-digits:
-        return f"{x:.1e}"
-    return f"{x:.{digits}f}"
+    """A GitHub Markdown table (:class:`mfg_lightning.tables.Table`; cells converted with ``str``,
+    so the scripts format their numbers with :func:`fmt`)."""
+    table = Table([Column(str(h)) for h in header], [[str(c) for c in row] for row in rows])
+    return table.markdown()
 
 
 class Report:

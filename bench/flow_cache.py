@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import REPO, Report, markdown_table
+from _common import REPO, Report, add_common_arguments, markdown_table
 
 #: The frames a KITTI odometry colour camera delivers (image_2), width × height.
 KITTI_WIDTH, KITTI_HEIGHT = 1241, 376
@@ -35,9 +35,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--frames", type=int, default=41, help="frames of the sequence (pairs + 1)")
     p.add_argument("--preset", default="medium", help="DIS preset (the dataset's default)")
-    p.add_argument("--threads", type=int, default=None, help="OpenCV / torch threads")
-    p.add_argument("--out", type=Path, default=None, help="results directory")
-    p.add_argument("--tiny", action="store_true", help="seconds-long smoke run (small frames)")
+    add_common_arguments(p, "OpenCV / torch threads", "seconds-long smoke run (small frames)")
     return p.parse_args(argv)
 
 

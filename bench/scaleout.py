@@ -24,20 +24,11 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import Report, fmt, markdown_table
+from _common import Report, add_common_arguments, fmt, markdown_table
 
 #: Reported in the reduction table (all test metrics are compared).
-SHOWN = (
-    "test/trans_err",
-    "test/rot_err",
-    "test/loss",
-    "test/baseline_trans_err",
-    "test/ate",
-    "test/ate_std",
-    "test/rpe_trans",
-    "test/rpe_rot",
-    "test/object/iou",
-)
+SHOWN = ("test/trans_err", "test/rot_err", "test/loss", "test/baseline_trans_err", "test/ate",
+         "test/ate_std", "test/rpe_trans", "test/rpe_rot", "test/object/iou")  # fmt: skip
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -46,14 +37,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--batch-size", type=int, default=16, help="per process")
     p.add_argument("--short", type=int, default=10, help="steps of the short run")
     p.add_argument("--long", type=int, default=50, help="steps of the long run")
-    p.add_argument(
-        "--threads",
-        type=int,
-        default=None,
-        help="torch threads of the single process (default: all cores; DDP processes share them)",
-    )
-    p.add_argument("--out", type=Path, default=None, help="results directory")
-    p.add_argument("--tiny", action="store_true", help="seconds-long smoke run (tiny model)")
+    threads = "torch threads of the single process (default: all cores; DDP processes share them)"
+    add_common_arguments(p, threads)
     return p.parse_args(argv)
 
 

@@ -38,7 +38,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import TINY_OVERRIDES, Report, fmt, markdown_table
+from _common import TINY_OVERRIDES, Report, add_common_arguments, fmt, markdown_table
 
 #: The optimiser settings compared: the default build and the faster one.
 VARIANTS = {
@@ -58,9 +58,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--candidate-repeats", type=int, default=3, help="of the other measurements")
     p.add_argument("--rss-steps", type=int, default=60, help="steps of the peak-memory run")
     p.add_argument("--no-compile", action="store_true", help="skip the torch.compile candidate")
-    p.add_argument("--threads", type=int, default=None, help="torch threads (default: all)")
-    p.add_argument("--out", type=Path, default=None, help="results directory")
-    p.add_argument("--tiny", action="store_true", help="seconds-long smoke run (tiny model)")
+    add_common_arguments(p)
     return p.parse_args(argv)
 
 

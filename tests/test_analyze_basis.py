@@ -13,7 +13,7 @@ import torch
 
 from conftest import run_module
 from mfg_lightning import geometry
-from mfg_lightning.analyze_basis import (
+from mfg_lightning.basis import (
     SELECTIVITY_COLUMNS,
     decoder_norms,
     example_indices,

@@ -27,15 +27,8 @@ pytestmark = pytest.mark.slow
 def _run_bench(script: str, out: Path, *args: str) -> str:
     """Run ``bench/<script> --tiny`` on one thread; return the Markdown file it wrote."""
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", MFG_CACHE_DIR=str(out))
-    proc = subprocess.run(
-        [sys.executable, str(BENCH / script), "--tiny", "--out", str(out), *args],
-        cwd=out,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=300,
-        check=False,
-    )
+    command = [sys.executable, str(BENCH / script), "--tiny", "--out", str(out), *args]
+    proc = subprocess.run(command, cwd=out, env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, f"{script} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
     path = out / f"{Path(script).stem}.md"
     text = path.read_text()

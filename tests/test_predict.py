@@ -187,8 +187,8 @@ def test_image_folder_frames_in_natural_order_and_only_for_prediction(tmp_path: 
     image = np.zeros((20, 40, 3), np.uint8)
     for k in (1, 2, 10):
         cv2.imwrite(str(frames / f"img{k}.png"), image + k)
-    dm = ImageFolderDataModule(frames, fx=50, fy=50, cx=20, cy=10, height=H, width=W,
-                               times=None, cache_dir=str(tmp_path / "cache"))  # fmt: skip
+    camera = {"fx": 50, "fy": 50, "cx": 20, "cy": 10, "height": H, "width": W}
+    dm = ImageFolderDataModule(frames, **camera, times=None, cache_dir=str(tmp_path / "cache"))
     ds = dm.dataset("predict")
     assert [ds.image_path("frames", k).name for k in range(3)] == ["img1.png", "img2.png",
                                                                    "img10.png"]  # fmt: skip
@@ -203,28 +203,12 @@ def test_image_folder_frames_in_natural_order_and_only_for_prediction(tmp_path: 
             dm.dataset(split)
     # another pattern selects other files: another cache key
     other = ImageFolderDataModule(
-        frames,
-        fx=50,
-        fy=50,
-        cx=20,
-        cy=10,
-        height=H,
-        width=W,
-        pattern="img1*.png",
-        cache_dir=str(tmp_path / "cache"),
+        frames, **camera, pattern="img1*.png", cache_dir=str(tmp_path / "cache")
     )
     assert other.dataset("predict").cache.root != ds.cache.root
     (tmp_path / "times.txt").write_text("1.0\n2.0\n")
     bad = ImageFolderDataModule(
-        frames,
-        fx=50,
-        fy=50,
-        cx=20,
-        cy=10,
-        height=H,
-        width=W,
-        times=str(tmp_path / "times.txt"),
-        cache_dir=str(tmp_path),
+        frames, **camera, times=str(tmp_path / "times.txt"), cache_dir=str(tmp_path)
     )
     with pytest.raises(ValueError, match="2 timestamps for 3 frames"):
         bad.dataset("predict").timestamps("frames")

@@ -13,14 +13,9 @@ from hydra import compose, initialize_config_dir
 
 from conftest import run_module
 from mfg_lightning.config import CONFIG_DIR
-from mfg_lightning.report import (
-    PLOT_FILES,
-    NotAMultirunError,
-    collect_jobs,
-    main,
-    swept_keys,
-    write_report,
-)
+from mfg_lightning.plots import SWEEP_FIGURES
+from mfg_lightning.report import main, write_report
+from mfg_lightning.sweeps import NotAMultirunError, collect_jobs, swept_keys
 
 
 def _rows(path: Path) -> list[dict[str, str]]:
@@ -41,15 +36,8 @@ def _compose_with_hydra(overrides: list[str]):
 @pytest.mark.slow
 def test_two_by_two_multirun_and_its_report(tmp_path: Path) -> None:
     sweep = tmp_path / "sweep"
-    run_module(
-        "mfg_lightning.train",
-        "-m",
-        "debug=tiny",
-        "model.loss.w_s=0,100",
-        "model.top_k=1.0,0.5",
-        f"hydra.sweep.dir={sweep}",
-        cwd=tmp_path,
-    )
+    run_module("mfg_lightning.train", "-m", "debug=tiny", "model.loss.w_s=0,100",
+               "model.top_k=1.0,0.5", f"hydra.sweep.dir={sweep}", cwd=tmp_path)  # fmt: skip
     assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == ["0", "1", "2", "3"]
 
     proc = run_module("mfg_lightning.report", str(sweep), cwd=tmp_path)
@@ -77,7 +65,7 @@ def test_two_by_two_multirun_and_its_report(tmp_path: Path) -> None:
     assert "`model.loss.w_s`" in md and "`model.top_k`" in md
     assert "Common overrides: `debug=tiny`" in md
     assert "active units (%)" in md and "train time (s)" in md
-    for name in PLOT_FILES:
+    for name in SWEEP_FIGURES:
         png = out / name
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
     assert "| job | status |" in proc.stdout

@@ -43,33 +43,18 @@ def test_short_training_writes_a_complete_run_directory(tmp_path: Path) -> None:
     # TensorBoard event files, read back: every loss term, the active fraction and the pictures.
     acc = _events(run)
     scalars = set(acc.Tags()["scalars"])
-    for tag in (
-        "train/loss",
-        "train/l_t",
-        "train/l_omega",
-        "train/l_s",
-        "train/w_t",
-        "train/w_omega",
-        "train/active_fraction",
-        "val/trans_err",
-        "val/rot_err",
-        "train/lr",
-    ):
-        assert tag in scalars, tag
+    expected = {"train/loss", "train/l_t", "train/l_omega", "train/l_s", "train/w_t",
+                "train/w_omega", "train/active_fraction", "val/trans_err", "val/rot_err",
+                "train/lr"}  # fmt: skip
+    assert expected <= scalars, expected - scalars
     # The default schedule: cosine from Adam's 1e-3 towards 0 over trainer.max_steps (4 here).
     lrs = [e.value for e in acc.Scalars("train/lr")]
     assert len(lrs) == 4 and lrs[0] == pytest.approx(1e-3)
     assert all(a > b for a, b in itertools.pairwise(lrs)) and lrs[-1] < 2e-4
     images = set(acc.Tags()["images"])
-    for tag in (
-        "train/flow",
-        "train/v_t_gt",
-        "train/v_t_pred",
-        "train/v_omega_gt",
-        "train/v_omega_pred",
-        "train/hidden_activations",
-    ):
-        assert tag in images, tag
+    expected = {"train/flow", "train/v_t_gt", "train/v_t_pred", "train/v_omega_gt",
+                "train/v_omega_pred", "train/hidden_activations"}  # fmt: skip
+    assert expected <= images, expected - images
     # TensorBoard's HParams view: settings and final metrics of the run.
     hparams_runs = [
         EventAccumulator(str(f)) for f in sorted((run / "tensorboard").glob("events.out.*"))

@@ -39,7 +39,7 @@ from lightning.pytorch.trainer.states import TrainerFn
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from mfg_lightning.atomic import atomic_write_bytes
-from mfg_lightning.runs import UserError
+from mfg_lightning.errors import UserError
 
 log = logging.getLogger(__name__)
 
@@ -346,12 +346,5 @@ class BatchChecks(L.Callback):
     ) -> None:
         self._check(pl_module, batch)
 
-    def on_test_batch_start(
-        self,
-        trainer: L.Trainer,
-        pl_module: L.LightningModule,
-        batch: Any,
-        batch_idx: int,
-        dataloader_idx: int = 0,
-    ) -> None:
-        self._check(pl_module, batch)
+    # Test batches are checked like validation batches (the same hook signature).
+    on_test_batch_start = on_validation_batch_start

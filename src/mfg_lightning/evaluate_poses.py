@@ -69,7 +69,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from mfg_lightning.errors import report_user_error
 from mfg_lightning.pose_io import PoseFile, PoseFileError, read_poses
+from mfg_lightning.result_tables import pose_results_table
 
 if TYPE_CHECKING:
     from torch import Tensor
@@ -274,27 +276,20 @@ def summarise(errors: Sequence[SequenceErrors]) -> dict[str, float | int | None]
 
 
 def evaluate_trajectory(
-    gt: np.ndarray,
-    pred: np.ndarray,
-    delta: int = 1,
-    snippet_length: int = 5,
-    align: str = "none",
-    n_to_align: int | None = None,
+    gt: np.ndarray, pred: np.ndarray, **options: Any
 ) -> dict[str, float | int | None]:
     """ATE over snippets, whole-trajectory ATE, RPE and KITTI drift of one estimated trajectory.
 
     Args:
         gt: ``(N, 4, 4)`` ground-truth camera-to-world poses (metres), in frame order.
         pred: ``(N, 4, 4)`` estimated camera-to-world poses, any world frame, same frames.
-        delta: RPE frame gap.
-        snippet_length: frames per ATE snippet.
-        align, n_to_align: alignment for the whole-trajectory ATE, RPE and drift (``none``: the
-            poses as they are).
+        options: ``delta``, ``snippet_length``, ``align``, ``n_to_align`` as
+            :func:`sequence_errors` takes them.
 
     Returns:
         The flat dict of :func:`summarise`.
     """
-    return summarise([sequence_errors(gt, pred, delta, snippet_length, align, n_to_align)])
+    return summarise([sequence_errors(gt, pred, **options)])
 
 
 # ------------------------------------------------------------------------------------------------
@@ -412,38 +407,6 @@ def read_inputs(
 # ------------------------------------------------------------------------------------------------
 # Output
 # ------------------------------------------------------------------------------------------------
-
-
-def _columns() -> list:
-    from mfg_lightning.tables import Column
-
-    return [
-        Column("method"),
-        Column("ATE traj RMSE", "m", 4),
-        Column("ATE traj mean", "m", 4),
-        Column("ATE traj std", "m", 4),
-        Column("scale", "", 4),
-        Column("ATE 5-frame", "m", 4),
-        Column("ATE 5-frame std", "m", 4),
-        Column("RPE trans", "m", 4),
-        Column("RPE rot", "rad", 5),
-        Column("t_err", "%", 2),
-        Column("r_err", "deg/100m", 2),
-    ]
-
-
-def results_table(results: dict[str, dict[str, float | int | None]], title: str) -> Table:
-    """One row per method of the flat metrics of :func:`summarise`."""
-    from mfg_lightning.tables import Table
-
-    table = Table(_columns(), title=title)
-    for name, m in results.items():
-        table.add_row(
-            [name, m["ate_traj"], m["ate_traj_mean"], m["ate_traj_std"], m["ate_traj_scale"],
-             m["ate"], m["ate_std"], m["rpe_trans"], m["rpe_rot"], m["kitti_t_err"],
-             m["kitti_r_err"]]
-        )  # fmt: skip
-    return table
 
 
 def _print_table(result: dict[str, float | int | None], args: argparse.Namespace) -> None:
@@ -611,13 +574,13 @@ def _run(args: argparse.Namespace) -> int:
     if args.n_to_align is not None and args.align != "none":
         aligned += f" on the first {args.n_to_align} poses"
     tables = {
-        f"table_{seq}": results_table(
+        f"table_{seq}": pose_results_table(
             {name: per_sequence[name][seq] for name in inputs.methods},
             f"Sequence {seq} ({inputs.gt[seq].poses.shape[0]} poses), {aligned}",
         )
         for seq in inputs.gt
     }
-    tables["table_overall"] = results_table(
+    tables["table_overall"] = pose_results_table(
         overall, f"All sequences ({', '.join(inputs.gt)}), {aligned}; scale is per sequence"
     )
     if args.out is not None:
@@ -684,20 +647,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _usage_error(parser, "--n-to-align must be >= 1")
     try:
         return _run(args)
-    except (PoseFileError, InputError) as exc:
-        # The common input errors answer before torch and the metrics are imported.
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
     except Exception as exc:
-        # Everything else is classified as every entry point does (runs.exit_on_user_error):
-        # imported only now, since it pulls in Lightning and Hydra.
-        from mfg_lightning.runs import user_error_message
-
-        message = user_error_message(exc)
-        if message is None:
-            raise
-        print(f"error: {message}", file=sys.stderr)
-        return 2
+        # PoseFileError and InputError answer before torch and the metrics are imported;
+        # everything is classified as every entry point does (mfg_lightning.errors).
+        return report_user_error(exc)
 
 
 if __name__ == "__main__":

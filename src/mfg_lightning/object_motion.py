@@ -41,8 +41,9 @@ or not the flow there is valid).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import torch
 from torch import Tensor
@@ -58,6 +59,7 @@ __all__ = [
     "filter_average_threshold",
     "filter_divisive_normalisation",
     "normalise_depth",
+    "require_ground_truth",
     "residual",
     "squared_norm",
     "threshold_baseline",
@@ -84,6 +86,14 @@ def _missing_depth_message() -> str:
         + "; ".join(DATASETS_WITH_DEPTH)
         + ". KITTI odometry has no depth ground truth, so object motion is not evaluated on it."
     )
+
+
+def require_ground_truth(sample: Mapping[str, Any]) -> None:
+    """Refuse a dataset whose samples lack the ``depth`` and ``object_mask`` that object-motion
+    extraction and its scores need (raises :class:`ObjectMotionError`, naming the datasets
+    that have them)."""
+    if "depth" not in sample or "object_mask" not in sample:
+        raise ObjectMotionError(_missing_depth_message())
 
 
 @dataclass

@@ -16,15 +16,17 @@ returned as ``(H', W', 3)`` uint8 arrays for PNG files (:func:`save_png`) or Ten
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import torch
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from torch import Tensor
 
-from mfg_lightning.object_motion import ObjectMotionResult
+from mfg_lightning.object_motion import ObjectMotionConfig, ObjectMotionResult
 from mfg_lightning.visualization import flow_to_rgb, scalar_to_rgb
 
 __all__ = [
@@ -32,6 +34,7 @@ __all__ = [
     "object_motion_grid",
     "object_motion_grid_batch",
     "object_motion_panels",
+    "object_motion_pictures",
     "save_png",
 ]
 
@@ -156,21 +159,18 @@ def object_motion_grid(
     result: ObjectMotionResult,
     flow: Tensor,
     index: int = 0,
-    rgb: Tensor | None = None,
-    depth: Tensor | None = None,
-    gt_mask: Tensor | None = None,
     header: str = "",
+    **images: Tensor | None,
 ) -> np.ndarray:
     """One sample's column of six titled panels (paper supplementary Figure 1, a–f).
 
-    Arguments as in :func:`object_motion_panels`; ``header`` (e.g. the sample id) prefixes the
-    first title.
+    Arguments as in :func:`object_motion_panels` (``images``: its ``rgb``, ``depth`` and
+    ``gt_mask``); ``header`` (e.g. the sample id) prefixes the first title.
 
     Returns:
         ``(H', W', 3)`` uint8 RGB image.
     """
-    panels = object_motion_panels(result, flow, index, rgb, depth, gt_mask)
-    return _render([panels], [header])
+    return _render([object_motion_panels(result, flow, index, **images)], [header])
 
 
 def object_motion_grid_batch(
@@ -196,6 +196,40 @@ def object_motion_grid_batch(
     columns = [object_motion_panels(result, flow, i, rgb, depth, gt_mask) for i in range(n)]
     names = list(headers[:n]) if headers is not None else [""] * n
     return _render(columns, names)
+
+
+@torch.no_grad()
+def object_motion_pictures(
+    model: Callable[[Tensor], Any],
+    batch: Mapping[str, Any],
+    config: ObjectMotionConfig,
+    max_samples: int = 4,
+) -> np.ndarray:
+    """Extract object motion (paper §4) from the first ``max_samples`` samples of a batch with
+    depth and ground-truth masks, and draw them side by side (:func:`object_motion_grid_batch`).
+
+    Args:
+        model: the MFG module in eval mode; ``model(flow)`` returns ``v_t`` and ``v_omega``.
+        batch: a collated batch with ``flow``, ``flow_valid``, ``depth``, ``object_mask``,
+            ``sample_id`` and optionally ``rgb``.
+        config: the object-motion filters.
+        max_samples: columns drawn.
+
+    Returns:
+        ``(H', W', 3)`` uint8 RGB image.
+    """
+    from mfg_lightning.object_motion import extract_object_motion
+
+    n = max_samples
+    flow, depth = batch["flow"][:n], batch["depth"][:n]
+    pred = model(flow)
+    result = extract_object_motion(
+        flow, pred.v_t, pred.v_omega, depth, config, valid=batch["flow_valid"][:n]
+    )
+    return object_motion_grid_batch(
+        result, flow, rgb=batch["rgb"][:n] if "rgb" in batch else None, depth=depth,
+        gt_mask=batch["object_mask"][:n], max_samples=n, headers=list(batch["sample_id"][:n]),
+    )  # fmt: skip
 
 
 def save_png(image: np.ndarray, path: str | Path) -> Path:

@@ -47,6 +47,7 @@ __all__ = [
     "read_poses",
     "read_tum_poses",
     "write_kitti_poses",
+    "write_trajectory",
     "write_tum_poses",
 ]
 
@@ -342,3 +343,25 @@ def write_tum_poses(path: str | os.PathLike[str], timestamps: object, poses: obj
     table = np.concatenate([times[:, None], array[:, :3, 3], quat], axis=1)
     text = "".join(" ".join(map(_format_number, row)) + "\n" for row in table)
     atomic_write_text(Path(path), text)
+
+
+def write_trajectory(
+    directory: str | os.PathLike[str], name: str, timestamps: object, poses: object
+) -> tuple[Path, Path]:
+    """Write one trajectory in both distributed formats, the layout evo and the devkit read:
+    ``<directory>/poses/kitti/<name>.txt`` and ``<directory>/poses/tum/<name>.txt``.
+
+    Args:
+        directory: the run directory.
+        name: the file stem (a sequence, e.g. ``09``; ``09_gt`` for its ground truth).
+        timestamps: ``(N,)`` seconds for the TUM file.
+        poses: ``(N, 4, 4)`` or ``(N, 3, 4)`` camera-to-world poses (metres).
+
+    Returns:
+        The KITTI and the TUM path.
+    """
+    kitti = Path(directory) / "poses" / "kitti" / f"{name}.txt"
+    tum = Path(directory) / "poses" / "tum" / f"{name}.txt"
+    write_kitti_poses(kitti, poses)
+    write_tum_poses(tum, timestamps, poses)
+    return kitti, tum

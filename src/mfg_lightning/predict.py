@@ -56,11 +56,12 @@ from mfg_lightning.atomic import atomic_write_bytes, atomic_write_text
 from mfg_lightning.checkpoints import module_from_checkpoint
 from mfg_lightning.config import CONFIG_DIR
 from mfg_lightning.data.sample import sanitize_flow
+from mfg_lightning.errors import UserError, exit_on_unknown_choice, exit_on_user_error
 from mfg_lightning.models.mfg import validate_top_k
 from mfg_lightning.models.mfg_module import MFGLitModule
 from mfg_lightning.object_motion import ObjectMotionConfig, extract_object_motion
-from mfg_lightning.pose_io import write_kitti_poses, write_tum_poses
-from mfg_lightning.runs import UserError, exit_on_user_error, run_info
+from mfg_lightning.pose_io import write_trajectory
+from mfg_lightning.runs import run_info
 
 log = logging.getLogger("mfg_lightning.predict")
 
@@ -198,9 +199,7 @@ def write_sequence(
         times: ``(N,)`` seconds of frames ``frames[0] … frames[-1] + 1``.
     """
     poses = pred.trajectory().numpy()
-    kitti, tum = out / "poses" / "kitti" / f"{seq}.txt", out / "poses" / "tum" / f"{seq}.txt"
-    write_kitti_poses(kitti, poses)
-    write_tum_poses(tum, times, poses)
+    kitti, tum = write_trajectory(out, seq, times, poses)
     table = np.column_stack(
         [pred.frames, pred.frames + 1, times[:-1], pred.t.numpy(), pred.omega.numpy()]
     )
@@ -268,6 +267,7 @@ def predict(cfg: DictConfig) -> dict[str, dict[str, Any]]:
     return written
 
 
+@exit_on_unknown_choice
 @hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="predict")
 @exit_on_user_error
 def main(cfg: DictConfig) -> None:

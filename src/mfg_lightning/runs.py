@@ -7,16 +7,28 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import subprocess
 from pathlib import Path
 from typing import Any
 
 import lightning as L
 from hydra.utils import instantiate
-from omegaconf import DictConfig, OmegaConf
+from lightning.fabric.plugins.io.checkpoint_io import CheckpointIO
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from mfg_lightning.atomic import atomic_write_text
+from mfg_lightning.callbacks import AtomicCheckpointIO
+
+# The user-error helpers moved to mfg_lightning.errors; re-exported for code written against runs.
+from mfg_lightning.errors import (  # noqa: F401
+    UserError,
+    exit_on_user_error,
+    in_multirun,
+    user_error_message,
+)
+
+#: A metric value as a JSON-safe float (None for NaN or infinity).
+from mfg_lightning.tables import finite_or_none as to_float
 
 log = logging.getLogger(__name__)
 
@@ -34,6 +46,69 @@ def build_model(cfg: DictConfig) -> L.LightningModule:
     model.model_config = OmegaConf.to_container(cfg.model, resolve=True)
     model.dataset_config = OmegaConf.to_container(cfg.dataset, resolve=True)
     return model
+
+
+def build_trainer(cfg: DictConfig, callbacks: list[Any], loggers: list[Any]) -> L.Trainer:
+    """The configured ``lightning.Trainer``, writing checkpoints atomically unless the config
+    brings its own checkpoint IO plugin (``trainer.plugins``: one or a list, configs with a
+    ``_target_`` or Lightning's plugin names)."""
+    given = cfg.trainer.get("plugins") or []
+    given = list(given) if isinstance(given, (list, ListConfig)) else [given]
+    plugins = [instantiate(p) if isinstance(p, DictConfig) else p for p in given]
+    if not any(isinstance(p, CheckpointIO) for p in plugins):
+        plugins.append(AtomicCheckpointIO())
+    return instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False, plugins=plugins)
+
+
+def tensorboard_writer(trainer: L.Trainer) -> Any | None:
+    """The ``SummaryWriter`` of the trainer's TensorBoard logger, or None without one (images
+    go only to TensorBoard; other loggers get the files in the run directory)."""
+    from lightning.pytorch.loggers import TensorBoardLogger
+
+    tb = [lg for lg in trainer.loggers if isinstance(lg, TensorBoardLogger)]
+    return tb[0].experiment if tb else None
+
+
+def checkpoint_datamodule(
+    dataset_cfg: DictConfig | None,
+    stored: dict[str, Any] | None,
+    ckpt_path: str | Path,
+    size: Any | None = None,
+    **overrides: Any,
+) -> L.LightningDataModule:
+    """The datamodule of a run that reads a checkpoint: ``dataset=`` when given, else the dataset
+    the checkpoint was trained on (``stored``: :func:`mfg_lightning.checkpoints.dataset_config`,
+    which falls back to the run directory's ``config.yaml``).
+
+    Args:
+        dataset_cfg: the composed ``dataset`` group, or None.
+        stored: the checkpoint's dataset config, or None.
+        ckpt_path: the checkpoint, for the error messages.
+        size: the checkpoint's :class:`mfg_lightning.checkpoints.ModelSize`, checked against a
+            given dataset's ``height`` × ``width``; None: not checked.
+        overrides: keys set on the dataset config (e.g. ``eval_batch_size``).
+
+    Raises:
+        CheckpointSizeError: the given dataset delivers another resolution than the model takes.
+        ValueError: neither is there.
+    """
+    from mfg_lightning.checkpoints import CheckpointSizeError
+
+    if dataset_cfg is not None and size is not None:
+        given = (int(dataset_cfg.height), int(dataset_cfg.width))
+        if given != (size.height, size.width):
+            raise CheckpointSizeError(
+                f"checkpoint {ckpt_path} holds an MFG with {size}, but the dataset delivers "
+                f"{given[0]}×{given[1]} inputs: pass dataset.height={size.height} "
+                f"dataset.width={size.width}, or omit dataset= to use the checkpoint's own"
+            )
+    if dataset_cfg is None and stored is None:
+        raise ValueError(
+            f"{ckpt_path} stores no dataset config and has no run directory config.yaml "
+            "beside it: pass dataset=<name> (e.g. dataset=synthetic)"
+        )
+    chosen = dataset_cfg if dataset_cfg is not None else OmegaConf.create(stored)
+    return instantiate(OmegaConf.merge(chosen, overrides) if overrides else chosen)
 
 
 def log_hyperparameters(loggers: list[Any], hparams: dict[str, Any]) -> None:
@@ -84,13 +159,9 @@ def finish_stale_logger_runs() -> None:
         wandb.finish(exit_code=1)
 
 
-def to_float(value: Any) -> float | None:
-    """A metric value as a JSON-safe float (None for NaN or infinity)."""
-    try:
-        f = float(value)
-    except (TypeError, ValueError):
-        return None
-    return f if math.isfinite(f) else None
+def test_metrics(trainer: L.Trainer) -> dict[str, float | None]:
+    """The ``test/*`` metrics of the trainer's last ``test`` as JSON-safe floats."""
+    return {k: to_float(v) for k, v in trainer.callback_metrics.items() if k.startswith("test/")}
 
 
 def write_metrics(path: Path, metrics: dict[str, Any], extra: dict[str, Any] | None = None) -> dict:
@@ -129,106 +200,3 @@ def run_info() -> dict[str, Any]:
         "torch": torch.__version__,
         "lightning": L.__version__,
     }
-
-
-class UserError(Exception):
-    """Base class marker: errors whose message is the whole story (bad input, not a bug)."""
-
-
-def user_error_message(err: BaseException) -> str | None:
-    """The one-line message for an error caused by the user's input, or None for a bug.
-
-    Input errors are the project's own ``ValueError`` subclasses (bad config values, malformed
-    files, checkpoints that do not fit) and missing files; Hydra wraps errors raised while
-    building objects from the config in ``InstantiationException``, whose cause is unwrapped.
-    """
-    from hydra.errors import InstantiationException
-
-    if isinstance(err, InstantiationException) and err.__cause__ is not None:
-        return user_error_message(err.__cause__)
-    if isinstance(err, (ValueError, FileNotFoundError, UserError)):
-        return (
-            " ".join(str(err).split("\n")[:1]) if isinstance(err, FileNotFoundError) else str(err)
-        )
-    return None
-
-
-def in_multirun() -> bool:
-    """Whether the calling code runs as one job of a Hydra multirun (``-m``)."""
-    from hydra.core.hydra_config import HydraConfig
-    from hydra.types import RunMode
-
-    return HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
-
-
-def exit_on_user_error(fn):
-    """Decorator for entry points: input errors print ``error: …`` and exit with status 2;
-    anything else (a bug) propagates with its traceback.
-
-    Inside a multirun the error is logged (into the job's ``<job>/<task>.log``, where
-    ``mfg_lightning.report`` finds the reason) and re-raised instead: exiting would kill the
-    whole sweep, while Hydra records a raised error as this job's failure, runs the remaining
-    jobs and fails the sweep at the end.
-    """
-    import functools
-    import sys
-
-    @functools.wraps(fn)
-    def wrapper(*args, **kwargs):
-        try:
-            return fn(*args, **kwargs)
-        except Exception as err:
-            message = user_error_message(err)
-            if message is None:
-                if in_multirun():
-                    log.exception("job failed: %s: %s", type(err).__name__, err)
-                raise
-            if in_multirun():
-                log.error("error: %s", message)
-                raise
-            print(f"error: {message}", file=sys.stderr)
-            sys.exit(2)
-
-    return wrapper
-
-
-def unknown_choice(config_dir: str | Path, overrides: list[str]) -> str | None:
-    """The message for the first ``group=option`` override naming an option that
-    ``config_dir/<group>/`` does not have (e.g. ``flow=sift``), or None.
-
-    Only plain overrides of an existing group are checked; sweeps (``a,b``, ``choice(…)``),
-    packages (``group@pkg=``), additions and deletions are left to Hydra.
-    """
-    root = Path(config_dir)
-    for arg in overrides:
-        key, sep, value = arg.partition("=")
-        if not sep or key.startswith(("+", "~", "-")) or "@" in key:
-            continue
-        if any(c in value for c in ",()[]{}$*") or value in ("", "null"):
-            continue
-        group = root / key.replace(".", "/")
-        if not group.is_dir() or (group / f"{value}.yaml").is_file():
-            continue
-        options = sorted(p.stem for p in group.glob("*.yaml"))
-        return f"{key}={value}: no such option of the {key} group; options: {', '.join(options)}"
-    return None
-
-
-def exit_on_unknown_choice(fn):
-    """Decorator for ``@hydra.main`` entry points (put it outside): an override naming an option
-    a config group does not have is one ``error: …`` line and exit status 2, as other input
-    errors (Hydra itself prints its search path and exits with 1)."""
-    import functools
-    import sys
-
-    from mfg_lightning.config import CONFIG_DIR
-
-    @functools.wraps(fn)
-    def wrapper(*args, **kwargs):
-        message = unknown_choice(CONFIG_DIR, sys.argv[1:])
-        if message is not None:
-            print(f"error: {message}", file=sys.stderr)
-            sys.exit(2)
-        return fn(*args, **kwargs)
-
-    return wrapper

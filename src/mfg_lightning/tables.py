@@ -19,12 +19,22 @@ from pathlib import Path
 
 from mfg_lightning.atomic import atomic_write_text
 
-__all__ = ["Column", "Table", "fmt"]
+__all__ = ["Column", "Table", "finite_or_none", "fmt", "markdown_text", "pm"]
 
 Cell = str | float | int | None
 
 #: Shown for a value that is undefined (None, NaN or infinite).
 MISSING = "–"
+
+
+def finite_or_none(value: object) -> float | None:
+    """A value as a finite float, or None for what is not one (NaN, infinity, text, None):
+    the undefined cell of a table and ``null`` in JSON."""
+    try:
+        f = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return None
+    return f if math.isfinite(f) else None
 
 
 def fmt(x: float | int | None, digits: int = 4) -> str:
@@ -39,6 +49,21 @@ def fmt(x: float | int | None, digits: int = 4) -> str:
     if x != 0 and abs(x) < 0.5 * 10.0**-digits:
         return f"{x:.1e}"
     return f"{x:.{digits}f}"
+
+
+def pm(
+    mean: float | None, std: float | None, digits: int = 4, std_digits: int | None = None
+) -> str:
+    """``mean ± std`` for a table cell, each with :func:`fmt` (``std_digits`` defaults to
+    ``digits``); :data:`MISSING` alone when the mean is undefined."""
+    if fmt(mean) == MISSING:
+        return MISSING
+    return f"{fmt(mean, digits)} ± {fmt(std, digits if std_digits is None else std_digits)}"
+
+
+def markdown_text(text: str) -> str:
+    """Text for one Markdown table cell or list item: ``|`` escaped, line breaks as spaces."""
+    return text.replace("|", "\\|").replace("\n", " ")
 
 
 @dataclass(frozen=True)
@@ -123,16 +148,15 @@ class Table:
     def markdown(self) -> str:
         """A GitHub Markdown table (``|`` in cells escaped), the title in bold above it."""
 
-        def cell(text: str) -> str:
-            return text.replace("|", "\\|").replace("\n", " ")
-
-        lines = [f"**{cell(self.title)}**", ""] if self.title else []
-        lines.append("| " + " | ".join(cell(c.heading) for c in self.columns) + " |")
+        lines = [f"**{markdown_text(self.title)}**", ""] if self.title else []
+        lines.append("| " + " | ".join(markdown_text(c.heading) for c in self.columns) + " |")
         lines.append(
             "|" + "|".join("---" if i == 0 else "---:" for i in range(len(self.columns))) + "|"
         )
         for row in self.rows:
-            shown = [cell(self._shown(v, c)) for v, c in zip(row, self.columns, strict=True)]
+            shown = [
+                markdown_text(self._shown(v, c)) for v, c in zip(row, self.columns, strict=True)
+            ]
             lines.append("| " + " | ".join(shown) + " |")
         return "\n".join(lines) + "\n"
 

@@ -28,22 +28,17 @@ from typing import Any
 import hydra
 import lightning as L
 from hydra.utils import instantiate
-from lightning.fabric.plugins.io.checkpoint_io import CheckpointIO
 from lightning.pytorch.utilities.exceptions import SIGTERMException
-from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf
 
-from mfg_lightning.callbacks import (
-    AtomicCheckpointIO,
-    LastCheckpoint,
-    storage_error,
-)
+from mfg_lightning.callbacks import LastCheckpoint, storage_error
 from mfg_lightning.checkpoints import CheckpointError
 from mfg_lightning.config import CONFIG_DIR
+from mfg_lightning.errors import exit_on_unknown_choice, exit_on_user_error
 from mfg_lightning.runs import (
     atomic_write_text,
     build_model,
-    exit_on_unknown_choice,
-    exit_on_user_error,
+    build_trainer,
     finish_stale_logger_runs,
     instantiate_list,
     log_final_metrics,
@@ -99,18 +94,6 @@ def flat_hparams(cfg: DictConfig) -> dict[str, Any]:
 
     walk("", container)
     return flat
-
-
-def build_trainer(cfg: DictConfig, callbacks: list[Any], loggers: list[Any]) -> L.Trainer:
-    """The configured ``lightning.Trainer``, writing checkpoints atomically unless the config
-    brings its own checkpoint IO plugin (``trainer.plugins``: one or a list, configs with a
-    ``_target_`` or Lightning's plugin names)."""
-    given = cfg.trainer.get("plugins") or []
-    given = list(given) if isinstance(given, (list, ListConfig)) else [given]
-    plugins = [instantiate(p) if isinstance(p, DictConfig) else p for p in given]
-    if not any(isinstance(p, CheckpointIO) for p in plugins):
-        plugins.append(AtomicCheckpointIO())
-    return instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False, plugins=plugins)
 
 
 @contextlib.contextmanager

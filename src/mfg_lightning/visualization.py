@@ -7,6 +7,8 @@ side by side are comparable.
 
 from __future__ import annotations
 
+import math
+
 import flow_vis
 import numpy as np
 import torch
@@ -56,3 +58,18 @@ def scalar_to_rgb(values: torch.Tensor | np.ndarray, cmap: str = "magma") -> np.
     lo, hi = float(v.min()), float(v.max())
     v = (v - lo) / max(hi - lo, 1e-12)
     return (colormaps[cmap](v)[..., :3] * 255).astype(np.uint8)
+
+
+def activation_map(hidden: torch.Tensor) -> np.ndarray:
+    """``(M,)`` hidden activations of one input as a near-square heat map (the paper's activation
+    pictures; brighter: more active): ``ceil(√M)`` columns, as many rows as needed, zero-padded.
+
+    Returns:
+        ``(rows, cols, 3)`` uint8 RGB.
+    """
+    m = hidden.numel()
+    side = max(1, math.ceil(math.sqrt(m)))
+    rows = math.ceil(m / side)
+    pad = torch.zeros(rows * side)
+    pad[:m] = hidden.detach().float().cpu().reshape(-1)
+    return scalar_to_rgb(pad.view(rows, side))

@@ -43,6 +43,7 @@ from mfg_lightning import geometry
 from mfg_lightning.config import CONFIG_DIR
 from mfg_lightning.data import flow_io
 from mfg_lightning.data.flow_io import DataFileError, DataRootError
+from mfg_lightning.errors import exit_on_unknown_choice, exit_on_user_error
 
 log = logging.getLogger("mfg_lightning.data.check")
 
@@ -196,22 +197,22 @@ def _print_human(report: dict[str, Any]) -> None:
     print("OK" if report["ok"] else f"{len(report['problems'])} problem(s) found")
 
 
-@hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="train")
+@exit_on_unknown_choice
+@hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="check")
+@exit_on_user_error
 def main(cfg: DictConfig) -> None:
     n_samples = int(OmegaConf.select(cfg, "check.samples", default=4))
     try:
         report = check_dataset(cfg.dataset, n_samples)
     except DataRootError as err:
-        print(str(err), file=sys.stderr)
+        # The JSON line stays the last line of stdout, for scripts; the error then exits 2.
         print(json.dumps({"dataset": cfg.dataset.get("_target_"), "ok": False, "error": str(err)}))
-        sys.exit(2)
+        raise
     _print_human(report)
     print(json.dumps(report, default=float))
     if not report["ok"]:
-        sys.exit(1)
+        sys.exit(1)  # problems were listed: not a user error of the command, a finding
 
 
 if __name__ == "__main__":
-    # A check writes nothing: no run directory, no .hydra/ and no log file.
-    sys.argv += ["hydra.run.dir=.", "hydra.output_subdir=null", "hydra/job_logging=none"]
     main()

@@ -62,7 +62,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from mfg_lightning import geometry
 from mfg_lightning.config import CONFIG_DIR
-from mfg_lightning.runs import exit_on_unknown_choice, exit_on_user_error
+from mfg_lightning.errors import exit_on_unknown_choice, exit_on_user_error
 
 log = logging.getLogger(__name__)
 

@@ -30,7 +30,7 @@ from mfg_lightning.object_motion import (
     extract_object_motion,
     threshold_baseline,
 )
-from mfg_lightning.visualization import flows_to_rgb, scalar_to_rgb
+from mfg_lightning.visualization import activation_map, flows_to_rgb
 
 log = logging.getLogger(__name__)
 
@@ -358,12 +358,7 @@ class MFGLitModule(L.LightningModule):
             rgb = flows_to_rgb(both)  # shared normalisation: GT and prediction comparable
             exp.add_images(f"{stage}/{name}_gt", rgb[:n], step, dataformats="NCHW")
             exp.add_images(f"{stage}/{name}_pred", rgb[n:], step, dataformats="NCHW")
-        hidden = out.hidden[:n].detach().float().cpu()
-        side = int(hidden.shape[1] ** 0.5)
-        rows = -(-hidden.shape[1] // side)
-        pad = torch.zeros(n, rows * side)
-        pad[:, : hidden.shape[1]] = hidden
-        maps = [torch.from_numpy(scalar_to_rgb(h.view(rows, side))).permute(2, 0, 1) for h in pad]
+        maps = [torch.from_numpy(activation_map(h)).permute(2, 0, 1) for h in out.hidden[:n]]
         exp.add_images(f"{stage}/hidden_activations", torch.stack(maps), step, dataformats="NCHW")
 
     # -- optimisation ------------------------------------------------------------------------
