@@ -162,7 +162,10 @@ def unknown_choice(config_dir: str | Path, overrides: list[str]) -> str | None:
         if not group.is_dir() or (group / f"{value}.yaml").is_file():
             continue
         options = sorted(p.stem for p in group.glob("*.yaml"))
-        return f"{key}={value}: no such option of the {key} group; options: {', '.join(options)}"
+        return (
+            f"{key}={value}: Could not find '{key}/{value}' (no such option of the {key} group); "
+            f"options: {', '.join(options)}"
+        )
     return None
 
 
