@@ -24,13 +24,17 @@ def test_balancing_weights_by_hand() -> None:
     v_w = torch.zeros(2, 2, 1, 2)
     v_t[0, 0, 0, 0], v_w[0, 0, 0, 0] = 3.0, 1.0  # ‖v_t‖² = 9, ‖v_ω‖² = 1
     v_t[1, 0, 0, 0], v_w[1, 1, 0, 1] = 1.0, 2.0  # ‖v_t‖² = 1, ‖v_ω‖² = 4
-    w_t, w_w = balancing_weights(v_t, v_w, max_weight=None)
+    # The squared ratio (the paper's superscript read as a power).
+    w_t, w_w = balancing_weights(v_t, v_w, max_weight=None, squared=True)
     assert w_t.tolist() == pytest.approx([1.0, 4.0])
     assert w_w.tolist() == pytest.approx([9.0, 1.0])
-    # The released code's un-squared ratio.
-    w_t, w_w = balancing_weights(v_t, v_w, max_weight=None, squared=False)
-    assert w_t.tolist() == pytest.approx([1.0, 2.0])
-    assert w_w.tolist() == pytest.approx([3.0, 1.0])
+    # The released code's un-squared ratio: the default.
+    for w_t, w_w in (
+        balancing_weights(v_t, v_w, max_weight=None, squared=False),
+        balancing_weights(v_t, v_w, max_weight=None),
+    ):
+        assert w_t.tolist() == pytest.approx([1.0, 2.0])
+        assert w_w.tolist() == pytest.approx([3.0, 1.0])
     # Clamp: no rotation at all gives the clamp, not infinity.
     w_t, w_w = balancing_weights(v_t, torch.zeros_like(v_w), max_weight=100.0)
     assert w_w.tolist() == [100.0, 100.0]
@@ -40,7 +44,7 @@ def test_total_loss_by_hand() -> None:
     gt_t = torch.zeros(1, 2, 1, 2)
     gt_w = torch.zeros(1, 2, 1, 2)
     gt_t[0, 0, 0, 0] = 2.0  # ‖v_t‖² = 4
-    gt_w[0, 1, 0, 1] = 1.0  # ‖v_ω‖² = 1  → w_t = 1, w_ω = 4
+    gt_w[0, 1, 0, 1] = 1.0  # ‖v_ω‖ = 1  → w_t = 1, w_ω = 2 (released code), 4 (squared)
     pred_t = gt_t + torch.tensor([0.5, -0.5, 0.0, 0.0]).view(1, 2, 1, 2)  # L_t = 1.0
     pred_w = gt_w + 0.25  # L_ω = 4 × 0.25 = 1.0
     hidden = torch.tensor([[0.0, 1.0]])
@@ -49,7 +53,9 @@ def test_total_loss_by_hand() -> None:
     terms = loss(pred_t, pred_w, gt_t, gt_w, hidden)
     assert terms.l_t.item() == pytest.approx(1.0)
     assert terms.l_omega.item() == pytest.approx(1.0)
-    assert terms.total.item() == pytest.approx(1 * 1.0 + 4 * 1.0 + 2.0 * l_s, rel=1e-6)
+    assert terms.total.item() == pytest.approx(1 * 1.0 + 2 * 1.0 + 2.0 * l_s, rel=1e-6)
+    squared = MFGLoss(w_s=2.0, balance_squared=True)(pred_t, pred_w, gt_t, gt_w, hidden)
+    assert squared.total.item() == pytest.approx(1 * 1.0 + 4 * 1.0 + 2.0 * l_s, rel=1e-6)
     fixed = MFGLoss(w_s=0.0, w_t=3.0, w_omega=0.5)(pred_t, pred_w, gt_t, gt_w, hidden)
     assert fixed.total.item() == pytest.approx(3.0 + 0.5)
     mean = MFGLoss(w_s=0.0, reduction="mean")(pred_t, pred_w, gt_t, gt_w, hidden)

@@ -112,9 +112,14 @@ def test_xavier_initialisation_as_the_released_code() -> None:
         assert (conv.bias == 0).all()
         assert conv.weight.abs().max() <= bound
         assert conv.weight.abs().max() > 0.8 * bound  # uniform over the whole range
+    # The default is the released code's; "torch" keeps PyTorch's (non-zero biases).
     torch.manual_seed(0)
     default = MFG(height=16, width=32, hidden_units=10, channels=(4, 4, 4, 4, 4))
-    assert any((m.bias != 0).any() for m in default.encoder if isinstance(m, torch.nn.Conv2d))
+    assert all(torch.equal(a, b) for a, b in zip(default.state_dict().values(),
+                                                 net.state_dict().values()))  # fmt: skip
+    torch.manual_seed(0)
+    plain = MFG(height=16, width=32, hidden_units=10, channels=(4, 4, 4, 4, 4), init="torch")
+    assert any((m.bias != 0).any() for m in plain.encoder if isinstance(m, torch.nn.Conv2d))
     with pytest.raises(ValueError, match="model.net.init"):
         MFG(height=16, width=32, hidden_units=10, channels=(4, 4, 4, 4, 4), init="he")
 
@@ -128,3 +133,20 @@ def test_input_scale_multiplies_the_flow_before_the_encoder() -> None:
     torch.testing.assert_close(scaled(flow).hidden, plain(0.2 * flow).hidden)
     with pytest.raises(ValueError, match="model.net.input_scale"):
         MFG(height=16, width=32, hidden_units=10, channels=(4, 4, 4, 4, 4), input_scale=0.0)
+
+
+def test_config_defaults_are_the_released_codes_and_match_the_code() -> None:
+    """One default per setting: conf/model/mfg.yaml and the constructors agree, and both follow
+    the authors' released code where the paper is silent or ambiguous (README)."""
+    import inspect
+
+    from mfg_lightning.config import compose
+    from mfg_lightning.losses import MFGLoss
+
+    cfg = compose("train", [])
+    net = inspect.signature(MFG).parameters
+    loss = inspect.signature(MFGLoss).parameters
+    assert cfg.model.net.init == net["init"].default == "xavier"
+    assert cfg.model.net.align_corners is net["align_corners"].default is True
+    assert cfg.model.net.input_scale == net["input_scale"].default == 1.0
+    assert cfg.model.loss.balance_squared is loss["balance_squared"].default is False

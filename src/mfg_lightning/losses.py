@@ -40,13 +40,14 @@ def sparsity_count(hidden: Tensor, q: float = 25.0, b: float = 10.0) -> Tensor:
 
 
 def balancing_weights(
-    v_t: Tensor, v_omega: Tensor, max_weight: float | None = 100.0, squared: bool = True
+    v_t: Tensor, v_omega: Tensor, max_weight: float | None = 100.0, squared: bool = False
 ) -> tuple[Tensor, Tensor]:
     """Per-sample weights that equalise translation and rotation (paper eq. 8).
 
-    ``w_t = max(‖v_ω‖² / ‖v_t‖², 1)``, ``w_ω = max(‖v_t‖² / ‖v_ω‖², 1)``, norms over the whole
-    ground-truth field. ``squared=False`` uses the un-squared norm ratio of the authors' released
-    code instead. The weights are clamped to ``max_weight`` (a sample with no rotation would
+    ``w_t = max(‖v_ω‖ / ‖v_t‖, 1)``, ``w_ω = max(‖v_t‖ / ‖v_ω‖, 1)``, L2 norms over the whole
+    ground-truth field, as the authors' released code computes them (the default);
+    ``squared=True`` squares the ratio, the paper's formula with its superscript read as a
+    power. The weights are clamped to ``max_weight`` (a sample with no rotation would
     otherwise get an infinite weight) and carry no gradient.
 
     Args:
@@ -85,7 +86,7 @@ class MFGLoss(nn.Module):
         w_t: float | None = None,
         w_omega: float | None = None,
         balance_max: float | None = 100.0,
-        balance_squared: bool = True,
+        balance_squared: bool = False,
         sparsity_q: float = 25.0,
         sparsity_b: float = 10.0,
         reduction: str = "sum",

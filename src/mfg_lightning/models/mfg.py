@@ -102,8 +102,8 @@ class MFG(nn.Module):
         double_blocks: int = 2,
         decoder_scale: float = 0.5,
         top_k: float | None = None,
-        init: str = "torch",
-        align_corners: bool = False,
+        init: str = "xavier",
+        align_corners: bool = True,
         input_scale: float = 1.0,
     ) -> None:
         super().__init__()
