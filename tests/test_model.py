@@ -115,8 +115,8 @@ def test_xavier_initialisation_as_the_released_code() -> None:
     # The default is the released code's; "torch" keeps PyTorch's (non-zero biases).
     torch.manual_seed(0)
     default = MFG(height=16, width=32, hidden_units=10, channels=(4, 4, 4, 4, 4))
-    assert all(torch.equal(a, b) for a, b in zip(default.state_dict().values(),
-                                                 net.state_dict().values()))  # fmt: skip
+    pairs = zip(default.state_dict().values(), net.state_dict().values(), strict=True)
+    assert all(torch.equal(a, b) for a, b in pairs)
     torch.manual_seed(0)
     plain = MFG(height=16, width=32, hidden_units=10, channels=(4, 4, 4, 4, 4), init="torch")
     assert any((m.bias != 0).any() for m in plain.encoder if isinstance(m, torch.nn.Conv2d))
