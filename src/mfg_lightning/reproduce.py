@@ -24,7 +24,7 @@ from mfg_lightning.errors import exit_on_unknown_choice, exit_on_user_error
 from mfg_lightning.study import claims as C
 from mfg_lightning.study import stages as S
 from mfg_lightning.study.verdicts import Thresholds
-from mfg_lightning.tables import Column, Table, fmt
+from mfg_lightning.tables import Column, Table
 
 
 def check(cfg: DictConfig) -> None:
@@ -312,7 +312,7 @@ def write_report(study: S.Study, report: Path, th: Thresholds) -> Path:
         name = str(path.relative_to(study.work).with_suffix(""))
         r = study.cached(name) or {}
         total += r.get("seconds", 0.0)
-        stage_rows.append(f"| {name} | {fmt(r.get('seconds', 0.0) / 60, 1)} |")
+        stage_rows.append(f"| {name} | {r.get('seconds', 0.0):.0f} |")
     main = study.cached("main")
     recipe = main["recipe"] if main else None
     machine = _machine()
@@ -343,7 +343,7 @@ def write_report(study: S.Study, report: Path, th: Thresholds) -> Path:
         table.markdown(),
         "## Stages",
         "",
-        "| stage | minutes |",
+        "| stage | seconds |",
         "|---|---:|",
         *stage_rows,
         "",
