@@ -43,8 +43,6 @@ import shutil
 import sys
 import tempfile
 import time
-from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
@@ -66,19 +64,6 @@ PAPER_TABLE_1 = {
     0.05: ("0.012 ± 0.006", "0.013 ± 0.008"),
     0.02: ("0.018 ± 0.008", "0.017 ± 0.010"),
 }
-
-
-@dataclass
-class Method:
-    """One row: a name, what it computes, and the time it took."""
-
-    name: str
-    predict: Callable[[dict], tuple[torch.Tensor, torch.Tensor]]
-    note: str = ""
-    paper: tuple[str, str] = ("–", "–")
-    seconds: float = 0.0
-    frames: int = 0
-    evaluator: object = field(default=None)
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -206,96 +191,38 @@ def train_mfg(
     return model, datamodule, cfg, time.perf_counter() - start
 
 
-def methods(model, height: int, width: int) -> list[Method]:
-    """Every row, each a function of a test batch returning ``(t, ω)`` ``(B, 3)``."""
-    from mfg_lightning import baselines, geometry
-    from mfg_lightning.data.sample import sanitize_flow
-
-    def mfg(top_k: float | None) -> Callable[[dict], tuple[torch.Tensor, torch.Tensor]]:
-        def run(batch: dict) -> tuple[torch.Tensor, torch.Tensor]:
-            flow, _, _ = sanitize_flow(batch["flow"], batch["flow_valid"])
-            with torch.inference_mode():
-                t, w, _ = model.predict_motion(flow, batch["intrinsics"], top_k=top_k)
-            return t, w
-
-        return run
-
-    def gt_norm(batch: dict) -> torch.Tensor:
-        return geometry.pose_to_motion(batch["pose"].double())[0].norm(dim=-1)
-
-    def essential(method: str) -> Callable[[dict], tuple[torch.Tensor, torch.Tensor]]:
-        return lambda b: baselines.essential_matrix_motion(
-            b["flow"], b["intrinsics"], b["flow_valid"], gt_norm(b), method=method
-        )
-
-    def continuous(robust: bool) -> Callable[[dict], tuple[torch.Tensor, torch.Tensor]]:
-        return lambda b: baselines.continuous_least_squares(
-            b["flow"], b["intrinsics"], b["flow_valid"], gt_norm(b), robust=robust
-        )
+def methods(model, height: int, width: int) -> list:
+    """Every row (:class:`mfg_lightning.scoring.Method`): MFG at all units, 5 % and 2 %, then the
+    classical methods and the oracle."""
+    from mfg_lightning.scoring import Method, classical_methods, mfg_method
 
     return [
-        Method("MFG (all units)", mfg(None), paper=PAPER_TABLE_1[None]),
-        Method("MFG top-k 5 %", mfg(0.05), paper=PAPER_TABLE_1[0.05]),
-        Method("MFG top-k 2 %", mfg(0.02), paper=PAPER_TABLE_1[0.02]),
-        Method("essential matrix + RANSAC (OpenCV)", essential("RANSAC"), "scale from GT"),
-        Method("essential matrix + MAGSAC++ (OpenCV)", essential("USAC_MAGSAC"), "scale from GT"),
-        Method("continuous least squares (§3, Bruss–Horn)", continuous(False), "scale from GT"),
-        Method("continuous LS + IRLS (Cauchy)", continuous(True), "scale from GT"),
-        Method(
-            "oracle: exact fields → recover_motion",
-            lambda b: baselines.oracle_motion(b["pose"], b["intrinsics"], height, width),
-            "floor (float32)",
-        ),
+        Method("MFG (all units)", mfg_method(model, None), paper=PAPER_TABLE_1[None]),
+        Method("MFG top-k 5 %", mfg_method(model, 0.05), paper=PAPER_TABLE_1[0.05]),
+        Method("MFG top-k 2 %", mfg_method(model, 0.02), paper=PAPER_TABLE_1[0.02]),
+        *classical_methods(height, width),
     ]
 
 
-def evaluate(model, datamodule, eval_batch_size: int) -> tuple[list[Method], int]:
-    """Run every method on every test batch; score each with the module's evaluator."""
+def evaluate(model, datamodule, eval_batch_size: int) -> tuple[list, int]:
+    """Run every method on every test batch (:func:`mfg_lightning.scoring.score_methods`)."""
     from torch.utils.data import DataLoader
 
-    from mfg_lightning import geometry
     from mfg_lightning.data.base import collate_samples
-    from mfg_lightning.metrics.evaluator import TrajectoryEvaluator
+    from mfg_lightning.scoring import score_methods
 
     model.eval()
     dataset = datamodule.dataset("test")
     rows = methods(model, dataset.height, dataset.width)
-    for m in rows:
-        m.evaluator = TrajectoryEvaluator()
     loader = DataLoader(dataset, batch_size=eval_batch_size, collate_fn=collate_samples)
-    # One untimed pass on the first batch: one-off costs (kernel selection, the cached
-    # pseudo-inverses of recover_motion) are not per-frame costs.
-    first = next(iter(loader))
-    for m in rows:
-        m.predict(first)
-    for batch in loader:
-        for m in rows:
-            start = time.perf_counter()
-            t, w = m.predict(batch)
-            m.seconds += time.perf_counter() - start
-            m.frames += t.shape[0]
-            pred = geometry.motion_to_pose(t.double(), w.double())
-            m.evaluator.update(
-                batch["sequence"], batch["frame"], batch["target"], pred, batch["pose"]
-            )
-    return rows, len(dataset)
+    return score_methods(rows, loader), len(dataset)
 
 
-def scored(rows: list[Method]) -> list[dict]:
+def scored(rows: list) -> list[dict]:
     """Every row's metrics as JSON-able dicts (what a stage caches)."""
-    out = []
-    for m in rows:
-        res = m.evaluator.compute().metrics
-        out.append(
-            {
-                "name": m.name,
-                "metrics": {k: float(v) for k, v in res.items()},
-                "ms_per_frame": 1e3 * m.seconds / max(m.frames, 1),
-                "paper": list(m.paper),
-                "note": m.note,
-            }
-        )
-    return out
+    from mfg_lightning.scoring import scored_rows
+
+    return scored_rows(rows)
 
 
 def table(results: list[dict]) -> str:

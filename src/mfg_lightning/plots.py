@@ -33,11 +33,13 @@ if TYPE_CHECKING:
 __all__ = [
     "SWEEP_FIGURES",
     "TrajectoryCurves",
+    "bar_figure",
     "curves_from_alignment",
     "drift_by_length_figure",
     "error_along_trajectory_figure",
     "figure_png",
     "figure_rgb",
+    "line_figure",
     "log_figures",
     "method_colour",
     "save_figures",
@@ -486,3 +488,78 @@ def sweep_figures(
         reason = f"w_s takes {len(w_ss)} value(s) among finished jobs"
         skipped["error_vs_w_s.png"] = skipped["active_fraction_vs_w_s.png"] = reason
     return images, skipped
+
+
+# --------------------------------------------------------------------------------------------
+# Generic panels (mfg_lightning.reproduce's figures)
+# --------------------------------------------------------------------------------------------
+
+#: One line of a :func:`line_figure` panel: label → (x values, y values); None y: not drawn.
+Lines = Mapping[str, tuple[Sequence[float], Sequence[float | None]]]
+
+
+def line_figure(
+    panels: Sequence[tuple[str, Lines]],
+    x_label: str,
+    title: str = "",
+    log_x: bool = False,
+    log_y: bool = False,
+) -> Figure:
+    """Side-by-side panels of lines with markers, one colour per label (the same in every panel).
+
+    Args:
+        panels: ``(y label, lines)`` per panel.
+        x_label: the shared x axis label.
+        title: the figure's title.
+        log_x, log_y: logarithmic axes.
+    """
+    fig = _new_figure(4.2 * max(len(panels), 1), 3.4)
+    labels = list(dict.fromkeys(name for _, lines in panels for name in lines))
+    for i, (y_label, lines) in enumerate(panels):
+        ax = fig.add_subplot(1, len(panels), i + 1)
+        for name, (x, y) in lines.items():
+            ys = [float("nan") if finite_or_none(v) is None else float(v) for v in y]
+            ax.plot(x, ys, marker="o", color=method_colour(labels.index(name)), label=name)
+        ax.set_xlabel(x_label)
+        ax.set_ylabel(y_label)
+        if log_x:
+            ax.set_xscale("log")
+        if log_y:
+            ax.set_yscale("log")
+        ax.grid(True, which="both", alpha=0.3)
+        if i == 0 and lines:
+            ax.legend(fontsize="small")
+    if title:
+        fig.suptitle(title)
+    return fig
+
+
+def bar_figure(
+    panels: Sequence[tuple[str, Mapping[str, Sequence[float | None]]]],
+    categories: Sequence[str],
+    title: str = "",
+    log_y: bool = False,
+) -> Figure:
+    """Side-by-side panels of grouped bars: per panel a y label and, per series (one colour
+    each, the same in every panel), one value per category (None: no bar)."""
+    fig = _new_figure(max(4.2 * len(panels), 1.1 * len(categories) * len(panels)), 3.8)
+    names = list(dict.fromkeys(n for _, series in panels for n in series))
+    x = np.arange(len(categories))
+    width = 0.8 / max(len(names), 1)
+    for i, (y_label, series) in enumerate(panels):
+        ax = fig.add_subplot(1, len(panels), i + 1)
+        for name, values in series.items():
+            j = names.index(name)
+            ys = [float("nan") if finite_or_none(v) is None else float(v) for v in values]
+            ax.bar(x + (j - (len(names) - 1) / 2) * width, ys, width, label=name,
+                   color=method_colour(j))  # fmt: skip
+        ax.set_xticks(x, list(categories), rotation=30, ha="right", fontsize="small")
+        ax.set_ylabel(y_label)
+        if log_y:
+            ax.set_yscale("log")
+        ax.grid(True, axis="y", alpha=0.3)
+        if i == 0 and series:
+            ax.legend(fontsize="small")
+    if title:
+        fig.suptitle(title)
+    return fig

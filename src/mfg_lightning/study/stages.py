@@ -1,0 +1,326 @@
+"""The stages of the reproduction study (``python -m mfg_lightning.reproduce``).
+
+Each stage computes one JSON-able result, cached atomically as ``<work_dir>/<stage>.json`` and
+skipped when cached (an interrupted study resumes). Models are trained by
+:func:`mfg_lightning.train.train` from the ``train`` config composed with the study's overrides,
+into ``<work_dir>/models/<name>`` with ``resume=true`` (an interrupted training continues from its
+``last.ckpt``); checkpoints are selected on validation (``val/ate``) only, never on the test
+sequences. Evaluation reuses :mod:`mfg_lightning.scoring` (MFG at any k, classical baselines),
+:mod:`mfg_lightning.basis`, :mod:`mfg_lightning.object_motion` and its scores.
+"""
+
+from __future__ import annotations
+
+import csv
+import itertools
+import json
+import logging
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+from torch.utils.data import DataLoader, Subset
+
+from mfg_lightning.atomic import atomic_write_text
+
+log = logging.getLogger("mfg_lightning.study")
+
+Result = dict[str, Any]
+
+
+class Study:
+    """The study's configuration, its work directory and its cached stage results.
+
+    Args:
+        cfg: the composed ``reproduce`` config.
+        trainer_choice: the ``trainer`` group option every training run uses.
+    """
+
+    def __init__(self, cfg: DictConfig, trainer_choice: str = "default") -> None:
+        self.cfg = cfg
+        self.trainer_choice = trainer_choice
+        self.work = Path(cfg.work_dir).expanduser()
+        self.ran: list[str] = []
+        self.seconds: dict[str, float] = {}
+
+    # -- cache ---------------------------------------------------------------------------
+
+    def path(self, name: str) -> Path:
+        return self.work / f"{name}.json"
+
+    def cached(self, name: str) -> Result | None:
+        try:
+            return json.loads(self.path(name).read_text())
+        except (FileNotFoundError, json.JSONDecodeError):
+            return None
+
+    def stage(self, name: str, compute: Callable[[], Result | None]) -> Result | None:
+        """The cached result of ``name``, else ``compute()`` (when the stage is selected and its
+        inputs exist: it returns None otherwise), cached with the seconds it took."""
+        done = self.cached(name)
+        if done is not None:
+            print(f"cached: {name}", flush=True)
+            return done
+        if name.split("/")[0] not in self.cfg.stages:
+            return None
+        start = time.perf_counter()
+        result = compute()
+        if result is None:
+            return None
+        result["seconds"] = time.perf_counter() - start
+        atomic_write_text(self.path(name), json.dumps(result, indent=1) + "\n")
+        self.ran.append(name)
+        print(f"ran: {name} ({result['seconds']:.0f} s)", flush=True)
+        return result
+
+    # -- configs, data, models -----------------------------------------------------------
+
+    def train_config(self, name: str, extra: list[str], steps: int) -> DictConfig:
+        """The ``train`` config of model ``name``: the study's data, then ``extra``."""
+        from mfg_lightning.config import compose
+
+        b = self.cfg.budget
+        ov = [
+            *self.cfg.data,
+            f"trainer={self.trainer_choice}",
+            f"trainer.max_steps={int(steps)}",
+            f"trainer.val_check_interval={max(1, min(int(b.val_every), int(steps)))}",
+            "logger=csv",
+            "~callbacks.rich_progress_bar",
+            "++trainer.enable_progress_bar=false",
+            "trainer.enable_model_summary=false",
+            "model.image_log_every_n_steps=0",
+            "test=false",
+            "resume=true",
+            f"seed={self.cfg.seed}",
+            f"paths.output_dir={self.work / 'models' / name}",
+            f"paths.cache_dir={self.cfg.paths.cache_dir}",
+            *extra,
+        ]
+        if b.max_time:
+            ov.append(f"++trainer.max_time={b.max_time}")
+        return compose("train", ov)
+
+    def datamodule(self, cfg: DictConfig) -> Any:
+        from hydra.utils import instantiate
+
+        dm = instantiate(cfg.dataset)
+        dm.prepare_data()
+        return dm
+
+    def train(self, name: str, extra: list[str], steps: int) -> Result:
+        """Train (or resume) model ``name``; its best checkpoint by ``val/ate``."""
+        from mfg_lightning.train import train
+
+        cfg = self.train_config(name, extra, steps)
+        out = Path(cfg.paths.output_dir)
+        resumed = (out / "checkpoints" / "last.ckpt").is_file()
+        start = time.perf_counter()
+        train(cfg)
+        seconds = time.perf_counter() - start
+        best = sorted((out / "checkpoints").glob("best-*.ckpt"))
+        chosen = best[-1] if best else out / "checkpoints" / "last.ckpt"
+        return {
+            "name": name,
+            "overrides": list(extra),
+            "steps": int(steps),
+            "batch_size": int(cfg.dataset.batch_size),
+            "samples_seen": int(steps) * int(cfg.dataset.batch_size),
+            "train_seconds": seconds,
+            "resumed": resumed,
+            "checkpoint": str(chosen),
+            "selected_on": "val/ate" if best else "last (no validation)",
+            "recipe": recipe_of(cfg),
+        }
+
+    def model(self, trained: Result) -> Any:
+        from mfg_lightning.checkpoints import module_from_checkpoint
+
+        return module_from_checkpoint(trained["checkpoint"]).eval()
+
+    def loader(self, dm: Any, split: str, forward_only: bool = False) -> DataLoader:
+        """A split's evaluation loader; ``forward_only``: the samples ``k → k+1`` only."""
+        from mfg_lightning.data.base import collate_samples
+
+        ds = dm.dataset(split)
+        if forward_only and hasattr(ds, "index"):
+            ds = Subset(ds, [i for i, (_, s, t) in enumerate(ds.index) if t == s + 1])
+        return DataLoader(
+            ds, batch_size=int(self.cfg.budget.eval_batch_size), collate_fn=collate_samples
+        )
+
+
+def recipe_of(cfg: DictConfig) -> dict[str, Any]:
+    """Batch, optimiser and schedule of a training config, as the report states them."""
+    opt = cfg.model.optimizer
+    sched = cfg.model.get("scheduler")
+    return {
+        "batch_size": int(cfg.dataset.batch_size),
+        "optimizer": str(opt._target_).rsplit(".", 1)[-1],
+        "lr": float(opt.lr),
+        "betas": [float(b) for b in opt.get("betas", [])],
+        "scheduler": None if not sched else str(sched._target_).rsplit(".", 1)[-1],
+        "w_s": float(cfg.model.loss.w_s),
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# Evaluation helpers
+# --------------------------------------------------------------------------------------------
+
+
+def mfg_scores(model: Any, loader: DataLoader, ks: list[float]) -> dict[str, dict[str, float]]:
+    """The trajectory metrics of MFG at every k (``"1"``: all units) over one loader."""
+    from mfg_lightning.scoring import Method, mfg_method, score_methods
+
+    batches = list(loader)
+    out = {}
+    for k in ks:
+        m = Method(f"k={k:g}", mfg_method(model, None if k >= 1 else float(k)))
+        score_methods([m], batches, warm_up=False)
+        out[f"{k:g}"] = {key: float(v) for key, v in m.evaluator.compute().metrics.items()}
+    return out
+
+
+def smallest_k(val: dict[str, dict[str, float]], tolerance: float) -> float | None:
+    """The smallest k whose validation ATE is within ``tolerance`` of the full model's."""
+    full = val.get("1", {}).get("ate")
+    if full is None or not math.isfinite(full):
+        return None
+    ok = [float(k) for k, m in val.items() if m.get("ate", math.inf) <= (1 + tolerance) * full]
+    return min(ok) if ok else 1.0
+
+
+def active_fraction(model: Any, loader: DataLoader) -> float | None:
+    """Mean fraction of hidden units active (> 0, before top-k) over a loader."""
+    from mfg_lightning.basis import population_statistics
+
+    return population_statistics(model.net, loader).summary()["active_fraction_mean"]
+
+
+def logged_curve(run_dir: Path) -> list[dict[str, float]]:
+    """The validation rows (``step``, ``val/*``) of a training run's CSV log, by step."""
+    rows: dict[int, dict[str, float]] = {}
+    for path in sorted(run_dir.glob("csv/**/metrics.csv")):
+        with path.open() as fh:
+            for r in csv.DictReader(fh):
+                if r.get("val/ate") not in (None, ""):
+                    vals = {k: float(v) for k, v in r.items() if k.startswith("val/") and v != ""}
+                    rows[int(r["step"])] = {"step": float(r["step"]), **vals}
+    return [rows[s] for s in sorted(rows)]
+
+
+def bin_errors(
+    coverage: list[float], errors: list[float], edges: list[float]
+) -> list[dict[str, float]]:
+    """Mean error and count per coverage bin ``[edges[i], edges[i+1])`` (the last bin closed)."""
+    cov = torch.tensor(coverage, dtype=torch.float64)
+    err = torch.tensor(errors, dtype=torch.float64)
+    out = []
+    for i, (lo, hi) in enumerate(itertools.pairwise(edges)):
+        last = i == len(edges) - 2
+        sel = (cov >= lo) & ((cov <= hi) if last else (cov < hi))
+        n = int(sel.sum())
+        out.append({"lo": lo, "hi": hi, "n": n, "mean": float(err[sel].mean()) if n else None})
+    return out
+
+
+def growth(bins: list[dict[str, float]]) -> float | None:
+    """Mean error of the most covered non-empty bin over that of the least covered one."""
+    filled = [b for b in bins if b["n"] and b["mean"] is not None]
+    if len(filled) < 2 or not filled[0]["mean"]:
+        return None
+    return filled[-1]["mean"] / filled[0]["mean"]
+
+
+def selectivity(model: Any, intrinsics: torch.Tensor, units: int) -> dict[str, Any]:
+    """Per-unit closed-form fits of the ``units`` largest units' decoder fields: relative
+    residuals, preferred motions and their spread (resultant length of the unit directions:
+    1 = one direction, 0 = spread evenly)."""
+    from mfg_lightning import basis, geometry
+
+    net = model.net
+    rows = basis.selectivity_rows(net, intrinsics, units)
+    idx = [r["unit"] for r in rows]
+    v_t, v_w = basis.unit_fields(net, idx)
+    K = intrinsics.double()
+    t = torch.tensor([[r["tx"], r["ty"], r["tz"]] for r in rows], dtype=torch.float64)
+    w = torch.tensor([[r["wx"], r["wy"], r["wz"]] for r in rows], dtype=torch.float64)
+    fit_t = geometry.translational_field(t, K, net.height, net.width)
+    fit_w = geometry.rotational_field(w, K, net.height, net.width)
+
+    def rel(v: torch.Tensor, fit: torch.Tensor) -> list[float]:
+        v = v.double()
+        return (
+            (v - fit).flatten(1).norm(dim=1) / v.flatten(1).norm(dim=1).clamp_min(1e-12)
+        ).tolist()
+
+    def spread(x: torch.Tensor) -> float:
+        unit = x / x.norm(dim=1, keepdim=True).clamp_min(1e-12)
+        return float(unit.mean(0).norm()) if len(x) else math.nan
+
+    return {
+        "rows": rows,
+        "residual_t": rel(v_t, fit_t),
+        "residual_w": rel(v_w, fit_w),
+        "t_norm_median": float(t.norm(dim=1).median()) if len(t) else None,
+        "w_norm_median": float(w.norm(dim=1).median()) if len(w) else None,
+        "t_resultant": spread(t),
+        "w_resultant": spread(w),
+    }
+
+
+def object_motion_scores(
+    model: Any, loader: DataLoader, cfg: Any, slow_px: float
+) -> dict[str, dict[str, dict[str, float]]]:
+    """Object-mask scores of the paper's filters and the threshold baseline, over all samples
+    and split slow / fast by each sample's mean ground-truth object flow (near / far: the
+    scores' own depth split)."""
+    from mfg_lightning.data.sample import sanitize_flow
+    from mfg_lightning.metrics.object_motion import ObjectMotionScores
+    from mfg_lightning.object_motion import extract_object_motion, threshold_baseline
+
+    groups = ("all", "slow", "fast")
+    scores = {m: {g: ObjectMotionScores() for g in groups} for m in ("filters", "threshold")}
+    for batch in loader:
+        if batch is None or "object_mask" not in batch:
+            continue
+        flow, _, _ = sanitize_flow(batch["flow"], batch["flow_valid"])
+        with torch.inference_mode():
+            out = model(flow)
+        depth, gt = batch["depth"], batch["object_mask"].bool()
+        res = extract_object_motion(
+            flow, out.v_t, out.v_omega, depth, cfg, valid=batch["flow_valid"]
+        )
+        base = threshold_baseline(res.residual, cfg.baseline_threshold, res.valid)
+        speed = (batch["object_flow"].norm(dim=1) * gt).flatten(1).sum(1) / gt.flatten(1).sum(
+            1
+        ).clamp_min(1)
+        sel = {"all": torch.ones_like(speed, dtype=torch.bool), "slow": speed < slow_px}
+        sel["fast"] = ~sel["slow"]
+        for name, mask, field in (
+            ("filters", res.mask, res.object_flow),
+            ("threshold", base, res.residual * base[:, None]),
+        ):
+            for g in groups:
+                s = sel[g] & (gt.flatten(1).any(1) if g != "all" else sel[g])
+                if s.any():
+                    scores[name][g].update(
+                        mask[s], field[s], gt[s], batch["object_flow"][s], depth[s], res.valid[s]
+                    )
+    return {
+        m: {
+            g: {k: float(v) for k, v in sc.compute().items()}
+            for g, sc in by.items()
+            if sc.update_count
+        }
+        for m, by in scores.items()
+    }
+
+
+def to_container(x: Any) -> Any:
+    return OmegaConf.to_container(x, resolve=True) if OmegaConf.is_config(x) else x
