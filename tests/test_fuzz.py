@@ -30,7 +30,7 @@ from mfg_lightning import pose_io
 from mfg_lightning.callbacks import BatchChecks
 from mfg_lightning.data import flow_io
 from mfg_lightning.data.base import collate_samples
-from mfg_lightning.data.flow_io import DataFileError
+from mfg_lightning.data.errors import DataFileError
 from mfg_lightning.data.kitti import read_kitti_calib
 from mfg_lightning.data.kitti import read_kitti_poses as kitti_dataset_poses
 from mfg_lightning.data.sample import SampleError

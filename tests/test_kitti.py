@@ -16,7 +16,7 @@ from mfg_lightning import geometry
 from mfg_lightning.config import compose
 from mfg_lightning.data import flow_io, kitti
 from mfg_lightning.data.base import collate_samples
-from mfg_lightning.data.flow_io import DataFileError, DataRootError
+from mfg_lightning.data.errors import DataFileError, DataRootError, report_skipped
 from mfg_lightning.data.kitti import KittiDataModule, KittiOdometryDataset
 from mfg_lightning.data.sample import check_sample
 
@@ -224,7 +224,7 @@ def test_bad_files_name_the_file_or_are_skipped(tmp_path: Path) -> None:
     with pytest.warns(UserWarning, match="skipping kitti/train/09/2->3"):
         assert ds[2] is None
     assert ds.skipped.value == 1
-    assert flow_io.report_skipped({"train": ds}) == {"train": 1}  # what teardown logs
+    assert report_skipped({"train": ds}) == {"train": 1}  # what teardown logs
     assert collate_samples([None, ds[0]])["flow"].shape == (1, 2, H, W)
     # a pose file shorter than the image list, and a missing frame
     poses = fake.root / "poses" / "09.txt"

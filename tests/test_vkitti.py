@@ -16,7 +16,7 @@ from mfg_lightning import geometry
 from mfg_lightning.config import compose
 from mfg_lightning.data import transforms, vkitti
 from mfg_lightning.data.base import collate_samples
-from mfg_lightning.data.flow_io import DataFileError, DataRootError
+from mfg_lightning.data.errors import DataFileError, DataRootError
 from mfg_lightning.data.sample import check_sample
 from mfg_lightning.data.vkitti import VirtualKittiDataModule, VirtualKittiDataset
 

@@ -42,7 +42,7 @@ from omegaconf import DictConfig, OmegaConf
 from mfg_lightning import geometry
 from mfg_lightning.config import CONFIG_DIR
 from mfg_lightning.data import flow_io
-from mfg_lightning.data.flow_io import DataFileError, DataRootError
+from mfg_lightning.data.errors import DataFileError, DataRootError
 from mfg_lightning.errors import exit_on_unknown_choice, exit_on_user_error
 
 log = logging.getLogger("mfg_lightning.data.check")
