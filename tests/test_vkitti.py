@@ -17,6 +17,7 @@ from mfg_lightning.config import compose
 from mfg_lightning.data import transforms, vkitti
 from mfg_lightning.data.base import collate_samples
 from mfg_lightning.data.errors import DataFileError, DataRootError
+from mfg_lightning.data.flow_estimation import GroundTruthFlow
 from mfg_lightning.data.sample import check_sample
 from mfg_lightning.data.vkitti import VirtualKittiDataModule, VirtualKittiDataset
 
@@ -164,6 +165,7 @@ def test_configs_build_the_datamodules(vk1: FakeVkitti) -> None:
         assert (dm.height, dm.width) == (cfg.model.net.height, cfg.model.net.width) == (48, 128)
         assert set(dm.test_worlds) == test_worlds
         assert dm.dataset_kwargs["variation"] == "clone"
+        assert cfg.flow.source == "ground_truth" and isinstance(dm.flow, GroundTruthFlow)
     cfg = compose("train", ["experiment=paper_vkitti_objects", f"dataset.data_root={vk1.root}"])
     assert cfg.dataset.split == "objects" and cfg.dataset.batch_size == 1
     assert cfg.model.optimizer.lr == 1e-5 and list(cfg.model.optimizer.betas) == [0.99, 0.999]
@@ -234,3 +236,20 @@ def test_training_runs_end_to_end(vk1: FakeVkitti, tmp_path: Path) -> None:
     )  # fmt: skip
     assert (run / "metrics.json").is_file()
     assert "VirtualKittiDataModule" in (run / "config.yaml").read_text()
+
+
+@pytest.mark.parametrize("flow", ["flow=dis", "flow=exact", "flow=files flow.dir=/data/flow"])
+def test_a_flow_source_it_cannot_give_is_one_error(
+    vk1: FakeVkitti, tmp_path: Path, flow: str
+) -> None:
+    """dataset=vkitti feeds its ground-truth flow: another flow source is refused, not ignored."""
+    proc = run_module(
+        "mfg_lightning.train", "dataset=vkitti", f"dataset.data_root={vk1.root}", *flow.split(),
+        f"hydra.run.dir={tmp_path / 'r'}", cwd=tmp_path, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 2
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+    source = flow.split()[0].removeprefix("flow=")
+    assert len(errors) == 1 and f"flow.source={source}: dataset=vkitti" in errors[0], proc.stderr
+    assert "flow=ground_truth" in errors[0]
+    assert not (tmp_path / "r" / "metrics.json").exists()

@@ -12,7 +12,7 @@ dataset's train, val and test splits, and reports for each:
 * flow statistics (magnitude in input pixels, valid fraction; for Virtual KITTI also depth and
   moving-object fraction) from a few samples spread evenly over the split (``+check.samples=N``,
   default 4). For KITTI these few are the only pairs whose flow is computed (by DIS, and cached
-  like in training) or read (``flow_dir``); the report lists their ids;
+  like in training) or read (``flow=files``, from ``flow.dir``); the report lists their ids;
 * missing or unreadable files, listed, not fatal: every file every sample reads is checked
   cheaply (it exists; PNG/JPEG signature and end marker, which catches truncated downloads), and
   the sampled ones are decoded fully. Missing frames, short pose files and similar index

@@ -137,12 +137,16 @@ def default_cache_dir() -> Path:
 
 def kitti_flow_source(flow: FlowSource | dict[str, Any] | None) -> EstimatedFlow | FlowFiles:
     """The ``flow`` config of ``dataset=kitti`` parsed (default DIS ``medium``); ``flow=exact``
-    is refused: real images have no exact flow."""
+    and ``flow=ground_truth`` are refused: real images have no exact flow, and KITTI odometry
+    ships no flow."""
     source = parse_flow(flow, default="dis")
     if not isinstance(source, (EstimatedFlow, FlowFiles)):
+        missing = "exact flow (it needs a synthetic scene)"
+        if source.source == "ground_truth":
+            missing = "ground-truth flow (KITTI odometry ships none)"
         raise ValueError(
-            f"flow.source={source.source}: dataset=kitti has no exact flow (it needs a synthetic "
-            "scene); use flow=dis (the default for KITTI) or flow=files flow.dir=<your flow>"
+            f"flow.source={source.source}: dataset=kitti has no {missing}; use flow=dis (the "
+            "default for KITTI) or flow=files flow.dir=<your flow>"
         )
     return source
 

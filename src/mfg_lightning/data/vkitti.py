@@ -72,6 +72,7 @@ from mfg_lightning.data.base import (
     split_sequences,
 )
 from mfg_lightning.data.errors import DataFileError, DataRootError
+from mfg_lightning.data.flow_estimation import FlowSource, GroundTruthFlow, parse_flow
 from mfg_lightning.data.sample import sanitize_flow
 
 log = logging.getLogger(__name__)
@@ -612,6 +613,9 @@ class VirtualKittiDataModule(MFGDataModule):
         val_fraction: the validation tail of each training world (default 5 %).
         object_threshold: moving-pixel threshold in native pixels (default 1.0).
         load_rgb, skip_bad_samples: see :class:`VirtualKittiDataset`.
+        flow: the ``flow`` config group: ``flow=ground_truth`` (the default, and the only source:
+            the input flow is the ground-truth flow the dataset ships); any other source is
+            refused naming ``flow.source``, never silently replaced.
         kwargs: ``height``, ``width``, ``batch_size``, … of
             :class:`~mfg_lightning.data.base.MFGDataModule`.
     """
@@ -628,9 +632,17 @@ class VirtualKittiDataModule(MFGDataModule):
         object_threshold: float = 1.0,
         load_rgb: bool = True,
         skip_bad_samples: bool = False,
+        flow: FlowSource | dict[str, Any] | None = None,
         **kwargs: Any,
     ) -> None:
         super().__init__(**kwargs)
+        self.flow = parse_flow(flow, default="ground_truth")
+        if not isinstance(self.flow, GroundTruthFlow):
+            raise ValueError(
+                f"flow.source={self.flow.source}: dataset=vkitti feeds the model Virtual KITTI's "
+                "ground-truth flow (its flowgt / forwardFlow files); flow=ground_truth, its "
+                "default, is the only flow source it has"
+            )
         if split not in SPLITS:
             raise ValueError(f"dataset.split must be one of {sorted(SPLITS)}, got {split!r}")
         default_train, default_test = SPLITS[split]
