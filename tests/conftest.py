@@ -32,6 +32,16 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("MFG_SHARED_DIR", REPO.parent / "shared"))
 
 
+#: Overrides of a seconds-long real training on a small dataset (two steps, one validation and
+#: one test batch, no logger or callbacks): the end-to-end tests of each dataset add theirs.
+TINY_TRAINING = (
+    "dataset.batch_size=2", "dataset.eval_batch_size=4", "model.net.hidden_units=64",
+    "model.net.channels=[8,8,16,16,32]", "trainer.max_steps=2", "trainer.val_check_interval=1",
+    "trainer.limit_val_batches=1", "trainer.limit_test_batches=1", "logger=none",
+    "callbacks=none",
+)  # fmt: skip
+
+
 def run_module(module: str, *args: str, cwd: Path, timeout: int = 300, check: bool = True):
     """Run ``python -m module args`` in a subprocess (a real entry point, as a user would)."""
     import subprocess

@@ -10,7 +10,7 @@ import pytest
 import torch
 from hydra.utils import instantiate
 
-from conftest import run_module
+from conftest import TINY_TRAINING, run_module
 from fake_datasets import FakeKitti, make_kitti, tree_snapshot
 from mfg_lightning import geometry
 from mfg_lightning.config import compose
@@ -260,11 +260,8 @@ def test_training_runs_end_to_end(fk: FakeKitti, tmp_path: Path) -> None:
     run = tmp_path / "run"
     run_module(
         "mfg_lightning.train", "dataset=kitti", f"dataset.data_root={fk.root}",
-        "dataset.backward_flow=true", "flow.preset=ultrafast", "dataset.batch_size=2",
-        "dataset.eval_batch_size=4", "model.net.hidden_units=64", "trainer.max_steps=2",
-        "trainer.val_check_interval=1", "trainer.limit_val_batches=1",
-        "trainer.limit_test_batches=1", "logger=none", "callbacks=none", f"hydra.run.dir={run}",
-        cwd=tmp_path,
+        "dataset.backward_flow=true", "flow.preset=ultrafast", *TINY_TRAINING,
+        f"hydra.run.dir={run}", cwd=tmp_path,
     )  # fmt: skip
     assert (run / "metrics.json").is_file()
     # run_module points MFG_CACHE_DIR (paths.cache_dir) at <tmp>/cache: the flow went there
