@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 import torch
@@ -68,6 +69,30 @@ def run_module(module: str, *args: str, cwd: Path, timeout: int = 300, check: bo
             f"{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
         )
     return proc
+
+
+def quiet_trainer(**options: Any):
+    """An in-process ``lightning.Trainer`` that writes and prints nothing of its own (no logger,
+    checkpoints, progress bar or model summary); ``options`` are the test's own settings."""
+    import lightning as L
+
+    quiet = dict(
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+    )
+    return L.Trainer(**{**quiet, **options})
+
+
+def tiny_training(tmp_path: Path, *overrides: str) -> Path:
+    """Run ``mfg_lightning.train`` with ``overrides`` and :data:`TINY_TRAINING` into
+    ``<tmp_path>/run`` (the flow cache in ``<tmp_path>/cache``) and return that run directory."""
+    run = tmp_path / "run"
+    run_module(
+        "mfg_lightning.train", *overrides, *TINY_TRAINING, f"hydra.run.dir={run}", cwd=tmp_path
+    )
+    return run
 
 
 @pytest.fixture

@@ -10,7 +10,7 @@ import pytest
 import torch
 from hydra.utils import instantiate
 
-from conftest import TINY_TRAINING, run_module
+from conftest import tiny_training
 from fake_datasets import FakeKitti, make_kitti, tree_snapshot
 from mfg_lightning import geometry
 from mfg_lightning.config import compose
@@ -257,11 +257,9 @@ def test_configs_build_the_datamodule(fk: FakeKitti, tmp_path: Path) -> None:
 
 @pytest.mark.slow
 def test_training_runs_end_to_end(fk: FakeKitti, tmp_path: Path) -> None:
-    run = tmp_path / "run"
-    run_module(
-        "mfg_lightning.train", "dataset=kitti", f"dataset.data_root={fk.root}",
-        "dataset.backward_flow=true", "flow.preset=ultrafast", *TINY_TRAINING,
-        f"hydra.run.dir={run}", cwd=tmp_path,
+    run = tiny_training(
+        tmp_path, "dataset=kitti", f"dataset.data_root={fk.root}", "dataset.backward_flow=true",
+        "flow.preset=ultrafast",
     )  # fmt: skip
     assert (run / "metrics.json").is_file()
     # run_module points MFG_CACHE_DIR (paths.cache_dir) at <tmp>/cache: the flow went there

@@ -10,7 +10,7 @@ import pytest
 import torch
 from hydra.utils import instantiate
 
-from conftest import TINY_TRAINING, run_module
+from conftest import run_module, tiny_training
 from fake_datasets import FakeVkitti, make_vkitti, tree_snapshot
 from mfg_lightning import geometry
 from mfg_lightning.config import compose
@@ -226,11 +226,7 @@ def test_bad_files_name_the_file_or_are_skipped(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 def test_training_runs_end_to_end(vk1: FakeVkitti, tmp_path: Path) -> None:
-    run = tmp_path / "run"
-    run_module(
-        "mfg_lightning.train", "dataset=vkitti", f"dataset.data_root={vk1.root}",
-        *TINY_TRAINING, f"hydra.run.dir={run}", cwd=tmp_path,
-    )  # fmt: skip
+    run = tiny_training(tmp_path, "dataset=vkitti", f"dataset.data_root={vk1.root}")
     assert (run / "metrics.json").is_file()
     assert "VirtualKittiDataModule" in (run / "config.yaml").read_text()
 

@@ -93,18 +93,28 @@ class FileMotionDataset(MotionDataset):
     the sample dropped (``None``; :func:`collate_samples` leaves it out).
 
     Args:
+        height, width: the model's input size; samples are delivered at it.
         split: name used in ``sample_id`` and messages.
         portion: one of :data:`PORTIONS`, the frames of each sequence to use.
-        skip_bad_samples: warn and skip unreadable samples instead of raising.
+        skip_bad_samples: warn and skip unreadable samples (``__getitem__`` returns None, the
+            collate drops it) instead of raising.
     """
 
     #: How messages name the dataset ("KITTI train split: …").
     title: str = "dataset"
 
-    def __init__(self, split: str, portion: str = "all", skip_bad_samples: bool = False) -> None:
+    def __init__(
+        self,
+        height: int = 48,
+        width: int = 128,
+        split: str = "train",
+        portion: str = "all",
+        skip_bad_samples: bool = False,
+    ) -> None:
         super().__init__()
         if portion not in PORTIONS:
             raise ValueError(f"portion must be 'all', 'train' or 'val', got {portion!r}")
+        self.height, self.width = int(height), int(width)
         self.split = split
         self.portion = portion
         self.skip_bad_samples = bool(skip_bad_samples)

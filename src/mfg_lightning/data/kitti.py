@@ -297,11 +297,7 @@ class KittiOdometryDataset(FileMotionDataset):
     Args:
         data_root: the KITTI odometry root (holding ``sequences/`` and ``poses/``).
         sequences: sequence names (``"00"`` … ``"10"``).
-        height, width: the model's input size; flow, RGB and intrinsics are delivered at it.
         offsets: target offsets, ``target = frame + offset`` (non-zero integers).
-        split: name used in ``sample_id`` and messages.
-        portion: ``"all"`` frames of each sequence, or its ``"train"`` head / ``"val"`` tail
-            (:func:`~mfg_lightning.data.transforms.holdout_ranges` with ``val_fraction``).
         val_fraction: fraction of each sequence held out as its validation tail.
         flow: the flow source, a ``conf/flow`` config or its parsed form
             (:func:`~mfg_lightning.data.flow_estimation.parse_flow`): ``{"source": "dis",
@@ -311,10 +307,12 @@ class KittiOdometryDataset(FileMotionDataset):
             ``<flow_dir>/<seq>/<src:06d>_<tgt:06d>.<ext>``).
         cache_dir: the user cache dir (``paths.cache_dir``); flow is cached under ``kitti_flow/``.
         load_rgb: deliver the source image as ``rgb`` (decoded once, then read from the cache).
-        skip_bad_samples: warn and skip unreadable samples (``__getitem__`` returns None, the
-            collate drops it) instead of raising.
         require_poses: False: a sequence without ``poses/XX.txt`` is read without ground truth
             (its samples have no ``pose``; :meth:`relative_poses` refuses).
+        kwargs: ``height``, ``width`` (the input size flow, RGB and intrinsics are delivered
+            at), ``split``, ``portion`` (``"all"`` frames of each sequence, or its ``"train"``
+            head / ``"val"`` tail with ``val_fraction``) and ``skip_bad_samples`` of
+            :class:`~mfg_lightning.data.base.FileMotionDataset`.
     """
 
     name = "kitti"
@@ -324,25 +322,20 @@ class KittiOdometryDataset(FileMotionDataset):
         self,
         data_root: str | os.PathLike,
         sequences: Sequence[str],
-        height: int = 48,
-        width: int = 128,
         offsets: Sequence[int] = (1,),
-        split: str = "train",
-        portion: str = "all",
         val_fraction: float = 0.05,
         flow: FlowSource | dict[str, Any] | None = None,
         cache_dir: str | os.PathLike | None = None,
         load_rgb: bool = True,
-        skip_bad_samples: bool = False,
         require_poses: bool = True,
+        **kwargs: Any,
     ) -> None:
-        super().__init__(split, portion, skip_bad_samples)
+        super().__init__(**kwargs)
         self.require_poses = bool(require_poses)
         source = kitti_flow_source(flow)
         offsets = check_offsets(offsets)
         self.sequence_names = [normalize_sequence(s) for s in sequences]
         self.root = self._check_root(data_root)
-        self.height, self.width = int(height), int(width)
         self.offsets = offsets
         self.load_rgb = load_rgb
         self.flow_dir = Path(source.dir).expanduser() if isinstance(source, FlowFiles) else None

@@ -375,14 +375,13 @@ class VirtualKittiDataset(FileMotionDataset):
         worlds: world names (``"0001"`` …).
         variation: rendering variation (``clone``, ``fog``, …).
         version: 1 (1.3.1) or 2 (2.0.3).
-        height, width: the model's input size.
-        split: name used in ``sample_id`` and messages.
-        portion: ``"all"`` frames of each world, its ``"train"`` head or its ``"val"`` tail.
         val_fraction: fraction of each world held out as its validation tail.
         object_threshold: residual ``‖flow − rigid flow‖`` above which a pixel is moving, in
             pixels of the native (1242 × 375) resolution.
         load_rgb: deliver the source image as ``rgb``.
-        skip_bad_samples: warn and skip unreadable samples instead of raising.
+        kwargs: ``height``, ``width`` (the model's input size), ``split``, ``portion`` (``"all"``
+            frames of each world, its ``"train"`` head or its ``"val"`` tail) and
+            ``skip_bad_samples`` of :class:`~mfg_lightning.data.base.FileMotionDataset`.
     """
 
     name = "vkitti"
@@ -394,16 +393,12 @@ class VirtualKittiDataset(FileMotionDataset):
         worlds: Sequence[str],
         variation: str = "clone",
         version: int | str = 1,
-        height: int = 48,
-        width: int = 128,
-        split: str = "train",
-        portion: str = "all",
         val_fraction: float = 0.05,
         object_threshold: float = 1.0,
         load_rgb: bool = True,
-        skip_bad_samples: bool = False,
+        **kwargs: Any,
     ) -> None:
-        super().__init__(split, portion, skip_bad_samples)
+        super().__init__(**kwargs)
         if object_threshold <= 0:
             raise ValueError(f"dataset.object_threshold must be positive, got {object_threshold}")
         if variation not in VARIATIONS:
@@ -414,7 +409,6 @@ class VirtualKittiDataset(FileMotionDataset):
         self.world_names = [normalize_world(w) for w in worlds]
         self.variation = str(variation)
         self.layout = check_vkitti_root(data_root, self.version, self.world_names, self.variation)
-        self.height, self.width = int(height), int(width)
         self.object_threshold = float(object_threshold)
         self.load_rgb = load_rgb
         self._worlds: dict[str, _World] = {}
