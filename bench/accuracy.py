@@ -353,10 +353,10 @@ def stage_breakdown(args: argparse.Namespace, max_frames: int | None, pairs: int
     clock = time.process_time
     spent = {"render": 0.0, "exact flow": 0.0, "DIS": 0.0, "quality, resize": 0.0, "write": 0.0}
     t = clock()
-    a = ds.render(seq, ds.index[first][1])
+    a = ds.render(seq, ds.samples[first][1])
     spent["render"] += clock() - t  # the first frame: one render per pair from here on
     for i in range(first, first + pairs):
-        _, src, tgt = ds.index[i]
+        _, src, tgt = ds.samples[i]
         t = clock()
         b = ds.render(seq, tgt)
         spent["render"] += clock() - t

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 import torch
@@ -30,6 +31,16 @@ def _seed_global_generators() -> None:
 REPO = Path(__file__).resolve().parents[1]
 # ../shared beside the checkout; MFG_SHARED_DIR points elsewhere (a git worktree, a CI cache).
 SHARED = Path(os.environ.get("MFG_SHARED_DIR", REPO.parent / "shared"))
+
+
+#: Overrides of a seconds-long real training on a small dataset (two steps, one validation and
+#: one test batch, no logger or callbacks): the end-to-end tests of each dataset add theirs.
+TINY_TRAINING = (
+    "dataset.batch_size=2", "dataset.eval_batch_size=4", "model.net.hidden_units=64",
+    "model.net.channels=[8,8,16,16,32]", "trainer.max_steps=2", "trainer.val_check_interval=1",
+    "trainer.limit_val_batches=1", "trainer.limit_test_batches=1", "logger=none",
+    "callbacks=none",
+)  # fmt: skip
 
 
 def run_module(module: str, *args: str, cwd: Path, timeout: int = 300, check: bool = True):
@@ -58,6 +69,30 @@ def run_module(module: str, *args: str, cwd: Path, timeout: int = 300, check: bo
             f"{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
         )
     return proc
+
+
+def quiet_trainer(**options: Any):
+    """An in-process ``lightning.Trainer`` that writes and prints nothing of its own (no logger,
+    checkpoints, progress bar or model summary); ``options`` are the test's own settings."""
+    import lightning as L
+
+    quiet = dict(
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+    )
+    return L.Trainer(**{**quiet, **options})
+
+
+def tiny_training(tmp_path: Path, *overrides: str) -> Path:
+    """Run ``mfg_lightning.train`` with ``overrides`` and :data:`TINY_TRAINING` into
+    ``<tmp_path>/run`` (the flow cache in ``<tmp_path>/cache``) and return that run directory."""
+    run = tmp_path / "run"
+    run_module(
+        "mfg_lightning.train", *overrides, *TINY_TRAINING, f"hydra.run.dir={run}", cwd=tmp_path
+    )
+    return run
 
 
 @pytest.fixture

@@ -326,3 +326,23 @@ def test_dataset_configs_from_before_the_flow_group_read_their_flow(tmp_path: Pa
     kitti["flow_dir"] = "/data/flow"
     files = {"source": "files", "dir": "/data/flow"}
     assert with_legacy_dataset_settings(kitti, path)["flow"] == files
+
+
+def test_synthetic_test_offsets_is_read_as_offsets(tmp_path: Path, caplog) -> None:
+    """Synthetic configs stored before ``dataset.offsets`` (one name with KITTI's) had
+    ``test_offsets``: read as ``offsets``, with a warning."""
+    from mfg_lightning.data.synthetic import SyntheticDataModule
+
+    path = tmp_path / "old.ckpt"
+    ckpt = _tiny_checkpoint(path)
+    cfg = compose("train", ["debug=tiny", f"paths.output_dir={tmp_path}"])
+    old = OmegaConf.to_container(cfg.dataset, resolve=True)
+    del old["offsets"]
+    old["test_offsets"] = [-2, -1, 1, 2]
+    ckpt["mfg_dataset_config"] = old
+    with caplog.at_level("WARNING", logger="mfg_lightning.checkpoints"):
+        read = dataset_config(ckpt, path)
+    assert read["offsets"] == [-2, -1, 1, 2] and "test_offsets" not in read
+    assert "dataset.test_offsets is now dataset.offsets" in caplog.text
+    dm = SyntheticDataModule(**{k: v for k, v in read.items() if k != "_target_"})
+    assert {b - a for _, a, b in dm.dataset("test").samples} == {-2, -1, 1, 2}

@@ -12,7 +12,7 @@ import pytest
 import torch
 from hydra.utils import instantiate
 
-from conftest import run_module
+from conftest import run_module, tiny_training
 from fake_datasets import synthetic_drive, tree_snapshot
 from mfg_lightning import geometry, pose_io
 from mfg_lightning.config import compose
@@ -358,13 +358,6 @@ def test_entry_point_errors_are_one_line_and_exit_2(tmp_path: Path) -> None:
 # Trainings on exported trees
 # --------------------------------------------------------------------------------------------
 
-_TINY_TRAINING = (
-    "dataset.batch_size=2", "dataset.eval_batch_size=4", "model.net.hidden_units=64",
-    "model.net.channels=[8,8,16,16,32]", "trainer.max_steps=2", "trainer.val_check_interval=1",
-    "trainer.limit_val_batches=1", "trainer.limit_test_batches=1", "logger=none",
-    "callbacks=none",
-)  # fmt: skip
-
 
 @pytest.mark.slow
 def test_kitti_trains_on_an_exported_tree_with_flow_from_its_images(
@@ -380,11 +373,9 @@ def test_kitti_trains_on_an_exported_tree_with_flow_from_its_images(
         cwd=work,
     )  # fmt: skip
     assert tree_snapshot(work) == {}  # nothing written but into out
-    run = tmp_path / "run"
-    run_module(
-        "mfg_lightning.train", "dataset=kitti", f"dataset.data_root={out}",
-        "dataset.train_sequences=[03]", "dataset.test_sequences=[07]", "flow=dis",
-        "flow.preset=ultrafast", *_TINY_TRAINING, f"hydra.run.dir={run}", cwd=tmp_path,
+    run = tiny_training(
+        tmp_path, "dataset=kitti", f"dataset.data_root={out}", "dataset.train_sequences=[03]",
+        "dataset.test_sequences=[07]", "flow=dis", "flow.preset=ultrafast",
     )  # fmt: skip
     assert (run / "metrics.json").is_file()
     # DIS ran on the exported images at their size: the flow of every test pair (07: 5) and
@@ -396,11 +387,9 @@ def test_kitti_trains_on_an_exported_tree_with_flow_from_its_images(
 
 @pytest.mark.slow
 def test_vkitti_trains_on_an_exported_tree(vkitti2_tree: Path, tmp_path: Path) -> None:
-    run = tmp_path / "run"
-    run_module(
-        "mfg_lightning.train", "dataset=vkitti", f"dataset.data_root={vkitti2_tree}",
-        "dataset.version=2", "dataset.train_worlds=[0002]", *_TINY_TRAINING,
-        f"hydra.run.dir={run}", cwd=tmp_path,
+    run = tiny_training(
+        tmp_path, "dataset=vkitti", f"dataset.data_root={vkitti2_tree}", "dataset.version=2",
+        "dataset.train_worlds=[0002]",
     )  # fmt: skip
     metrics = json.loads((run / "metrics.json").read_text())["metrics"]
     assert "VirtualKittiDataModule" in (run / "config.yaml").read_text()

@@ -16,10 +16,12 @@ from mfg_lightning.data.flow_estimation import (
     EstimatedFlow,
     ExactFlow,
     FlowFiles,
+    GroundTruthFlow,
     parse_flow,
 )
 from mfg_lightning.data.kitti import KittiDataModule
 from mfg_lightning.data.synthetic import SyntheticDataModule
+from mfg_lightning.data.vkitti import VirtualKittiDataModule
 
 
 def test_each_dataset_gets_its_default_and_the_override_wins(tmp_path: Path) -> None:
@@ -68,6 +70,14 @@ def test_each_dataset_refuses_the_source_it_cannot_give(tmp_path: Path) -> None:
         KittiDataModule(str(tmp_path), flow={"source": "exact"})
     with pytest.raises(ValueError, match="flow.source=files: dataset=synthetic"):
         SyntheticDataModule(flow={"source": "files", "dir": str(tmp_path)})
+    # ground_truth is the flow a dataset ships: Virtual KITTI's, not KITTI odometry's or synthetic
+    with pytest.raises(ValueError, match="flow.source=ground_truth: dataset=kitti has no ground"):
+        KittiDataModule(str(tmp_path), flow={"source": "ground_truth"})
+    with pytest.raises(ValueError, match="flow.source=ground_truth: dataset=synthetic"):
+        SyntheticDataModule(flow={"source": "ground_truth"})
+    with pytest.raises(ValueError, match="flow.source=dis: dataset=vkitti"):
+        VirtualKittiDataModule(str(tmp_path), flow={"source": "dis"})
+    assert isinstance(VirtualKittiDataModule(str(tmp_path)).flow, GroundTruthFlow)
     # a render size below the model input cannot be resized down to it
     with pytest.raises(ValueError, match=r"flow.height=32: the render size 32 × 512"):
         SyntheticDataModule(flow={"source": "dis", "height": 32, "width": 512})

@@ -11,7 +11,7 @@ import torch
 
 from mfg_lightning import geometry
 from mfg_lightning.data import flow_io, transforms
-from mfg_lightning.data.flow_io import DataFileError
+from mfg_lightning.data.errors import DataFileError
 
 
 def _random_flow(h: int = 12, w: int = 17, scale: float = 20.0, seed: int = 0) -> np.ndarray:

@@ -19,18 +19,18 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import lightning as L
 import numpy as np
 import pytest
 import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from conftest import quiet_trainer
 from mfg_lightning import pose_io
 from mfg_lightning.callbacks import BatchChecks
 from mfg_lightning.data import flow_io
 from mfg_lightning.data.base import collate_samples
-from mfg_lightning.data.flow_io import DataFileError
+from mfg_lightning.data.errors import DataFileError
 from mfg_lightning.data.kitti import read_kitti_calib
 from mfg_lightning.data.kitti import read_kitti_poses as kitti_dataset_poses
 from mfg_lightning.data.sample import SampleError
@@ -384,15 +384,7 @@ def test_corrupt_batches_are_refused_or_masked_and_never_reach_the_weights(batch
     model = _module()
     # Two steps on the same corrupt batch: the second one would see what the first did.
     loader = torch.utils.data.DataLoader([batch, batch], batch_size=None, collate_fn=lambda b: b)
-    trainer = L.Trainer(
-        max_steps=2,
-        limit_val_batches=0,
-        logger=False,
-        enable_checkpointing=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-        callbacks=[BatchChecks()],
-    )
+    trainer = quiet_trainer(max_steps=2, limit_val_batches=0, callbacks=[BatchChecks()])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         try:

@@ -10,13 +10,13 @@ import pytest
 import torch
 from hydra.utils import instantiate
 
-from conftest import run_module
+from conftest import tiny_training
 from fake_datasets import FakeKitti, make_kitti, tree_snapshot
 from mfg_lightning import geometry
 from mfg_lightning.config import compose
 from mfg_lightning.data import flow_io, kitti
 from mfg_lightning.data.base import collate_samples
-from mfg_lightning.data.flow_io import DataFileError, DataRootError
+from mfg_lightning.data.errors import DataFileError, DataRootError, report_skipped
 from mfg_lightning.data.kitti import KittiDataModule, KittiOdometryDataset
 from mfg_lightning.data.sample import check_sample
 
@@ -224,7 +224,7 @@ def test_bad_files_name_the_file_or_are_skipped(tmp_path: Path) -> None:
     with pytest.warns(UserWarning, match="skipping kitti/train/09/2->3"):
         assert ds[2] is None
     assert ds.skipped.value == 1
-    assert flow_io.report_skipped({"train": ds}) == {"train": 1}  # what teardown logs
+    assert report_skipped({"train": ds}) == {"train": 1}  # what teardown logs
     assert collate_samples([None, ds[0]])["flow"].shape == (1, 2, H, W)
     # a pose file shorter than the image list, and a missing frame
     poses = fake.root / "poses" / "09.txt"
@@ -257,14 +257,9 @@ def test_configs_build_the_datamodule(fk: FakeKitti, tmp_path: Path) -> None:
 
 @pytest.mark.slow
 def test_training_runs_end_to_end(fk: FakeKitti, tmp_path: Path) -> None:
-    run = tmp_path / "run"
-    run_module(
-        "mfg_lightning.train", "dataset=kitti", f"dataset.data_root={fk.root}",
-        "dataset.backward_flow=true", "flow.preset=ultrafast", "dataset.batch_size=2",
-        "dataset.eval_batch_size=4", "model.net.hidden_units=64", "trainer.max_steps=2",
-        "trainer.val_check_interval=1", "trainer.limit_val_batches=1",
-        "trainer.limit_test_batches=1", "logger=none", "callbacks=none", f"hydra.run.dir={run}",
-        cwd=tmp_path,
+    run = tiny_training(
+        tmp_path, "dataset=kitti", f"dataset.data_root={fk.root}", "dataset.backward_flow=true",
+        "flow.preset=ultrafast",
     )  # fmt: skip
     assert (run / "metrics.json").is_file()
     # run_module points MFG_CACHE_DIR (paths.cache_dir) at <tmp>/cache: the flow went there

@@ -8,6 +8,7 @@ import lightning as L
 import pytest
 import torch
 
+from conftest import quiet_trainer
 from mfg_lightning.data.synthetic import SyntheticDataModule, SyntheticDrivingDataset
 from mfg_lightning.losses import MFGLoss
 from mfg_lightning.models.mfg import MFG
@@ -61,14 +62,10 @@ def _dm(cls=SyntheticDataModule) -> SyntheticDataModule:
 
 
 def _trainer(tmp_path, steps: int = 3) -> L.Trainer:
-    return L.Trainer(
+    return quiet_trainer(
         max_steps=steps,
         # the module logs its step diagnostics on the steps the loggers write
         log_every_n_steps=1,
-        logger=False,
-        enable_checkpointing=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
         limit_val_batches=1,
         default_root_dir=tmp_path,
     )
@@ -105,15 +102,8 @@ def test_a_non_finite_loss_skips_the_optimiser_step(tmp_path) -> None:
     torch.manual_seed(0)
     model = _module(NaNLoss(bad_steps=2))
     before = [p.detach().clone() for p in model.parameters()]
-    trainer = L.Trainer(
-        max_steps=2,
-        limit_train_batches=2,
-        limit_val_batches=0,
-        logger=False,
-        enable_checkpointing=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-        default_root_dir=tmp_path,
+    trainer = quiet_trainer(
+        max_steps=2, limit_train_batches=2, limit_val_batches=0, default_root_dir=tmp_path
     )
     trainer.fit(model, datamodule=_dm())
     for p, q in zip(model.parameters(), before, strict=True):

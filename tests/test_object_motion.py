@@ -3,6 +3,7 @@ batching, invalid depth, errors, config and pictures."""
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -453,27 +454,19 @@ def test_config_defaults_and_validation() -> None:
 
 def test_per_frame_normalisation_changes_the_depth_cut_only_without_a_far_plane() -> None:
     frame = make_frame(speed=0.5, height=48, width=128)
-    fixed = extract_object_motion(frame.flow, frame.v_t, frame.v_w, frame.depth)
-    per_frame = extract_object_motion(
-        frame.flow,
-        frame.v_t,
-        frame.v_w,
-        frame.depth,
-        ObjectMotionConfig(depth_normalisation="per_frame"),
+    extract = functools.partial(
+        extract_object_motion, frame.flow, frame.v_t, frame.v_w, frame.depth
     )
+    fixed = extract()
+    per_frame = extract(ObjectMotionConfig(depth_normalisation="per_frame"))
     assert torch.equal(fixed.mask, per_frame.mask)  # the frame has sky at 655.35 m
     # Without a far plane (sky depth unknown, as with LiDAR), "per_frame" divides by the frame's
     # farthest ground pixel, 191 m: Threshold_D = 0.2 then means 38 m and the distant car (60 m)
     # falls outside the cut.
     # Invalid flow alone does not change the normalisation (VKITTI's sky: invalid flow, 655.35 m).
     sky = frame.surface == SKY
-    per_frame_sky_flow_invalid = extract_object_motion(
-        frame.flow,
-        frame.v_t,
-        frame.v_w,
-        frame.depth,
-        ObjectMotionConfig(depth_normalisation="per_frame"),
-        valid=~sky,
+    per_frame_sky_flow_invalid = extract(
+        ObjectMotionConfig(depth_normalisation="per_frame"), valid=~sky
     )
     assert torch.equal(per_frame_sky_flow_invalid.depth_norm, fixed.depth_norm)
     per_frame = extract_object_motion(

@@ -17,7 +17,7 @@ import torch
 from conftest import run_module
 from fake_datasets import make_kitti, tree_snapshot
 from mfg_lightning import geometry, trajectories
-from mfg_lightning.data.flow_io import DataRootError
+from mfg_lightning.data.errors import DataRootError
 from mfg_lightning.data.image_folder import ImageFolderDataModule, NoGroundTruthError
 from mfg_lightning.data.kitti import KittiDataModule
 from mfg_lightning.pose_io import read_kitti_poses, read_poses, read_tum_poses

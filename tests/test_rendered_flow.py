@@ -110,7 +110,7 @@ def test_worker_processes_fill_the_cache_with_the_same_pairs(tmp_path: Path) -> 
     parallel = _dm(tmp_path / "parallel", num_workers=2, train_sequences=2)
     parallel.prepare_data()
     ds = parallel.dataset("train")
-    assert ds.missing() == [] and len({seq for seq, _, _ in ds.index}) == 2
+    assert ds.missing() == [] and len({seq for seq, _, _ in ds.samples}) == 2
     assert len(list(ds.cache.root.glob("picture-*.npy"))) == 2
     serial = _dm(tmp_path / "serial", train_sequences=2).dataset("train")
     for i in (0, len(ds) - 1):

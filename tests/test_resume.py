@@ -118,6 +118,15 @@ def _start_paused(run: Path, cwd: Path, *extra: str) -> tuple[subprocess.Popen, 
     return proc, marker
 
 
+def _interrupt(run: Path, cwd: Path, sig: signal.Signals, timeout: int) -> tuple[int, str]:
+    """Send ``sig`` to a training paused mid-step (:func:`_start_paused`); its exit status and
+    stderr once it has ended."""
+    proc, _ = _start_paused(run, cwd)
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=timeout)
+    return proc.returncode, err
+
+
 def _train(*args: str, cwd: Path, check: bool = True) -> subprocess.CompletedProcess:
     """``python -m mfg_lightning.train`` as a user runs it (with this directory importable, so
     that Hydra can build the test hooks above)."""
@@ -186,10 +195,8 @@ def test_sigkill_mid_epoch_then_resume_gives_the_uninterrupted_run(
     workdir: Path, reference: Path
 ) -> None:
     run = workdir / "killed"
-    proc, _ = _start_paused(run, workdir)
-    proc.send_signal(signal.SIGKILL)
-    proc.communicate(timeout=60)
-    assert proc.returncode == -signal.SIGKILL
+    returncode, _ = _interrupt(run, workdir, signal.SIGKILL, timeout=60)
+    assert returncode == -signal.SIGKILL
     assert not (run / "metrics.json").exists()
     # The last periodic checkpoint is from step 8 (mid-epoch 1): steps 9-11 are lost.
     saved = _ckpt(run / "checkpoints" / "last.ckpt")
@@ -208,10 +215,8 @@ def test_sigterm_saves_a_checkpoint_of_the_current_step_and_resume_continues_exa
     workdir: Path, reference: Path
 ) -> None:
     run = workdir / "terminated"
-    proc, _ = _start_paused(run, workdir)
-    proc.send_signal(signal.SIGTERM)
-    _, err = proc.communicate(timeout=120)
-    assert proc.returncode == 128 + signal.SIGTERM, err[-3000:]
+    returncode, err = _interrupt(run, workdir, signal.SIGTERM, timeout=120)
+    assert returncode == 128 + signal.SIGTERM, err[-3000:]
     assert "SIGTERM" in err
     # The interrupted step finished (global_step 12) and so did the validation that follows it;
     # then the checkpoint was saved (not the periodic one of step 8), readable by evaluation.

@@ -4,13 +4,17 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import lightning as L
 import pytest
 import torch
+from hydra.utils import instantiate
 
 from mfg_lightning import geometry
+from mfg_lightning.config import compose
 from mfg_lightning.data.base import EmptySplitError
 from mfg_lightning.data.sample import check_sample
 from mfg_lightning.data.synthetic import SyntheticDataModule, SyntheticDrivingDataset
+from mfg_lightning.runs import build_model, build_trainer
 
 SHARED_POSES = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti_odometry" / "poses"
 
@@ -60,7 +64,7 @@ def test_flow_minus_object_motion_is_the_rigid_reprojection_flow() -> None:
 def test_ground_truth_pose_matches_the_trajectory() -> None:
     dm = _dm()
     ds = dm.dataset("test")
-    seq, src, tgt = ds.index[5]
+    seq, src, tgt = ds.samples[5]
     traj = ds.trajectories[seq]
     expected = torch.linalg.inv(traj[src]) @ traj[tgt]
     torch.testing.assert_close(ds[5]["pose"].double(), expected, atol=1e-6, rtol=0)
@@ -71,20 +75,58 @@ def test_ground_truth_pose_matches_the_trajectory() -> None:
 def test_splits_are_disjoint_and_test_is_ordered_sequences() -> None:
     dm = _dm(val_fraction=0.25)
     train, val, test = (dm.dataset(s) for s in ("train", "val", "test"))
-    train_keys = {(s, a) for s, a, _ in train.index}
-    val_keys = {(s, a) for s, a, _ in val.index}
+    train_keys = {(s, a) for s, a, _ in train.samples}
+    val_keys = {(s, a) for s, a, _ in val.samples}
     assert not train_keys & val_keys
-    assert {s for s, _, _ in test.index}.isdisjoint({s for s, _, _ in train.index})
+    assert {s for s, _, _ in test.samples}.isdisjoint({s for s, _, _ in train.samples})
     for indices in test.sequences().values():
-        frames = [test.index[i][1] for i in indices]
+        frames = [test.samples[i][1] for i in indices]
         assert frames == sorted(frames) and frames == list(
             range(frames[0], frames[0] + len(frames))
         )
 
 
 def test_central_frame_offsets() -> None:
-    ds = _dm(test_offsets=[-2, -1, 1, 2]).dataset("test")
-    assert {b - a for _, a, b in ds.index} == {-2, -1, 1, 2}
+    dm = _dm(offsets=[-2, -1, 1, 2], val_fraction=0.25)
+    ds = dm.dataset("test")
+    assert {b - a for _, a, b in ds.samples} == {-2, -1, 1, 2}
+    # dataset.offsets, as dataset=kitti's, sets every split; the default stays t -> t + 1
+    for split in ("train", "val"):
+        assert {b - a for _, a, b in dm.dataset(split).samples} == {-2, -1, 1, 2}, split
+    for split in ("train", "val", "test"):
+        assert {b - a for _, a, b in _dm().dataset(split).samples} == {1}, split
+    with pytest.raises(ValueError, match="dataset.offsets must be distinct non-zero"):
+        _dm(offsets=[0, 1])
+
+
+class _RecordOffsets(L.Callback):
+    """The ``target - frame`` offsets of every training batch."""
+
+    def __init__(self) -> None:
+        self.offsets: list[int] = []
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
+        self.offsets += (batch["target"] - batch["frame"]).tolist()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("flow", [["flow=exact"], ["flow=dis", "flow.height=64", "flow.width=128"]])
+def test_training_on_plus_minus_one_and_two_offsets(tmp_path: Path, flow: list[str]) -> None:
+    """Issue 13's synthetic training on ±1, ±2 offsets, with exact and with DIS flow: a short
+    real training whose training samples carry those offsets."""
+    cfg = compose(
+        "train",
+        ["debug=tiny", "dataset.offsets=[-2,-1,1,2]", "logger=none", "callbacks=none", *flow,
+         f"paths.output_dir={tmp_path}", f"paths.cache_dir={tmp_path / 'cache'}"],
+    )  # fmt: skip
+    dm = instantiate(cfg.dataset)
+    recorder = _RecordOffsets()
+    trainer = build_trainer(cfg, [recorder], [])
+    trainer.fit(build_model(cfg), datamodule=dm)
+    assert trainer.global_step == cfg.trainer.max_steps
+    assert len(recorder.offsets) == cfg.trainer.max_steps * cfg.dataset.batch_size
+    assert set(recorder.offsets) <= {-2, -1, 1, 2} and len(set(recorder.offsets)) > 1
+    assert {b - a for _, a, b in dm.dataset("train").samples} == {-2, -1, 1, 2}
 
 
 def test_noise_and_outliers_corrupt_the_flow() -> None:

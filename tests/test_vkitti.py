@@ -10,13 +10,14 @@ import pytest
 import torch
 from hydra.utils import instantiate
 
-from conftest import run_module
+from conftest import run_module, tiny_training
 from fake_datasets import FakeVkitti, make_vkitti, tree_snapshot
 from mfg_lightning import geometry
 from mfg_lightning.config import compose
 from mfg_lightning.data import transforms, vkitti
 from mfg_lightning.data.base import collate_samples
-from mfg_lightning.data.flow_io import DataFileError, DataRootError
+from mfg_lightning.data.errors import DataFileError, DataRootError
+from mfg_lightning.data.flow_estimation import GroundTruthFlow
 from mfg_lightning.data.sample import check_sample
 from mfg_lightning.data.vkitti import VirtualKittiDataModule, VirtualKittiDataset
 
@@ -164,6 +165,7 @@ def test_configs_build_the_datamodules(vk1: FakeVkitti) -> None:
         assert (dm.height, dm.width) == (cfg.model.net.height, cfg.model.net.width) == (48, 128)
         assert set(dm.test_worlds) == test_worlds
         assert dm.dataset_kwargs["variation"] == "clone"
+        assert cfg.flow.source == "ground_truth" and isinstance(dm.flow, GroundTruthFlow)
     cfg = compose("train", ["experiment=paper_vkitti_objects", f"dataset.data_root={vk1.root}"])
     assert cfg.dataset.split == "objects" and cfg.dataset.batch_size == 1
     assert cfg.model.optimizer.lr == 1e-5 and list(cfg.model.optimizer.betas) == [0.99, 0.999]
@@ -224,13 +226,23 @@ def test_bad_files_name_the_file_or_are_skipped(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 def test_training_runs_end_to_end(vk1: FakeVkitti, tmp_path: Path) -> None:
-    run = tmp_path / "run"
-    run_module(
-        "mfg_lightning.train", "dataset=vkitti", f"dataset.data_root={vk1.root}",
-        "dataset.batch_size=2", "dataset.eval_batch_size=4", "model.net.hidden_units=64",
-        "trainer.max_steps=2", "trainer.val_check_interval=1", "trainer.limit_val_batches=1",
-        "trainer.limit_test_batches=1", "logger=none", "callbacks=none", f"hydra.run.dir={run}",
-        cwd=tmp_path,
-    )  # fmt: skip
+    run = tiny_training(tmp_path, "dataset=vkitti", f"dataset.data_root={vk1.root}")
     assert (run / "metrics.json").is_file()
     assert "VirtualKittiDataModule" in (run / "config.yaml").read_text()
+
+
+@pytest.mark.parametrize("flow", ["flow=dis", "flow=exact", "flow=files flow.dir=/data/flow"])
+def test_a_flow_source_it_cannot_give_is_one_error(
+    vk1: FakeVkitti, tmp_path: Path, flow: str
+) -> None:
+    """dataset=vkitti feeds its ground-truth flow: another flow source is refused, not ignored."""
+    proc = run_module(
+        "mfg_lightning.train", "dataset=vkitti", f"dataset.data_root={vk1.root}", *flow.split(),
+        f"hydra.run.dir={tmp_path / 'r'}", cwd=tmp_path, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 2
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+    source = flow.split()[0].removeprefix("flow=")
+    assert len(errors) == 1 and f"flow.source={source}: dataset=vkitti" in errors[0], proc.stderr
+    assert "flow=ground_truth" in errors[0]
+    assert not (tmp_path / "r" / "metrics.json").exists()

@@ -322,13 +322,32 @@ _LEGACY_FLOW_KEYS = {
 
 
 def with_legacy_dataset_settings(cfg: dict[str, Any], path: str | Path) -> dict[str, Any]:
-    """A dataset config written before the ``flow`` group, rewritten into today's keys.
+    """A dataset config written with older keys, rewritten into today's. Logged as a warning.
 
-    Such configs carried the flow settings as dataset keys (synthetic ``noise_std`` /
-    ``outlier_fraction``: exact flow; KITTI ``dis_preset`` / ``dis_params`` / ``flow_height`` /
-    ``flow_width``: DIS, or ``flow_dir``: the user's files); they become ``flow`` with the same
-    values, so the checkpoint is evaluated on the flow it was trained on. Logged.
+    * Configs written before the ``flow`` group carried the flow settings as dataset keys
+      (synthetic ``noise_std`` / ``outlier_fraction``: exact flow; KITTI ``dis_preset`` /
+      ``dis_params`` / ``flow_height`` / ``flow_width``: DIS, or ``flow_dir``: the user's files);
+      they become ``flow`` with the same values, so the checkpoint is evaluated on the flow it
+      was trained on.
+    * Synthetic ``test_offsets`` is ``offsets`` (one name with ``dataset=kitti``'s; it now sets
+      the offsets of every split).
     """
+    cfg = _with_legacy_flow(cfg, path)
+    if "test_offsets" in cfg:
+        cfg = dict(cfg)
+        offsets = cfg.pop("test_offsets")
+        if "offsets" not in cfg:
+            cfg["offsets"] = offsets
+            log.warning(
+                "%s: dataset.test_offsets is now dataset.offsets (every split): reading %s",
+                path,
+                list(offsets),
+            )
+    return cfg
+
+
+def _with_legacy_flow(cfg: dict[str, Any], path: str | Path) -> dict[str, Any]:
+    """The flow settings of a dataset config written before the ``flow`` group, as ``flow``."""
     if "flow" in cfg or not (set(cfg) & {*_LEGACY_FLOW_KEYS, "flow_dir"}):
         return cfg
     cfg = dict(cfg)

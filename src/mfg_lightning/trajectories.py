@@ -24,6 +24,7 @@ from torch import Tensor
 from mfg_lightning import geometry
 
 __all__ = [
+    "check_sequence_pair",
     "evaluation_poses",
     "motions_from_poses",
     "sequence_trajectory",
@@ -38,6 +39,16 @@ def _check_poses(x: Tensor, name: str, min_dim: int = 3) -> None:
         raise ValueError(
             f"{name} must be 4×4 poses shaped (..., 4, 4) with at least {min_dim} dimensions, "
             f"got shape {tuple(x.shape)}"
+        )
+
+
+def check_sequence_pair(pred: Tensor, target: Tensor) -> None:
+    """Refuse anything but the estimated and ground-truth poses of one sequence, both
+    ``(N, 4, 4)`` (what every whole-trajectory metric compares)."""
+    if pred.shape != target.shape or pred.dim() != 3 or tuple(pred.shape[-2:]) != (4, 4):
+        raise ValueError(
+            "pred and target must both be the poses of one sequence shaped (N, 4, 4), got "
+            f"{tuple(pred.shape)} and {tuple(target.shape)}"
         )
 
 

@@ -1,14 +1,22 @@
-"""The shared base of every DataModule: splits, loaders, collation, worker seeding.
+"""The shared base of every dataset and DataModule: splits, loaders, collation, worker seeding,
+and what every dataset read from files does the same way.
 
-A concrete DataModule implements :meth:`MFGDataModule.build_dataset` for the splits it has and
-the datasets implement :class:`MotionDataset`. The common work lives here once.
+A new dataset is its layout plus its sample loader: a :class:`FileMotionDataset` subclass that
+checks its root (:func:`check_data_root`), fills ``samples`` with ``(sequence, source, target)``
+triples (:func:`portion_frames` for the training head / validation tail of a sequence), reports
+index problems with :meth:`FileMotionDataset.report_problems` and loads one sample in ``_load``;
+and an :class:`MFGDataModule` subclass whose :meth:`~MFGDataModule.build_dataset` picks the
+sequences of a split (:func:`split_sequences`). Errors and the skip counter are in
+:mod:`mfg_lightning.data.errors`.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import warnings
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import lightning as L
@@ -18,11 +26,26 @@ import torch.distributed as dist
 from torch.utils.data import DataLoader, Dataset, DistributedSampler, default_collate
 
 from mfg_lightning import geometry
+from mfg_lightning.data import transforms
+from mfg_lightning.data.errors import (
+    DataFileError,
+    DataRootError,
+    SkipCounter,
+    read_bytes,
+    report_skipped,
+)
 from mfg_lightning.data.resumable_loader import ResumableDataLoader
 
 log = logging.getLogger(__name__)
 
 SPLITS = ("train", "val", "test")
+#: The frames of a sequence a split's samples come from: every frame (``all``), the training
+#: head (``train``) or the validation tail (``val``) of :func:`portion_frames`.
+PORTIONS = ("all", "train", "val")
+#: The portion of its sequences each split reads (validation is the tail of training sequences).
+SPLIT_PORTION = {"train": "train", "val": "val", "test": "all"}
+# What a config says for "not set" (null, Hydra's ??? or an empty string).
+_UNSET = ("", "???", "None", "null")
 
 
 class EmptySplitError(ValueError):
@@ -32,13 +55,18 @@ class EmptySplitError(ValueError):
 class MotionDataset(Dataset):
     """A map-style dataset of samples in the schema of :mod:`mfg_lightning.data.sample`.
 
-    Subclasses set ``height``, ``width`` and ``name`` and implement ``__len__``,
-    ``__getitem__`` and :meth:`relative_poses`.
+    Subclasses set ``height``, ``width`` and ``name``, fill ``samples`` with one
+    ``(sequence, source frame, target frame)`` triple per sample, sorted by sequence then source
+    frame, and implement ``__getitem__`` and :meth:`relative_poses`.
     """
 
     name: str = "dataset"
     height: int
     width: int
+    samples: list[tuple[str, int, int]]
+
+    def __len__(self) -> int:
+        return len(self.samples)
 
     def relative_poses(self) -> torch.Tensor:
         """``(N, 4, 4)`` ground-truth relative pose ``T_src,tgt`` of every sample, in order.
@@ -50,43 +78,200 @@ class MotionDataset(Dataset):
 
     def sequences(self) -> dict[str, list[int]]:
         """Sample indices grouped by sequence, each list in frame order (for trajectories)."""
-        raise NotImplementedError
+        out: dict[str, list[int]] = {}
+        for i, (seq, _, _) in enumerate(self.samples):
+            out.setdefault(seq, []).append(i)
+        return out
 
 
 class FileMotionDataset(MotionDataset):
     """A dataset read from files: samples are ``(sequence, source, target)`` triples.
 
-    Subclasses fill ``samples``, ``name``, ``split``, ``skip_bad_samples`` and ``skipped`` (a
-    :class:`~mfg_lightning.data.flow_io.SkipCounter`) and implement :meth:`_load`. A file error
-    is re-raised naming the sample, or, with ``skip_bad_samples``, warned about, counted, and the
-    sample dropped (``None``; :func:`collate_samples` leaves it out).
+    Subclasses call this ``__init__`` first, fill ``samples`` and ``name`` and implement
+    :meth:`_load`. A file error is re-raised naming the sample, or, with ``skip_bad_samples``,
+    warned about, counted in ``skipped`` (a :class:`~mfg_lightning.data.errors.SkipCounter`), and
+    the sample dropped (``None``; :func:`collate_samples` leaves it out).
+
+    Args:
+        height, width: the model's input size; samples are delivered at it.
+        split: name used in ``sample_id`` and messages.
+        portion: one of :data:`PORTIONS`, the frames of each sequence to use.
+        skip_bad_samples: warn and skip unreadable samples (``__getitem__`` returns None, the
+            collate drops it) instead of raising.
     """
 
-    samples: list[tuple[str, int, int]]
-    split: str
-    skip_bad_samples: bool
+    #: How messages name the dataset ("KITTI train split: …").
+    title: str = "dataset"
 
-    def __len__(self) -> int:
-        return len(self.samples)
+    def __init__(
+        self,
+        height: int = 48,
+        width: int = 128,
+        split: str = "train",
+        portion: str = "all",
+        skip_bad_samples: bool = False,
+    ) -> None:
+        super().__init__()
+        if portion not in PORTIONS:
+            raise ValueError(f"portion must be 'all', 'train' or 'val', got {portion!r}")
+        self.height, self.width = int(height), int(width)
+        self.split = split
+        self.portion = portion
+        self.skip_bad_samples = bool(skip_bad_samples)
+        self.skipped = SkipCounter()
+        self.samples = []
 
     def sample_id(self, index: int) -> str:
         seq, src, tgt = self.samples[index]
         return f"{self.name}/{self.split}/{seq}/{src}->{tgt}"
 
+    def sample_identity(self, index: int) -> dict[str, Any]:
+        """The fields naming sample ``index``: ``sequence``, ``frame``, ``target`` and
+        ``sample_id``."""
+        seq, src, tgt = self.samples[index]
+        return {"sequence": seq, "frame": src, "target": tgt, "sample_id": self.sample_id(index)}
+
     def _load(self, index: int) -> dict[str, Any]:
         raise NotImplementedError
 
     def __getitem__(self, index: int) -> dict[str, Any] | None:
-        from mfg_lightning.data.flow_io import DataFileError
-
         try:
             return self._load(index)
         except DataFileError as err:
-            if not self.skip_bad_samples:
-                raise DataFileError(f"{self.sample_id(index)}: {err}") from err
+            self.bad_sample(index, err, "skipping")
             self.skipped.add()
-            warnings.warn(f"skipping {self.sample_id(index)}: {err}", stacklevel=2)
             return None
+
+    def bad_sample(self, index: int, err: DataFileError, doing: str) -> None:
+        """Sample ``index`` could not be read: raise naming it, or (``skip_bad_samples``) warn
+        ``<doing> <sample id>: <err>`` and return so that the caller skips it."""
+        if not self.skip_bad_samples:
+            raise DataFileError(f"{self.sample_id(index)}: {err}") from err
+        warnings.warn(f"{doing} {self.sample_id(index)}: {err}", stacklevel=3)
+
+    def report_problems(self, problems: list[str]) -> None:
+        """Problems found while indexing (missing frames, short pose files): one
+        :class:`~mfg_lightning.data.errors.DataFileError` listing them all, or with
+        ``skip_bad_samples`` one warning (the affected samples are already left out)."""
+        if not problems:
+            return
+        text = "\n".join(problems)
+        if not self.skip_bad_samples:
+            raise DataFileError(
+                f"{self.title} {self.split} split: {text}\n(set dataset.skip_bad_samples=true to "
+                "skip the affected samples with a warning)"
+            )
+        warnings.warn(
+            f"{self.title} {self.split} split, skipping affected samples: {text}", stacklevel=3
+        )
+
+    def portion_frames(self, n_frames: int, val_fraction: float, span: int) -> range:
+        """The frames of a sequence of ``n_frames`` that this dataset's ``portion`` uses."""
+        return portion_frames(n_frames, self.portion, val_fraction, span)
+
+
+def portion_frames(n_frames: int, portion: str, val_fraction: float, span: int) -> range:
+    """Frames ``0 … n_frames − 1`` of a sequence, its training head or its validation tail.
+
+    Args:
+        n_frames: frames in the sequence.
+        portion: ``all``, ``train`` or ``val`` (:data:`PORTIONS`).
+        val_fraction: the validation tail's fraction
+            (:func:`~mfg_lightning.data.transforms.holdout_ranges`).
+        span: the largest ``|offset|`` of a sample, so that no sample straddles the cut.
+    """
+    if portion == "all":
+        return range(n_frames)
+    train, val = transforms.holdout_ranges(n_frames, val_fraction, span)
+    return train if portion == "train" else val
+
+
+def check_data_root(data_root: str | os.PathLike | None, point_at: str, layout: str = "") -> Path:
+    """``data_root`` expanded (``~``), or a :class:`~mfg_lightning.data.errors.DataRootError`
+    when it is not set or not a directory.
+
+    Args:
+        data_root: the config's ``dataset.data_root``.
+        point_at: what it should point at, for the message ("a folder of images, e.g. …").
+        layout: the expected tree, shown after the message ("" : none).
+    """
+    tail = f". Expected layout:\n{layout}" if layout else ""
+    if data_root is None or str(data_root).strip() in _UNSET:
+        raise DataRootError(f"dataset.data_root is not set: point it at {point_at}{tail}")
+    root = Path(data_root).expanduser()
+    if not root.is_dir():
+        raise DataRootError(f"dataset.data_root={root} is not a directory{tail}")
+    return root
+
+
+def read_text_lines(path: str | os.PathLike) -> list[str]:
+    """The lines of a UTF-8 text file, or a :class:`~mfg_lightning.data.errors.DataFileError`
+    naming it (missing, unreadable, not text). Callers name the line of what they parse."""
+    try:
+        return read_bytes(path).decode("utf-8").splitlines()
+    except UnicodeDecodeError:
+        raise DataFileError(f"{path}: not a text file (not UTF-8)") from None
+
+
+def some_of(items: Sequence[Any], limit: int, inline: bool = False) -> str:
+    """The first ``limit`` of ``items`` for a message: one indented line each, then
+    ``… and N more``; ``inline``: comma-separated, then `` …``."""
+    if inline:
+        return ", ".join(map(str, items[:limit])) + (" …" if len(items) > limit else "")
+    shown = "\n".join(f"  {item}" for item in items[:limit])
+    return shown + (f"\n  … and {len(items) - limit} more" if len(items) > limit else "")
+
+
+def list_numbered(directory: Path, prefix: str = "", suffix: str = ".png") -> list[int]:
+    """Frame numbers ``k`` of the files ``<prefix><digits k><suffix>`` in ``directory`` (suffix
+    case-insensitive), sorted; ``[]`` when the directory does not exist."""
+    frames = []
+    if not directory.is_dir():
+        return frames
+    with os.scandir(directory) as it:
+        for entry in it:
+            name = entry.name
+            if name.startswith(prefix) and name.lower().endswith(suffix):
+                core = name[len(prefix) : len(name) - len(suffix)]
+                if core.isdigit():
+                    frames.append(int(core))
+    return sorted(frames)
+
+
+def normalize_sequence(seq: Any) -> str:
+    """``9``, ``"9"`` or ``"09"`` → ``"09"`` (YAML reads unquoted ``09`` as a number)."""
+    text = str(seq).strip()
+    return f"{int(text):02d}" if text.isdigit() else text
+
+
+def check_offsets(offsets: Sequence[int]) -> list[int]:
+    """``dataset.offsets`` (target frame = source frame + offset) as distinct non-zero ints."""
+    out = [int(o) for o in offsets]
+    if not out or 0 in out or len(set(out)) != len(out):
+        raise ValueError(f"dataset.offsets must be distinct non-zero integers, got {out}")
+    return out
+
+
+def check_split(train: Sequence[str], test: Sequence[str], val_fraction: float, unit: str) -> float:
+    """Refuse a split whose training and test ``unit`` (sequences, worlds) overlap or whose
+    ``val_fraction`` is not in (0, 1); return the fraction."""
+    overlap = sorted(set(train) & set(test))
+    if overlap:
+        raise ValueError(f"{unit} {overlap} are in both the training and the test split")
+    if not 0.0 < float(val_fraction) < 1.0:
+        raise ValueError(
+            f"dataset.val_fraction must be in (0, 1) (a tail of each training "
+            f"{unit.rstrip('s')}), got {val_fraction}"
+        )
+    return float(val_fraction)
+
+
+def split_sequences(split: str, train: Sequence[str], test: Sequence[str]) -> tuple[list, str]:
+    """The sequences of ``split`` (``train``, ``val``: the training ones; ``test``) and the
+    portion of each it reads (:data:`SPLIT_PORTION`)."""
+    if split not in SPLIT_PORTION:
+        raise ValueError(f"unknown split {split!r}")
+    return list(test if split == "test" else train), SPLIT_PORTION[split]
 
 
 def collate_samples(batch: Sequence[dict[str, Any] | None]) -> dict[str, Any] | None:
@@ -235,6 +420,10 @@ class MFGDataModule(L.LightningDataModule):
 
     def test_dataloader(self) -> DataLoader:
         return self._loader("test", shuffle=False, batch_size=self.eval_batch_size)
+
+    def teardown(self, stage: str | None = None) -> None:
+        # How many bad samples each split skipped (skip_bad_samples), once the stage is over.
+        report_skipped(self.datasets)
 
     def mean_motion(self, split: str = "train") -> tuple[torch.Tensor, torch.Tensor]:
         """Mean egomotion ``(t, ω)`` over a split: the 'always predict the mean' baseline.

@@ -12,7 +12,7 @@ dataset's train, val and test splits, and reports for each:
 * flow statistics (magnitude in input pixels, valid fraction; for Virtual KITTI also depth and
   moving-object fraction) from a few samples spread evenly over the split (``+check.samples=N``,
   default 4). For KITTI these few are the only pairs whose flow is computed (by DIS, and cached
-  like in training) or read (``flow_dir``); the report lists their ids;
+  like in training) or read (``flow=files``, from ``flow.dir``); the report lists their ids;
 * missing or unreadable files, listed, not fatal: every file every sample reads is checked
   cheaply (it exists; PNG/JPEG signature and end marker, which catches truncated downloads), and
   the sampled ones are decoded fully. Missing frames, short pose files and similar index
@@ -42,7 +42,7 @@ from omegaconf import DictConfig, OmegaConf
 from mfg_lightning import geometry
 from mfg_lightning.config import CONFIG_DIR
 from mfg_lightning.data import flow_io
-from mfg_lightning.data.flow_io import DataFileError, DataRootError
+from mfg_lightning.data.errors import DataFileError, DataRootError
 from mfg_lightning.errors import exit_on_unknown_choice, exit_on_user_error
 
 log = logging.getLogger("mfg_lightning.data.check")

@@ -1,7 +1,7 @@
 """Where a dataset's input flow comes from (the ``flow`` config group), the estimators, the cache.
 
-The ``flow`` group (``conf/flow/``) picks the source of the flow that ``dataset=synthetic`` and
-``dataset=kitti`` feed the model; :func:`parse_flow` turns its config into one of
+The ``flow`` group (``conf/flow/``) picks the source of the flow that a dataset feeds the model;
+:func:`parse_flow` turns its config into one of
 
 * :class:`ExactFlow` (``flow=exact``): the exact reprojection flow of a synthetic scene with
   Gaussian noise and single-pixel outliers (the synthetic default);
@@ -10,7 +10,11 @@ The ``flow`` group (``conf/flow/``) picks the source of the flow that ``dataset=
   rescaled, cached; the KITTI default. An estimator is any class in :data:`ESTIMATORS` with the
   :class:`FlowEstimator` interface (a learned one registers itself there and gets a
   ``conf/flow/<name>.yaml`` with ``source: <name>``);
-* :class:`FlowFiles` (``flow=files``): the user's own flow files.
+* :class:`FlowFiles` (``flow=files``): the user's own flow files;
+* :class:`GroundTruthFlow` (``flow=ground_truth``): the flow files a dataset ships as ground
+  truth (Virtual KITTI's rendered flow, its only source and default).
+
+Each dataset accepts the sources it can give and refuses the others naming ``flow.source``.
 
 The DIS estimator is OpenCV's Dense Inverse Search, installed from the package registries with
 ``opencv-python-headless``; :class:`FlowCache` stores what was computed once so that later epochs
@@ -43,6 +47,7 @@ __all__ = [
     "FlowCache",
     "FlowEstimator",
     "FlowFiles",
+    "GroundTruthFlow",
     "flow_sources",
     "parse_flow",
 ]
@@ -216,12 +221,21 @@ class FlowFiles:
             )
 
 
-FlowSource = ExactFlow | EstimatedFlow | FlowFiles
+@dataclass(frozen=True)
+class GroundTruthFlow:
+    """``flow=ground_truth``: the flow files the dataset ships (Virtual KITTI's rendered flow),
+    read as they are: no noise, no estimation."""
+
+    source: ClassVar[str] = "ground_truth"
+
+
+FlowSource = ExactFlow | EstimatedFlow | FlowFiles | GroundTruthFlow
+_PLAIN_SOURCES = {cls.source: cls for cls in (ExactFlow, FlowFiles, GroundTruthFlow)}
 
 
 def flow_sources() -> list[str]:
-    """Every valid ``flow.source``: ``exact``, ``files`` and the estimators."""
-    return sorted({"exact", "files", *ESTIMATORS})
+    """Every valid ``flow.source``: ``exact``, ``files``, ``ground_truth`` and the estimators."""
+    return sorted({*_PLAIN_SOURCES, *ESTIMATORS})
 
 
 def parse_flow(cfg: Mapping[str, Any] | FlowSource | None, default: str) -> FlowSource:
@@ -235,7 +249,7 @@ def parse_flow(cfg: Mapping[str, Any] | FlowSource | None, default: str) -> Flow
     Raises:
         ValueError: an unknown source or setting, naming the ``flow.*`` key.
     """
-    if isinstance(cfg, (ExactFlow, EstimatedFlow, FlowFiles)):
+    if isinstance(cfg, (ExactFlow, EstimatedFlow, FlowFiles, GroundTruthFlow)):
         return cfg
     settings = dict(cfg or {})
     source = settings.pop("source", default)
@@ -246,10 +260,8 @@ def parse_flow(cfg: Mapping[str, Any] | FlowSource | None, default: str) -> Flow
             "(flow=<name>, the files of conf/flow/)"
         )
     fields: dict[str, Any] = {}
-    if source == "exact":
-        cls: Any = ExactFlow
-    elif source == "files":
-        cls = FlowFiles
+    if source in _PLAIN_SOURCES:
+        cls: Any = _PLAIN_SOURCES[source]
     else:
         fields = {k: settings.pop(k) for k in ("height", "width") if k in settings}
         cls = ESTIMATORS[source]

@@ -23,34 +23,30 @@ Virtual KITTI depth         16-bit, one channel, centimetres; 65535 (655.35 m) i
 
 OpenCV decodes colour PNGs as B, G, R, so "R" above is channel 2 of what ``cv2`` returns.
 Files are read through Python (``open``) and decoded with ``cv2.imdecode`` so that a missing file,
-a truncated PNG or a wrong bit depth become one :class:`DataFileError` naming the file, never a
-``None`` that fails later. Writers exist for the tests, the flow cache and the export
-(:mod:`mfg_lightning.data.export`); they write to a temporary file beside the target and
-``os.replace`` it, so a reader never sees half a file.
+a truncated PNG or a wrong bit depth become one :class:`~mfg_lightning.data.errors.DataFileError`
+naming the file, never a ``None`` that fails later. Writers exist for the tests, the flow cache
+and the export (:mod:`mfg_lightning.data.export`); they write to a temporary file beside the
+target and ``os.replace`` it, so a reader never sees half a file.
 """
 
 from __future__ import annotations
 
 import io
-import logging
 import os
 import struct
 import zipfile
 import zlib
 from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
 
 from mfg_lightning.atomic import atomic_write_bytes
+from mfg_lightning.data.errors import DataFileError, read_bytes
 
 __all__ = [
     "FLO_MAGIC",
     "VKITTI_FAR_PLANE_M",
-    "DataFileError",
-    "DataRootError",
-    "SkipCounter",
     "atomic_write_bytes",
     "image_size",
     "quick_check",
@@ -61,7 +57,6 @@ __all__ = [
     "read_rgb",
     "read_vkitti_depth",
     "read_vkitti_flow_png",
-    "report_skipped",
     "write_flo",
     "write_kitti_flow_png",
     "write_npy_flow",
@@ -69,8 +64,6 @@ __all__ = [
     "write_vkitti_depth",
     "write_vkitti_flow_png",
 ]
-
-log = logging.getLogger(__name__)
 
 FLO_MAGIC = 202021.25
 #: Virtual KITTI encodes the far plane (sky) as the largest 16-bit value in centimetres.
@@ -80,31 +73,14 @@ _VKITTI_FAR_CODE = 65535
 _FLO_UNKNOWN = 1e9
 
 
-class DataFileError(ValueError):
-    """A data file is missing, truncated or not in the expected format; the message names it."""
-
-
-class DataRootError(DataFileError):
-    """``data_root`` is missing or does not have the layout of the dataset; shows the layout."""
-
-
 # --------------------------------------------------------------------------------------------
 # Low-level helpers
 # --------------------------------------------------------------------------------------------
 
 
-def _read_bytes(path: str | os.PathLike) -> bytes:
-    try:
-        return Path(path).read_bytes()
-    except FileNotFoundError:
-        raise DataFileError(f"{path}: file not found") from None
-    except OSError as err:
-        raise DataFileError(f"{path}: cannot read ({err.strerror or err})") from None
-
-
 def _decode_png(path: str | os.PathLike, *, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
     """Decode an image file; raise :class:`DataFileError` if it is missing or unreadable."""
-    data = _read_bytes(path)
+    data = read_bytes(path)
     if not data:
         raise DataFileError(f"{path}: empty file")
     image = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
@@ -156,7 +132,7 @@ def read_flo(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
         non-finite component or a magnitude above 1e9 (Middlebury's "unknown") are invalid and
         their flow is set to 0.
     """
-    data = _read_bytes(path)
+    data = read_bytes(path)
     if len(data) < 12:
         raise DataFileError(f"{path}: .flo file too short for its header ({len(data)} bytes)")
     magic = np.frombuffer(data, "<f4", count=1)[0]
@@ -445,59 +421,3 @@ def quick_check(path: str | os.PathLike) -> str | None:
     if path.suffix.lower() in (".png", ".jpg", ".jpeg"):
         return f"{path}: not a {path.suffix[1:].upper()} file (bad signature)"
     return None
-
-
-# --------------------------------------------------------------------------------------------
-# Counting skipped samples across DataLoader workers
-# --------------------------------------------------------------------------------------------
-
-
-class SkipCounter:
-    """How many samples a dataset skipped (``skip_bad_samples``), shared with its workers.
-
-    DataLoader workers are separate processes, so a plain integer would only count in each
-    worker; the count lives in a ``multiprocessing.Value`` that workers inherit. Pickling it
-    outside of process spawning (e.g. to save a dataset) keeps only the current number.
-    """
-
-    def __init__(self, start: int = 0) -> None:
-        import multiprocessing as mp
-
-        self._value = mp.get_context().Value("q", start)
-
-    def add(self, n: int = 1) -> None:
-        with self._value.get_lock():
-            self._value.value += n
-
-    @property
-    def value(self) -> int:
-        return int(self._value.value)
-
-    def __getstate__(self) -> dict:
-        from multiprocessing.context import get_spawning_popen
-
-        if get_spawning_popen() is not None:
-            return {"shared": self._value}
-        return {"count": self.value}
-
-    def __setstate__(self, state: dict) -> None:
-        if "shared" in state:
-            self._value = state["shared"]
-        else:
-            self.__init__(state["count"])
-
-
-def report_skipped(datasets: dict[str, Any]) -> dict[str, int]:
-    """Log how many samples each split's dataset skipped (``skip_bad_samples``).
-
-    Args:
-        datasets: split name → dataset with a ``skipped`` :class:`SkipCounter`.
-
-    Returns:
-        split → number of samples skipped so far.
-    """
-    counts = {split: ds.skipped.value for split, ds in datasets.items() if hasattr(ds, "skipped")}
-    for split, n in counts.items():
-        if n:
-            log.warning("%s split: %d bad sample(s) skipped (see the warnings above)", split, n)
-    return counts

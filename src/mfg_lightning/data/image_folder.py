@@ -31,14 +31,9 @@ from torch.utils.data import DataLoader
 
 from mfg_lightning import pose_io
 from mfg_lightning.data import flow_io
-from mfg_lightning.data.base import MFGDataModule
-from mfg_lightning.data.flow_io import DataFileError, DataRootError
-from mfg_lightning.data.kitti import (
-    KittiOdometryDataset,
-    _Sequence,
-    kitti_flow_source,
-    normalize_sequence,
-)
+from mfg_lightning.data.base import MFGDataModule, check_data_root, normalize_sequence
+from mfg_lightning.data.errors import DataFileError
+from mfg_lightning.data.kitti import KittiOdometryDataset, _Sequence, kitti_flow_source
 
 __all__ = ["ImageFolderDataModule", "ImageFolderDataset", "NoGroundTruthError"]
 
@@ -118,14 +113,9 @@ class ImageFolderDataset(KittiOdometryDataset):
         super().__init__(root, [name], offsets=(1,), split="predict", require_poses=False, **kwargs)
 
     def _check_root(self, data_root: str | os.PathLike | None) -> Path:
-        if data_root is None or str(data_root).strip() in ("", "???", "None", "null"):
-            raise DataRootError(
-                "dataset.data_root is not set: point it at a folder of images, e.g. "
-                "dataset.data_root=/data/my_drive/frames"
-            )
-        root = Path(data_root).expanduser()
-        if not root.is_dir():
-            raise DataRootError(f"dataset.data_root={root} is not a directory")
+        root = check_data_root(
+            data_root, "a folder of images, e.g. dataset.data_root=/data/my_drive/frames"
+        )
         return root.resolve()
 
     def _layout_key(self) -> dict[str, Any]:
@@ -176,7 +166,7 @@ class ImageFolderDataModule(MFGDataModule):
         flow, cache_dir, load_rgb: the flow source (the ``flow`` config group: ``flow=dis`` by
             default, or ``flow=files``) and its cache, as for KITTI
             (:class:`~mfg_lightning.data.kitti.KittiOdometryDataset`).
-        height, width, eval_batch_size, num_workers, pin_memory, persistent_workers: see
+        kwargs: ``height``, ``width``, ``eval_batch_size``, ``num_workers``, … of
             :class:`~mfg_lightning.data.base.MFGDataModule` (batches of ``eval_batch_size``).
     """
 
@@ -191,24 +181,12 @@ class ImageFolderDataModule(MFGDataModule):
         sequence: str | None = None,
         frame_rate: float = 10.0,
         times: str | None = None,
-        height: int = 48,
-        width: int = 128,
-        eval_batch_size: int = 64,
-        num_workers: int = 0,
         flow: dict[str, Any] | None = None,
         cache_dir: str | None = None,
         load_rgb: bool = True,
-        pin_memory: bool = False,
-        persistent_workers: bool = False,
+        **kwargs: Any,
     ) -> None:
-        super().__init__(
-            height=height,
-            width=width,
-            eval_batch_size=eval_batch_size,
-            num_workers=num_workers,
-            pin_memory=pin_memory,
-            persistent_workers=persistent_workers,
-        )
+        super().__init__(**kwargs)
         self.data_root = data_root
         self.dataset_kwargs: dict[str, Any] = {
             "intrinsics": check_intrinsics(fx, fy, cx, cy),
@@ -216,8 +194,8 @@ class ImageFolderDataModule(MFGDataModule):
             "sequence": sequence,
             "frame_rate": frame_rate,
             "times": times,
-            "height": height,
-            "width": width,
+            "height": self.height,
+            "width": self.width,
             "flow": kitti_flow_source(flow),
             "cache_dir": cache_dir,
             "load_rgb": load_rgb,

@@ -55,7 +55,6 @@ from __future__ import annotations
 
 import logging
 import os
-import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -68,7 +67,19 @@ from tqdm.auto import tqdm
 
 from mfg_lightning import geometry, pose_io
 from mfg_lightning.data import flow_io, transforms
-from mfg_lightning.data.base import FileMotionDataset, MFGDataModule
+from mfg_lightning.data.base import (
+    FileMotionDataset,
+    MFGDataModule,
+    check_data_root,
+    check_offsets,
+    check_split,
+    list_numbered,
+    normalize_sequence,
+    read_text_lines,
+    some_of,
+    split_sequences,
+)
+from mfg_lightning.data.errors import DataFileError, DataRootError
 from mfg_lightning.data.flow_estimation import (
     DIS_PRESETS,
     DISFlowEstimator,
@@ -78,7 +89,6 @@ from mfg_lightning.data.flow_estimation import (
     FlowSource,
     parse_flow,
 )
-from mfg_lightning.data.flow_io import DataFileError, DataRootError, SkipCounter, report_skipped
 from mfg_lightning.data.sample import sanitize_flow
 
 log = logging.getLogger(__name__)
@@ -127,20 +137,18 @@ def default_cache_dir() -> Path:
 
 def kitti_flow_source(flow: FlowSource | dict[str, Any] | None) -> EstimatedFlow | FlowFiles:
     """The ``flow`` config of ``dataset=kitti`` parsed (default DIS ``medium``); ``flow=exact``
-    is refused: real images have no exact flow."""
+    and ``flow=ground_truth`` are refused: real images have no exact flow, and KITTI odometry
+    ships no flow."""
     source = parse_flow(flow, default="dis")
     if not isinstance(source, (EstimatedFlow, FlowFiles)):
+        missing = "exact flow (it needs a synthetic scene)"
+        if source.source == "ground_truth":
+            missing = "ground-truth flow (KITTI odometry ships none)"
         raise ValueError(
-            f"flow.source={source.source}: dataset=kitti has no exact flow (it needs a synthetic "
-            "scene); use flow=dis (the default for KITTI) or flow=files flow.dir=<your flow>"
+            f"flow.source={source.source}: dataset=kitti has no {missing}; use flow=dis (the "
+            "default for KITTI) or flow=files flow.dir=<your flow>"
         )
     return source
-
-
-def normalize_sequence(seq: Any) -> str:
-    """``9``, ``"9"`` or ``"09"`` → ``"09"`` (YAML reads unquoted ``09`` as a number)."""
-    text = str(seq).strip()
-    return f"{int(text):02d}" if text.isdigit() else text
 
 
 # --------------------------------------------------------------------------------------------
@@ -154,25 +162,18 @@ def read_kitti_calib(path: str | os.PathLike) -> np.ndarray:
     Returns:
         ``(4,)`` float64 in pixels of the native image.
     """
-    try:
-        lines = Path(path).read_bytes().decode("utf-8").splitlines()
-    except FileNotFoundError:
-        raise DataFileError(f"{path}: file not found") from None
-    except OSError as err:
-        raise DataFileError(f"{path}: cannot read ({err.strerror or err})") from None
-    except UnicodeDecodeError:
-        raise DataFileError(f"{path}: not a text file (not UTF-8)") from None
-    for line in lines:
+    for number, line in enumerate(read_text_lines(path), start=1):
         key, _, rest = line.partition(":")
         if key.strip() == "P2":
+            where = f"{path}: line {number}: P2"
             try:
                 P = np.array([float(x) for x in rest.split()], np.float64)
             except ValueError:
-                raise DataFileError(f"{path}: P2 has a non-numeric entry") from None
+                raise DataFileError(f"{where} has a non-numeric entry") from None
             if P.size != 12:
-                raise DataFileError(f"{path}: P2 has {P.size} numbers, expected 12")
+                raise DataFileError(f"{where} has {P.size} numbers, expected 12")
             if not np.isfinite(P).all():
-                raise DataFileError(f"{path}: P2 has a non-finite entry")
+                raise DataFileError(f"{where} has a non-finite entry")
             P = P.reshape(3, 4)
             return np.array([P[0, 0], P[1, 1], P[0, 2], P[1, 2]])
     raise DataFileError(f"{path}: no 'P2:' line (the left colour camera's projection matrix)")
@@ -235,17 +236,6 @@ def read_kitti_poses(path: str | os.PathLike) -> np.ndarray:
         raise DataFileError(str(err)) from None
 
 
-def _list_frames(directory: Path, suffix: str = ".png") -> list[int]:
-    """Frame numbers of the ``<digits><suffix>`` files in ``directory``, sorted."""
-    frames = []
-    with os.scandir(directory) as it:
-        for entry in it:
-            stem, ext = os.path.splitext(entry.name)
-            if ext.lower() == suffix and stem.isdigit():
-                frames.append(int(stem))
-    return sorted(frames)
-
-
 # --------------------------------------------------------------------------------------------
 # Dataset
 # --------------------------------------------------------------------------------------------
@@ -266,16 +256,11 @@ def check_kitti_root(
 ) -> Path:
     """Return the resolved root, or raise ONE :class:`DataRootError` listing every missing
     entry and showing the expected layout. ``poses=False``: ``poses/`` is not required."""
-    if data_root is None or str(data_root).strip() in ("", "???", "None", "null"):
-        raise DataRootError(
-            "dataset.data_root is not set: point it at the unpacked KITTI odometry download, "
-            "e.g. dataset.data_root=/data/kitti/dataset. Expected layout:\n" + KITTI_LAYOUT
-        )
-    root = Path(data_root).expanduser()
-    if not root.is_dir():
-        raise DataRootError(
-            f"dataset.data_root={root} is not a directory. Expected layout:\n{KITTI_LAYOUT}"
-        )
+    root = check_data_root(
+        data_root,
+        "the unpacked KITTI odometry download, e.g. dataset.data_root=/data/kitti/dataset",
+        KITTI_LAYOUT,
+    )
     # List the highest missing level only (a whole sequence, the poses/ directory), so an
     # empty or mistyped root gives a short list.
     missing = []
@@ -293,8 +278,6 @@ def check_kitti_root(
             f"poses/{s}.txt" for s in sequences if not (root / "poses" / f"{s}.txt").exists()
         ]
     if missing:
-        shown = "\n".join(f"  {root / m}" for m in missing[:20])
-        more = f"\n  … and {len(missing) - 20} more" if len(missing) > 20 else ""
         hint = ""
         if all(m.startswith("poses/") for m in missing):
             hint = (
@@ -303,7 +286,7 @@ def check_kitti_root(
             )
         raise DataRootError(
             f"dataset.data_root={root} does not look like KITTI odometry; missing:\n"
-            f"{shown}{more}{hint}\nExpected layout:\n{KITTI_LAYOUT}"
+            f"{some_of([root / m for m in missing], 20)}{hint}\nExpected layout:\n{KITTI_LAYOUT}"
         )
     return root.resolve()
 
@@ -314,11 +297,7 @@ class KittiOdometryDataset(FileMotionDataset):
     Args:
         data_root: the KITTI odometry root (holding ``sequences/`` and ``poses/``).
         sequences: sequence names (``"00"`` … ``"10"``).
-        height, width: the model's input size; flow, RGB and intrinsics are delivered at it.
         offsets: target offsets, ``target = frame + offset`` (non-zero integers).
-        split: name used in ``sample_id`` and messages.
-        portion: ``"all"`` frames of each sequence, or its ``"train"`` head / ``"val"`` tail
-            (:func:`~mfg_lightning.data.transforms.holdout_ranges` with ``val_fraction``).
         val_fraction: fraction of each sequence held out as its validation tail.
         flow: the flow source, a ``conf/flow`` config or its parsed form
             (:func:`~mfg_lightning.data.flow_estimation.parse_flow`): ``{"source": "dis",
@@ -328,46 +307,37 @@ class KittiOdometryDataset(FileMotionDataset):
             ``<flow_dir>/<seq>/<src:06d>_<tgt:06d>.<ext>``).
         cache_dir: the user cache dir (``paths.cache_dir``); flow is cached under ``kitti_flow/``.
         load_rgb: deliver the source image as ``rgb`` (decoded once, then read from the cache).
-        skip_bad_samples: warn and skip unreadable samples (``__getitem__`` returns None, the
-            collate drops it) instead of raising.
         require_poses: False: a sequence without ``poses/XX.txt`` is read without ground truth
             (its samples have no ``pose``; :meth:`relative_poses` refuses).
+        kwargs: ``height``, ``width`` (the input size flow, RGB and intrinsics are delivered
+            at), ``split``, ``portion`` (``"all"`` frames of each sequence, or its ``"train"``
+            head / ``"val"`` tail with ``val_fraction``) and ``skip_bad_samples`` of
+            :class:`~mfg_lightning.data.base.FileMotionDataset`.
     """
 
     name = "kitti"
+    title = "KITTI"
 
     def __init__(
         self,
         data_root: str | os.PathLike,
         sequences: Sequence[str],
-        height: int = 48,
-        width: int = 128,
         offsets: Sequence[int] = (1,),
-        split: str = "train",
-        portion: str = "all",
         val_fraction: float = 0.05,
         flow: FlowSource | dict[str, Any] | None = None,
         cache_dir: str | os.PathLike | None = None,
         load_rgb: bool = True,
-        skip_bad_samples: bool = False,
         require_poses: bool = True,
+        **kwargs: Any,
     ) -> None:
-        super().__init__()
+        super().__init__(**kwargs)
         self.require_poses = bool(require_poses)
         source = kitti_flow_source(flow)
-        offsets = [int(o) for o in offsets]
-        if not offsets or 0 in offsets or len(set(offsets)) != len(offsets):
-            raise ValueError(f"dataset.offsets must be distinct non-zero integers, got {offsets}")
-        if portion not in ("all", "train", "val"):
-            raise ValueError(f"portion must be 'all', 'train' or 'val', got {portion!r}")
+        offsets = check_offsets(offsets)
         self.sequence_names = [normalize_sequence(s) for s in sequences]
         self.root = self._check_root(data_root)
-        self.height, self.width = int(height), int(width)
         self.offsets = offsets
-        self.split = split
         self.load_rgb = load_rgb
-        self.skip_bad_samples = skip_bad_samples
-        self.skipped = SkipCounter()
         self.flow_dir = Path(source.dir).expanduser() if isinstance(source, FlowFiles) else None
         self.compute_hw: tuple[int, int] | None = None
         self.estimator: Any = None
@@ -399,18 +369,13 @@ class KittiOdometryDataset(FileMotionDataset):
             )
 
         self._sequences: dict[str, _Sequence] = {}
-        self.samples: list[tuple[str, int, int]] = []
         problems: list[str] = []
         span = max(abs(o) for o in offsets)
         for seq in self.sequence_names:
             info, frames, seq_problems = self._load_sequence(seq)
             problems += seq_problems
             self._sequences[seq] = info
-            n = info.n_frames
-            train_rng, val_rng = transforms.holdout_ranges(
-                n, val_fraction if portion != "all" else 0.0, span
-            )
-            allowed = {"all": range(n), "train": train_rng, "val": val_rng}[portion]
+            allowed = self.portion_frames(info.n_frames, val_fraction, span)
             present = set(frames)
             for src in allowed:
                 for o in offsets:
@@ -420,8 +385,7 @@ class KittiOdometryDataset(FileMotionDataset):
         self._flow_paths: dict[tuple[str, int, int], Path] = {}
         if self.flow_dir is not None:
             problems += self._index_flow_files()
-        if problems:
-            self._report_problems(problems)
+        self.report_problems(problems)
 
     # -- index -------------------------------------------------------------------------------
 
@@ -439,7 +403,7 @@ class KittiOdometryDataset(FileMotionDataset):
         image_dir = seq_dir / "image_2"
         pose_file = self.root / "poses" / f"{seq}.txt"
         intrinsics = read_kitti_calib(seq_dir / "calib.txt")
-        frames = _list_frames(image_dir)
+        frames = list_numbered(image_dir)
         if not frames:
             raise DataFileError(f"{image_dir}: no frames (expected 000000.png, 000001.png, …)")
         native_hw = flow_io.image_size(image_dir / f"{frames[0]:06d}.png")
@@ -455,10 +419,9 @@ class KittiOdometryDataset(FileMotionDataset):
             )
         missing = sorted(set(range(len(poses))) - set(frames))
         if missing:
-            shown = ", ".join(f"{m:06d}.png" for m in missing[:5])
+            shown = some_of([f"{m:06d}.png" for m in missing], 5, inline=True)
             problems.append(
                 f"{image_dir}: {len(missing)} frame(s) listed in {pose_file} are missing: {shown}"
-                + (" …" if len(missing) > 5 else "")
             )
         frames = [f for f in frames if f < len(poses)]
         info = _Sequence(seq, image_dir, intrinsics, native_hw, poses, len(poses))
@@ -486,21 +449,10 @@ class KittiOdometryDataset(FileMotionDataset):
         self.samples = kept
         if not missing:
             return []
-        shown = "\n".join(f"  {m}" for m in missing[:10])
-        more = f"\n  … and {len(missing) - 10} more" if len(missing) > 10 else ""
         return [
             f"flow.dir: {len(missing)} flow file(s) missing for the {self.split} split "
-            f"(naming: <flow_dir>/<seq>/<src:06d>_<tgt:06d>.<ext>):\n{shown}{more}"
+            f"(naming: <flow_dir>/<seq>/<src:06d>_<tgt:06d>.<ext>):\n{some_of(missing, 10)}"
         ]
-
-    def _report_problems(self, problems: list[str]) -> None:
-        text = "\n".join(problems)
-        if not self.skip_bad_samples:
-            raise DataFileError(
-                f"KITTI {self.split} split: {text}\n(set dataset.skip_bad_samples=true to skip "
-                "the affected samples with a warning)"
-            )
-        warnings.warn(f"KITTI {self.split} split, skipping affected samples: {text}", stacklevel=3)
 
     # -- MotionDataset -----------------------------------------------------------------------
 
@@ -513,12 +465,6 @@ class KittiOdometryDataset(FileMotionDataset):
         tgt = np.stack([self._sequences[s].poses[b] for s, _, b in self.samples])
         rel = geometry.relative_pose(torch.from_numpy(src), torch.from_numpy(tgt))
         return rel.float()
-
-    def sequences(self) -> dict[str, list[int]]:
-        out: dict[str, list[int]] = {}
-        for i, (seq, _, _) in enumerate(self.samples):
-            out.setdefault(seq, []).append(i)
-        return out
 
     def has_poses(self) -> bool:
         """Whether every sequence has ground-truth poses."""
@@ -587,10 +533,7 @@ class KittiOdometryDataset(FileMotionDataset):
             "flow": flow_t,
             "flow_valid": valid_t,
             "intrinsics": self.intrinsics(seq),
-            "sequence": seq,
-            "frame": src,
-            "target": tgt,
-            "sample_id": self.sample_id(index),
+            **self.sample_identity(index),
         }
         if info.poses is not None:
             sample["pose"] = geometry.relative_pose(
@@ -708,11 +651,7 @@ class KittiOdometryDataset(FileMotionDataset):
                         if (seq, f) not in images:
                             images[(seq, f)] = self._decode(seq, f)[1]
                 except DataFileError as err:
-                    if not self.skip_bad_samples:
-                        raise DataFileError(f"{self.sample_id(i)}: {err}") from err
-                    warnings.warn(
-                        f"cannot compute flow for {self.sample_id(i)}: {err}", stacklevel=2
-                    )
+                    self.bad_sample(i, err, "cannot compute flow for")
                     bar.update(1)
                     continue
                 flow = self._estimate(seq, src, tgt, images[(seq, src)], images[(seq, tgt)])
@@ -735,8 +674,6 @@ class KittiDataModule(MFGDataModule):
 
     Args:
         data_root: the KITTI odometry root.
-        height, width, batch_size, eval_batch_size, num_workers, seed, pin_memory,
-            persistent_workers: see :class:`~mfg_lightning.data.base.MFGDataModule`.
         train_sequences, test_sequences: the split.
         val_fraction: the validation tail of each training sequence (default 5 %).
         offsets: target offsets of every split (``[1]``; ``[-2, -1, 1, 2]`` for central-frame ATE).
@@ -745,17 +682,13 @@ class KittiDataModule(MFGDataModule):
             the ``flow`` config group, ``flow=dis`` by default).
         precompute_flow: fill the flow cache in :meth:`prepare_data` (otherwise flow is computed
             on first use by each loader worker).
+        kwargs: ``height``, ``width``, ``batch_size``, … of
+            :class:`~mfg_lightning.data.base.MFGDataModule`.
     """
 
     def __init__(
         self,
         data_root: str | None = None,
-        height: int = 48,
-        width: int = 128,
-        batch_size: int = 1,
-        eval_batch_size: int = 32,
-        num_workers: int = 0,
-        seed: int = 0,
         train_sequences: Sequence[str] = TRAIN_SEQUENCES,
         test_sequences: Sequence[str] = TEST_SEQUENCES,
         val_fraction: float = 0.05,
@@ -766,39 +699,23 @@ class KittiDataModule(MFGDataModule):
         load_rgb: bool = True,
         skip_bad_samples: bool = False,
         precompute_flow: bool = True,
-        pin_memory: bool = False,
-        persistent_workers: bool = False,
+        **kwargs: Any,
     ) -> None:
-        super().__init__(
-            height=height,
-            width=width,
-            batch_size=batch_size,
-            eval_batch_size=eval_batch_size,
-            num_workers=num_workers,
-            seed=seed,
-            pin_memory=pin_memory,
-            persistent_workers=persistent_workers,
-        )
+        super().__init__(**kwargs)
         self.data_root = data_root
         self.train_sequences = [normalize_sequence(s) for s in train_sequences]
         self.test_sequences = [normalize_sequence(s) for s in test_sequences]
-        overlap = sorted(set(self.train_sequences) & set(self.test_sequences))
-        if overlap:
-            raise ValueError(f"sequences {overlap} are in both the training and the test split")
-        if not 0.0 < float(val_fraction) < 1.0:
-            raise ValueError(
-                f"dataset.val_fraction must be in (0, 1) (a tail of each training sequence), "
-                f"got {val_fraction}"
-            )
-        self.val_fraction = float(val_fraction)
+        self.val_fraction = check_split(
+            self.train_sequences, self.test_sequences, val_fraction, "sequences"
+        )
         self.offsets = [int(o) for o in offsets]
         self.backward_flow = bool(backward_flow)
         self.precompute = bool(precompute_flow)
         # Parsed once here so that a bad flow config fails before anything is built or written.
         self.flow = kitti_flow_source(flow)
         self.dataset_kwargs: dict[str, Any] = {
-            "height": height,
-            "width": width,
+            "height": self.height,
+            "width": self.width,
             "flow": self.flow,
             "cache_dir": cache_dir,
             "load_rgb": load_rgb,
@@ -819,10 +736,7 @@ class KittiDataModule(MFGDataModule):
                 self.data_root, self.test_sequences, offsets=(1,), split="predict",
                 require_poses=False, **self.dataset_kwargs,
             )  # fmt: skip
-        if split not in ("train", "val", "test"):
-            raise ValueError(f"unknown split {split!r}")
-        sequences = self.test_sequences if split == "test" else self.train_sequences
-        portion = {"train": "train", "val": "val", "test": "all"}[split]
+        sequences, portion = split_sequences(split, self.train_sequences, self.test_sequences)
         # Training and validation offsets have the same largest |offset| (backward_flow only
         # reverses them), so both parts cut each sequence at the same frame.
         return KittiOdometryDataset(
@@ -859,6 +773,3 @@ class KittiDataModule(MFGDataModule):
                     ds.nonfinite_pixels,
                     split,
                 )
-
-    def teardown(self, stage: str | None = None) -> None:
-        report_skipped(self.datasets)

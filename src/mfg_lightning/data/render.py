@@ -501,6 +501,12 @@ def _random_table(seed: int, name: str, what: str) -> torch.Tensor:
     return torch.from_numpy(values.astype(np.float32))
 
 
+def _take(index: torch.Tensor, *tensors: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """The rows ``index`` (``(n,)`` long) of every tensor, in order: one ``index_select`` along
+    dim 0 each (gathering the pixels of one surface; cheaper than boolean masks on CPU)."""
+    return tuple(t.index_select(0, index) for t in tensors)
+
+
 def _lookup(table: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     """``table[index]`` for a 1-D table and an integer index of any shape (``index_select``,
     several times faster than advanced indexing on CPU)."""
@@ -632,16 +638,7 @@ def _shade_ground(
 
     def part(mask: torch.Tensor):
         idx = mask.nonzero(as_tuple=True)[0]
-        return (
-            idx,
-            x.index_select(0, idx),
-            z.index_select(0, idx),
-            s.index_select(0, idx),
-            d.index_select(0, idx),
-            ad.index_select(0, idx),
-            fp_lat.index_select(0, idx),
-            fp.index_select(0, idx),
-        )
+        return (idx, *_take(idx, x, z, s, d, ad, fp_lat, fp))
 
     # Asphalt: patches, grain down to 3 cm; lanes worn darker by tyres; markings dashed between
     # lanes (3 m on, 6 m off) and solid along the road's edges.
@@ -937,51 +934,20 @@ def render_frame(
 
     idx = sky.nonzero(as_tuple=True)[0]
     if len(idx):
-        colour.index_copy_(
-            0,
-            idx,
-            _shade_sky(
-                table, dx.index_select(0, idx), dy.index_select(0, idx), dz.index_select(0, idx)
-            ),
-        )
+        colour.index_copy_(0, idx, _shade_sky(table, *_take(idx, dx, dy, dz)))
     idx = on_ground.nonzero(as_tuple=True)[0]
     if len(idx):
-        t = depth.index_select(0, idx)
-        gx = float(origin[0]) + t * dx.index_select(0, idx)
-        gz = float(origin[2]) + t * dz.index_select(0, idx)
-        cos_inc = (dy.index_select(0, idx) / norm.index_select(0, idx)).abs().clamp_min(0.02)
+        t, gdx, gdy, gdz, gnorm, gfp = _take(idx, depth, dx, dy, dz, norm, fp_lat)
+        gx = float(origin[0]) + t * gdx
+        gz = float(origin[2]) + t * gdz
+        cos_inc = (gdy / gnorm).abs().clamp_min(0.02)
         light = 0.62 + 0.38 * float(-world.sun[1])
-        rgb = _shade_ground(
-            world,
-            ground,
-            table,
-            gx,
-            gz,
-            fp_lat.index_select(0, idx),
-            fp_lat.index_select(0, idx) / cos_inc,
-        )
+        rgb = _shade_ground(world, ground, table, gx, gz, gfp, gfp / cos_inc)
         colour.index_copy_(0, idx, haze(light * rgb, t))
     idx = on_box.nonzero(as_tuple=True)[0]
     if len(idx):
-        colour.index_copy_(
-            0,
-            idx,
-            haze(
-                _shade_boxes(
-                    table,
-                    boxes,
-                    box.index_select(0, idx),
-                    depth.index_select(0, idx),
-                    dx.index_select(0, idx),
-                    dy.index_select(0, idx),
-                    dz.index_select(0, idx),
-                    norm.index_select(0, idx),
-                    fp_lat.index_select(0, idx),
-                    sun,
-                ),
-                depth.index_select(0, idx),
-            ),
-        )
+        hit = _take(idx, box, depth, dx, dy, dz, norm, fp_lat)
+        colour.index_copy_(0, idx, haze(_shade_boxes(table, boxes, *hit, sun), hit[1]))
 
     # Camera: vignette, this frame's exposure, sensor noise, 8 bits.
     u = (torch.arange(width, dtype=torch.float32) - (width - 1) / 2) / (width / 2)
@@ -1026,9 +992,7 @@ def _shade_boxes(
     sun: torch.Tensor,
 ) -> torch.Tensor:
     """Colour ``(n, 3)`` of box hits: box ``b`` at depth ``t`` along rays ``d`` (``(n,)`` each)."""
-    c, s = boxes.cos.index_select(0, b), boxes.sin.index_select(0, b)
-    cen = boxes.centre.index_select(0, b)
-    half = boxes.half.index_select(0, b)
+    c, s, cen, half = _take(b, boxes.cos, boxes.sin, boxes.centre, boxes.half)
     wx, wy, wz = t * dx - cen[:, 0], t * dy - cen[:, 1], t * dz - cen[:, 2]
     px, py, pz = c * wx - s * wz, wy, s * wx + c * wz  # box-local hit point
     p = torch.stack([px, py, pz], -1)
@@ -1055,58 +1019,21 @@ def _shade_boxes(
         if not len(sel):
             continue
         bs = b.index_select(0, sel)
-        args = (
-            table,
-            p.index_select(0, sel),
-            face.index_select(0, sel),
-            hh.index_select(0, sel),
-            fp.index_select(0, sel),
-        )
+        kp, kface, khh, kfp, khalf = _take(sel, p, face, hh, fp, half)
+        colour, colour2, params = _take(bs, boxes.colour, boxes.colour2, boxes.params)
+        args = (table, kp, kface, khh, kfp)
         if k == FACADE:
             top = boxes.base.index_select(0, bs) + boxes.half.index_select(0, bs)[:, 1]
-            out = _shade_facade(
-                *args,
-                boxes.colour.index_select(0, bs),
-                boxes.colour2.index_select(0, bs),
-                boxes.params.index_select(0, bs),
-                top,
-            )
-            out = torch.where(
-                (face.index_select(0, sel) == 1)[:, None], torch.tensor([85.0, 82.0, 80.0]), out
-            )
+            out = _shade_facade(*args, colour, colour2, params, top)
+            out = torch.where((kface == 1)[:, None], torch.tensor([85.0, 82.0, 80.0]), out)
         elif k in (PARKED_CAR, CAR):
-            out = _shade_car(
-                *args,
-                half.index_select(0, sel),
-                boxes.colour.index_select(0, bs),
-                boxes.params.index_select(0, bs),
-                1.0,
-            )
+            out = _shade_car(*args, khalf, colour, params, 1.0)
         elif k == CABIN:
-            out = _shade_cabin(
-                *args,
-                half.index_select(0, sel),
-                boxes.colour.index_select(0, bs),
-                boxes.colour2.index_select(0, bs),
-            )
+            out = _shade_cabin(*args, khalf, colour, colour2)
         elif k == CRATE:
-            out = _shade_crate(
-                *args,
-                half.index_select(0, sel),
-                boxes.colour.index_select(0, bs),
-                boxes.params.index_select(0, bs),
-            )
+            out = _shade_crate(*args, khalf, colour, params)
         else:
-            out = _shade_pedestrian(
-                table,
-                p.index_select(0, sel),
-                hh.index_select(0, sel),
-                fp.index_select(0, sel),
-                half.index_select(0, sel),
-                boxes.colour.index_select(0, bs),
-                boxes.colour2.index_select(0, bs),
-                boxes.params.index_select(0, bs),
-            )
+            out = _shade_pedestrian(table, kp, khh, kfp, khalf, colour, colour2, params)
         rgb.index_copy_(0, sel, out)
     return rgb * (0.58 + 0.42 * lambert)[:, None]
 

@@ -34,7 +34,12 @@ import torch
 
 from mfg_lightning import geometry
 from mfg_lightning.data import transforms
-from mfg_lightning.data.base import MFGDataModule, MotionDataset
+from mfg_lightning.data.base import (
+    MFGDataModule,
+    MotionDataset,
+    check_offsets,
+    normalize_sequence,
+)
 from mfg_lightning.data.flow_estimation import (
     EstimatedFlow,
     ExactFlow,
@@ -410,36 +415,27 @@ class TrajectoryDataset(MotionDataset):
         self.height, self.width, self.seed, self.name = height, width, seed, name
         self.trajectories = trajectories
         self.intrinsics = kitti_like_intrinsics(height, width)
-        index: list[tuple[str, int, int]] = []
+        self.offsets = check_offsets(offsets)
+        self.samples = []
         for seq, (first, last) in frames.items():
             n = trajectories[seq].shape[0]
             for k in range(first, last + 1):
-                for off in offsets:
+                for off in self.offsets:
                     if 0 <= k + off < n:
-                        index.append((seq, k, k + off))
-        self.index = index
-
-    def __len__(self) -> int:
-        return len(self.index)
+                        self.samples.append((seq, k, k + off))
 
     def _pose(self, seq: str, src: int, tgt: int) -> torch.Tensor:
         traj = self.trajectories[seq]
         return geometry.relative_pose(traj[src], traj[tgt])
 
     def relative_poses(self) -> torch.Tensor:
-        if not self.index:
+        if not self.samples:
             return torch.zeros(0, 4, 4, dtype=torch.float64)
-        return torch.stack([self._pose(s, a, b) for s, a, b in self.index])
-
-    def sequences(self) -> dict[str, list[int]]:
-        groups: dict[str, list[int]] = {}
-        for i, (seq, _, _) in enumerate(self.index):
-            groups.setdefault(seq, []).append(i)
-        return groups
+        return torch.stack([self._pose(s, a, b) for s, a, b in self.samples])
 
     def _check_index(self, i: int) -> None:
-        if not 0 <= i < len(self.index):
-            raise IndexError(f"{self.name}: sample {i} out of range (0 … {len(self.index) - 1})")
+        if not 0 <= i < len(self.samples):
+            raise IndexError(f"{self.name}: sample {i} out of range (0 … {len(self.samples) - 1})")
 
     def _identity(self, seq: str, src: int, tgt: int, pose: torch.Tensor) -> dict:
         """The fields every sample carries besides its images and flow."""
@@ -458,32 +454,27 @@ class SyntheticDrivingDataset(TrajectoryDataset):
     for that frame, with the exact flow corrupted by noise and outliers.
 
     Args:
-        trajectories, frames, height, width, seed, offsets, name: see
-            :class:`TrajectoryDataset`.
         noise_std, outlier_fraction: flow corruption (pixels, fraction).
         scene: ranges of the procedural scene.
+        args, kwargs: ``trajectories``, ``frames``, ``height``, ``width``, ``seed``, ``offsets``,
+            ``name`` of :class:`TrajectoryDataset`.
     """
 
     def __init__(
         self,
-        trajectories: dict[str, torch.Tensor],
-        frames: dict[str, tuple[int, int]],
-        height: int,
-        width: int,
-        seed: int = 0,
-        offsets: Sequence[int] = (1,),
+        *args: Any,
         noise_std: float = 0.3,
         outlier_fraction: float = 0.01,
         scene: SceneConfig | None = None,
-        name: str = "synthetic",
+        **kwargs: Any,
     ) -> None:
-        super().__init__(trajectories, frames, height, width, seed, offsets, name)
+        super().__init__(*args, **kwargs)
         self.noise_std, self.outlier_fraction = noise_std, outlier_fraction
         self.scene = scene or SceneConfig()
 
     def __getitem__(self, i: int) -> dict:
         self._check_index(i)
-        seq, src, tgt = self.index[i]
+        seq, src, tgt = self.samples[i]
         pose = self._pose(seq, src, tgt)
         rng = _rng(self.seed, seq, src, tgt)
         sample = render_sample(
@@ -640,49 +631,44 @@ class RenderedDrivingDataset(TrajectoryDataset):
     missing pair on its own.
 
     Args:
-        trajectories, frames, height, width, seed, offsets, name: see
-            :class:`TrajectoryDataset`.
         flow: the estimator and the image size (``flow.height × flow.width``, default
             :data:`RENDER_SIZE`).
         world: :class:`~mfg_lightning.data.worlds.WorldConfig` fields (None: its defaults).
         cache_dir: the user cache directory (``paths.cache_dir``).
+        args, kwargs: ``trajectories``, ``frames``, ``height``, ``width``, ``seed``, ``offsets``,
+            ``name`` of :class:`TrajectoryDataset`.
     """
 
     def __init__(
         self,
-        trajectories: dict[str, torch.Tensor],
-        frames: dict[str, tuple[int, int]],
-        height: int,
-        width: int,
+        *args: Any,
         flow: EstimatedFlow,
-        seed: int = 0,
-        offsets: Sequence[int] = (1,),
         world: dict[str, Any] | None = None,
         cache_dir: str | Path | None = None,
-        name: str = "synthetic",
+        **kwargs: Any,
     ) -> None:
-        super().__init__(trajectories, frames, height, width, seed, offsets, name)
+        super().__init__(*args, **kwargs)
         self.flow_source = flow
         self.estimator = flow.estimator
-        self.image_hw = check_render_size(flow, (height, width))
+        self.image_hw = check_render_size(flow, (self.height, self.width))
         self.image_intrinsics = kitti_like_intrinsics(*self.image_hw)
         self.world_fields = dict(world or {})
         self.world_config = _world_config(self.world_fields)
         self._worlds: dict[str, Any] = {}
-        self.span = max([abs(int(o)) for o in offsets] or [1])
+        self.span = max(abs(o) for o in self.offsets)
         worlds, render = _renderer()
         key = {
             "format": _RENDER_CACHE_FORMAT,
             "flow": flow.key(),
             "image_hw": list(self.image_hw),
             "output_hw": [self.height, self.width],
-            "seed": seed,
+            "seed": self.seed,
             "world": {k: self.world_fields[k] for k in sorted(self.world_fields)},
             "trajectories": {
                 seq: hashlib.sha256(
                     np.ascontiguousarray(poses.double().numpy()).tobytes()
                 ).hexdigest()[:16]
-                for seq, poses in sorted(trajectories.items())
+                for seq, poses in sorted(self.trajectories.items())
             },
             "renderer": _source_digest(worlds, render),
             "torch": torch.__version__,
@@ -700,12 +686,12 @@ class RenderedDrivingDataset(TrajectoryDataset):
     # -- cache -------------------------------------------------------------------------------
 
     def pair_path(self, i: int) -> Path:
-        seq, src, tgt = self.index[i]
+        seq, src, tgt = self.samples[i]
         return self.cache.root / seq / f"{src:06d}_{tgt:06d}.npz"
 
     def missing(self) -> list[int]:
         """Indices of the samples whose pair is not cached yet (stat calls only)."""
-        return [i for i in range(len(self.index)) if not self.pair_path(i).exists()]
+        return [i for i in range(len(self.samples)) if not self.pair_path(i).exists()]
 
     def _cached(self, i: int) -> dict[str, np.ndarray] | None:
         packed = self.cache.load_arrays(self.pair_path(i), ("floats", "bytes"))
@@ -807,8 +793,8 @@ class RenderedDrivingDataset(TrajectoryDataset):
         frames: dict[tuple[str, int], _Frame] = {}
         rendered = self.rendered_frames
         middle = {ix[len(ix) // 2]: seq for seq, ix in self.sequences().items()}
-        for i in sorted(indices, key=lambda k: self.index[k][:2]):
-            seq, src, tgt = self.index[i]
+        for i in sorted(indices, key=lambda k: self.samples[k][:2]):
+            seq, src, tgt = self.samples[i]
             for key in [k for k in frames if k[0] != seq or k[1] < src - self.span]:
                 del frames[key]
             for f in (src, tgt):
@@ -843,7 +829,7 @@ class RenderedDrivingDataset(TrajectoryDataset):
         )
         by_seq: dict[str, list[int]] = {}
         for i in todo:
-            by_seq.setdefault(self.index[i][0], []).append(i)
+            by_seq.setdefault(self.samples[i][0], []).append(i)
         try:
             if workers <= 1 or len(by_seq) == 1:
                 self._compute(todo, bar)
@@ -874,7 +860,7 @@ class RenderedDrivingDataset(TrajectoryDataset):
         """The picture grid (:func:`flow_picture`) of the middle pair of ``seq``, at the image
         size (renders its two frames)."""
         indices = self.sequences()[seq]
-        _, src, tgt = self.index[indices[len(indices) // 2]]
+        _, src, tgt = self.samples[indices[len(indices) // 2]]
         pair = self.compute_pair(seq, src, tgt, self.render(seq, src), self.render(seq, tgt))
         return flow_picture(pair["full"])
 
@@ -883,7 +869,7 @@ class RenderedDrivingDataset(TrajectoryDataset):
         from the cache (every pair must be cached)."""
         stats = np.zeros((len(QUALITY_REGIONS), 3))
         nonfinite = 0
-        for i in range(len(self.index)):
+        for i in range(len(self.samples)):
             arrays = self.cache.load_arrays(self.pair_path(i), ("stats",))
             if arrays is None:
                 raise FileNotFoundError(f"{self.pair_path(i)}: pair not cached yet")
@@ -895,7 +881,7 @@ class RenderedDrivingDataset(TrajectoryDataset):
 
     def __getitem__(self, i: int) -> dict:
         self._check_index(i)
-        seq, src, tgt = self.index[i]
+        seq, src, tgt = self.samples[i]
         arrays = self._cached(i)
         if arrays is None:
             arrays = self._store(
@@ -1001,8 +987,9 @@ class SyntheticDataModule(MFGDataModule):
         world: :class:`~mfg_lightning.data.worlds.WorldConfig` fields of the rendered worlds.
         cache_dir: where estimated flow is cached (``paths.cache_dir``).
         precompute_flow: fill the cache in :meth:`prepare_data` (else on first use).
-        test_offsets: target offsets of test samples (``[1]``, or ``[-2, -1, 1, 2]`` for the
-            central-frame ATE mode).
+        offsets: target offsets of every split, ``target = frame + offset`` (``[1]``; ``[-2, -1,
+            1, 2]``: the flows from a centre frame to its neighbours, for central-frame ATE), as
+            ``dataset=kitti``'s.
         scene: :class:`SceneConfig` fields.
         scene_seed: seed of the trajectories and scenes (None: ``seed``, which then also sets
             the training order); the config fixes it so that runs differing in ``seed`` see the
@@ -1020,7 +1007,7 @@ class SyntheticDataModule(MFGDataModule):
         max_frames: int | None = None,
         val_fraction: float = 0.05,
         flow: FlowSource | dict[str, Any] | None = None,
-        test_offsets: Sequence[int] = (1,),
+        offsets: Sequence[int] = (1,),
         scene: dict | None = None,
         scene_seed: int | None = None,
         world: dict[str, Any] | None = None,
@@ -1055,7 +1042,7 @@ class SyntheticDataModule(MFGDataModule):
         self.world = dict(world or {})
         self.cache_dir = cache_dir
         self.precompute = bool(precompute_flow)
-        self.test_offsets = tuple(test_offsets)
+        self.offsets = check_offsets(offsets)
         self.scene = SceneConfig(
             **{k: tuple(v) if isinstance(v, list) else v for k, v in (scene or {}).items()}
         )
@@ -1090,8 +1077,7 @@ class SyntheticDataModule(MFGDataModule):
                 raise ValueError(
                     f"dataset.{which}_sequences must list KITTI sequences for trajectory=kitti"
                 )
-            for seq in spec:
-                seq = f"{int(seq):02d}" if str(seq).isdigit() else str(seq)
+            for seq in map(normalize_sequence, spec):
                 path = root / f"{seq}.txt"
                 if not path.is_file():
                     raise FileNotFoundError(
@@ -1105,7 +1091,6 @@ class SyntheticDataModule(MFGDataModule):
     def build_dataset(self, split: str) -> SyntheticDrivingDataset | RenderedDrivingDataset:
         trajs = self._load("test" if split == "test" else "train")
         frames: dict[str, tuple[int, int]] = {}
-        offsets: tuple[int, ...] = (1,)
         for seq, poses in trajs.items():
             last = poses.shape[0] - 2  # the last source frame with a successor
             n_val = round(self.val_fraction * (last + 1))
@@ -1118,33 +1103,21 @@ class SyntheticDataModule(MFGDataModule):
                 frames[seq] = (0, last)
             else:
                 frames[seq] = (0, poses.shape[0] - 1)
-                offsets = self.test_offsets
-        seed = self.scene_seed + (7919 if split == "test" else 0)
+        # Every split samples the same offsets (train+val: the pairs of both, for the cache).
+        common = {
+            "seed": self.scene_seed + (7919 if split == "test" else 0),
+            "offsets": self.offsets,
+            "name": f"synthetic/{split}",
+        }
         if isinstance(self.flow, EstimatedFlow):
             return RenderedDrivingDataset(
-                trajs,
-                frames,
-                self.height,
-                self.width,
-                flow=self.flow,
-                seed=seed,
-                offsets=offsets,
-                world=self.world,
-                cache_dir=self.cache_dir,
-                name=f"synthetic/{split}",
-            )
+                trajs, frames, self.height, self.width,
+                flow=self.flow, world=self.world, cache_dir=self.cache_dir, **common,
+            )  # fmt: skip
         return SyntheticDrivingDataset(
-            trajs,
-            frames,
-            self.height,
-            self.width,
-            seed=seed,
-            offsets=offsets,
-            noise_std=self.flow.noise_std,
-            outlier_fraction=self.flow.outlier_fraction,
-            scene=self.scene,
-            name=f"synthetic/{split}",
-        )
+            trajs, frames, self.height, self.width, noise_std=self.flow.noise_std,
+            outlier_fraction=self.flow.outlier_fraction, scene=self.scene, **common,
+        )  # fmt: skip
 
     # -- estimated flow: precompute, quality, pictures ---------------------------------------
 

@@ -61,8 +61,18 @@ import torch
 
 from mfg_lightning import geometry
 from mfg_lightning.data import flow_io, transforms
-from mfg_lightning.data.base import FileMotionDataset, MFGDataModule
-from mfg_lightning.data.flow_io import DataFileError, DataRootError, SkipCounter, report_skipped
+from mfg_lightning.data.base import (
+    FileMotionDataset,
+    MFGDataModule,
+    check_data_root,
+    check_split,
+    list_numbered,
+    read_text_lines,
+    some_of,
+    split_sequences,
+)
+from mfg_lightning.data.errors import DataFileError, DataRootError
+from mfg_lightning.data.flow_estimation import FlowSource, GroundTruthFlow, parse_flow
 from mfg_lightning.data.sample import sanitize_flow
 
 log = logging.getLogger(__name__)
@@ -139,14 +149,7 @@ def normalize_world(world: Any) -> str:
 
 def _numeric_rows(path: Path, width: int) -> np.ndarray:
     """The rows after the header line of a whitespace-separated table, as float64 ``(N, width)``."""
-    try:
-        lines = path.read_bytes().decode("utf-8").splitlines()
-    except FileNotFoundError:
-        raise DataFileError(f"{path}: file not found") from None
-    except OSError as err:
-        raise DataFileError(f"{path}: cannot read ({err.strerror or err})") from None
-    except UnicodeDecodeError:
-        raise DataFileError(f"{path}: not a text file (not UTF-8)") from None
+    lines = read_text_lines(path)
     rows = [line.split() for line in lines[1:] if line.strip()]
     for i, row in enumerate(rows):
         if len(row) != width:
@@ -244,20 +247,6 @@ def write_vkitti_intrinsics(path: str | os.PathLike, intrinsics: Any) -> None:
     _write_table(path, "frame cameraID K[0,0] K[1,1] K[0,2] K[1,2]", table, 2)
 
 
-def _list_numbered(directory: Path, prefix: str, suffix: str) -> set[int]:
-    frames = set()
-    if not directory.is_dir():
-        return frames
-    with os.scandir(directory) as it:
-        for entry in it:
-            name = entry.name
-            if name.startswith(prefix) and name.lower().endswith(suffix):
-                core = name[len(prefix) : len(name) - len(suffix)]
-                if core.isdigit():
-                    frames.add(int(core))
-    return frames
-
-
 # --------------------------------------------------------------------------------------------
 # Layout
 # --------------------------------------------------------------------------------------------
@@ -323,10 +312,15 @@ class _Layout:
             return {"rgb": ("", ".png"), "depth": ("", ".png"), "flow": ("", ".png")}
         return {"rgb": ("rgb_", ".jpg"), "depth": ("depth_", ".png"), "flow": ("flow_", ".png")}
 
+    def directory(self, kind: str, world: str, var: str) -> Path:
+        """The directory of the ``rgb``, ``depth`` or ``flow`` files of one world."""
+        return {"rgb": self.rgb_dir, "depth": self.depth_dir, "flow": self.flow_dir}[kind](
+            world, var
+        )
+
     def file(self, kind: str, world: str, var: str, frame: int) -> Path:
         prefix, suffix = self.names()[kind]
-        directory = {"rgb": self.rgb_dir, "depth": self.depth_dir, "flow": self.flow_dir}[kind]
-        return directory(world, var) / f"{prefix}{frame:05d}{suffix}"
+        return self.directory(kind, world, var) / f"{prefix}{frame:05d}{suffix}"
 
 
 def check_vkitti_root(
@@ -336,16 +330,7 @@ def check_vkitti_root(
     the expected tree."""
     tree = VKITTI1_LAYOUT if version == 1 else VKITTI2_LAYOUT
     name = "Virtual KITTI 1.3.1" if version == 1 else "Virtual KITTI 2.0.3"
-    if data_root is None or str(data_root).strip() in ("", "???", "None", "null"):
-        raise DataRootError(
-            f"dataset.data_root is not set: point it at the directory holding the unpacked "
-            f"{name} tarballs. Expected layout:\n{tree}"
-        )
-    root = Path(data_root).expanduser()
-    if not root.is_dir():
-        raise DataRootError(
-            f"dataset.data_root={root} is not a directory. Expected layout:\n{tree}"
-        )
+    root = check_data_root(data_root, f"the directory holding the unpacked {name} tarballs", tree)
     layout = _Layout(root.resolve(), version)
     missing = [d for d in layout.top_dirs() if not d.is_dir()]
     if not missing:
@@ -363,11 +348,9 @@ def check_vkitti_root(
         hint = ""
         if all(d.is_dir() for d in other.top_dirs()):
             hint = f"\n(this looks like the other version: set dataset.version={3 - version})"
-        shown = "\n".join(f"  {p}" for p in missing[:20])
-        more = f"\n  … and {len(missing) - 20} more" if len(missing) > 20 else ""
         raise DataRootError(
             f"dataset.data_root={root} does not look like {name} (variation {variation}); "
-            f"missing:\n{shown}{more}{hint}\nExpected layout:\n{tree}"
+            f"missing:\n{some_of(missing, 20)}{hint}\nExpected layout:\n{tree}"
         )
     return layout
 
@@ -392,17 +375,17 @@ class VirtualKittiDataset(FileMotionDataset):
         worlds: world names (``"0001"`` …).
         variation: rendering variation (``clone``, ``fog``, …).
         version: 1 (1.3.1) or 2 (2.0.3).
-        height, width: the model's input size.
-        split: name used in ``sample_id`` and messages.
-        portion: ``"all"`` frames of each world, its ``"train"`` head or its ``"val"`` tail.
         val_fraction: fraction of each world held out as its validation tail.
         object_threshold: residual ``‖flow − rigid flow‖`` above which a pixel is moving, in
             pixels of the native (1242 × 375) resolution.
         load_rgb: deliver the source image as ``rgb``.
-        skip_bad_samples: warn and skip unreadable samples instead of raising.
+        kwargs: ``height``, ``width`` (the model's input size), ``split``, ``portion`` (``"all"``
+            frames of each world, its ``"train"`` head or its ``"val"`` tail) and
+            ``skip_bad_samples`` of :class:`~mfg_lightning.data.base.FileMotionDataset`.
     """
 
     name = "vkitti"
+    title = "Virtual KITTI"
 
     def __init__(
         self,
@@ -410,18 +393,12 @@ class VirtualKittiDataset(FileMotionDataset):
         worlds: Sequence[str],
         variation: str = "clone",
         version: int | str = 1,
-        height: int = 48,
-        width: int = 128,
-        split: str = "train",
-        portion: str = "all",
         val_fraction: float = 0.05,
         object_threshold: float = 1.0,
         load_rgb: bool = True,
-        skip_bad_samples: bool = False,
+        **kwargs: Any,
     ) -> None:
-        super().__init__()
-        if portion not in ("all", "train", "val"):
-            raise ValueError(f"portion must be 'all', 'train' or 'val', got {portion!r}")
+        super().__init__(**kwargs)
         if object_threshold <= 0:
             raise ValueError(f"dataset.object_threshold must be positive, got {object_threshold}")
         if variation not in VARIATIONS:
@@ -432,40 +409,24 @@ class VirtualKittiDataset(FileMotionDataset):
         self.world_names = [normalize_world(w) for w in worlds]
         self.variation = str(variation)
         self.layout = check_vkitti_root(data_root, self.version, self.world_names, self.variation)
-        self.height, self.width = int(height), int(width)
-        self.split = split
         self.object_threshold = float(object_threshold)
         self.load_rgb = load_rgb
-        self.skip_bad_samples = skip_bad_samples
-        self.skipped = SkipCounter()
         self._worlds: dict[str, _World] = {}
-        self.samples: list[tuple[str, int, int]] = []
         problems: list[str] = []
         for world in self.world_names:
-            problems += self._index_world(world, portion, val_fraction)
-        if problems:
-            text = "\n".join(problems)
-            if not skip_bad_samples:
-                raise DataFileError(
-                    f"Virtual KITTI {split} split: {text}\n(set dataset.skip_bad_samples=true "
-                    "to skip the affected samples with a warning)"
-                )
-            warnings.warn(
-                f"Virtual KITTI {split} split, skipping affected samples: {text}", stacklevel=2
-            )
+            problems += self._index_world(world, val_fraction)
+        self.report_problems(problems)
 
-    def _index_world(self, world: str, portion: str, val_fraction: float) -> list[str]:
+    def _index_world(self, world: str, val_fraction: float) -> list[str]:
         L, var = self.layout, self.variation
         ext_file = L.extrinsics_file(world, var)
         extrinsics = read_vkitti_extrinsics(ext_file, self.version)
         intr_file = L.intrinsics_file(world, var)
         intrinsics = read_vkitti_intrinsics(intr_file) if intr_file is not None else None
         self._worlds[world] = _World(world, extrinsics, intrinsics)
-        names = L.names()
         present = {
-            "rgb": _list_numbered(L.rgb_dir(world, var), *names["rgb"]),
-            "depth": _list_numbered(L.depth_dir(world, var), *names["depth"]),
-            "flow": _list_numbered(L.flow_dir(world, var), *names["flow"]),
+            kind: set(list_numbered(L.directory(kind, world, var), *prefix_suffix))
+            for kind, prefix_suffix in L.names().items()
         }
         n = max(present["rgb"], default=-1) + 1
         problems: list[str] = []
@@ -489,15 +450,12 @@ class VirtualKittiDataset(FileMotionDataset):
         for kind in kinds:
             gone = [f for f in range(n - 1) if f not in present[kind]]
             if gone:
-                shown = ", ".join(L.file(kind, world, var, f).name for f in gone[:5])
+                shown = some_of([L.file(kind, world, var, f).name for f in gone], 5, inline=True)
                 problems.append(
                     f"{L.file(kind, world, var, gone[0]).parent}: {len(gone)} {kind} file(s) "
-                    f"missing: {shown}" + (" …" if len(gone) > 5 else "")
+                    f"missing: {shown}"
                 )
-        train_rng, val_rng = transforms.holdout_ranges(
-            n, val_fraction if portion != "all" else 0.0, span=1
-        )
-        allowed = {"all": range(n), "train": train_rng, "val": val_rng}[portion]
+        allowed = self.portion_frames(n, val_fraction, span=1)
         for src in allowed:
             tgt = src + 1
             if tgt not in allowed or src not in extrinsics or tgt not in extrinsics:
@@ -521,12 +479,6 @@ class VirtualKittiDataset(FileMotionDataset):
         src = torch.stack([self._T_world_cam(w, a) for w, a, _ in self.samples])
         tgt = torch.stack([self._T_world_cam(w, b) for w, _, b in self.samples])
         return geometry.relative_pose(src, tgt).float()
-
-    def sequences(self) -> dict[str, list[int]]:
-        out: dict[str, list[int]] = {}
-        for i, (world, _, _) in enumerate(self.samples):
-            out.setdefault(world, []).append(i)
-        return out
 
     def native_intrinsics(self, world: str, frame: int) -> np.ndarray:
         """``(4,)`` ``(fx, fy, cx, cy)`` of ``frame`` in native pixels."""
@@ -595,10 +547,7 @@ class VirtualKittiDataset(FileMotionDataset):
             "depth": torch.from_numpy(transforms.resize_depth(depth, *hw)),
             "object_mask": torch.from_numpy(mask_lr),
             "object_flow": transforms.flow_to_tensor(obj_lr),
-            "sequence": world,
-            "frame": src,
-            "target": tgt,
-            "sample_id": self.sample_id(index),
+            **self.sample_identity(index),
         }
         if self.load_rgb:
             rgb = transforms.resize_rgb(flow_io.read_rgb(L.file("rgb", world, var, src)), *hw)
@@ -658,19 +607,16 @@ class VirtualKittiDataModule(MFGDataModule):
         val_fraction: the validation tail of each training world (default 5 %).
         object_threshold: moving-pixel threshold in native pixels (default 1.0).
         load_rgb, skip_bad_samples: see :class:`VirtualKittiDataset`.
-        height, width, batch_size, eval_batch_size, num_workers, seed, pin_memory,
-            persistent_workers: see :class:`~mfg_lightning.data.base.MFGDataModule`.
+        flow: the ``flow`` config group: ``flow=ground_truth`` (the default, and the only source:
+            the input flow is the ground-truth flow the dataset ships); any other source is
+            refused naming ``flow.source``, never silently replaced.
+        kwargs: ``height``, ``width``, ``batch_size``, … of
+            :class:`~mfg_lightning.data.base.MFGDataModule`.
     """
 
     def __init__(
         self,
         data_root: str | None = None,
-        height: int = 48,
-        width: int = 128,
-        batch_size: int = 1,
-        eval_batch_size: int = 32,
-        num_workers: int = 0,
-        seed: int = 0,
         version: int | str = 1,
         variation: str = "clone",
         split: str = "egomotion",
@@ -680,53 +626,38 @@ class VirtualKittiDataModule(MFGDataModule):
         object_threshold: float = 1.0,
         load_rgb: bool = True,
         skip_bad_samples: bool = False,
-        pin_memory: bool = False,
-        persistent_workers: bool = False,
+        flow: FlowSource | dict[str, Any] | None = None,
+        **kwargs: Any,
     ) -> None:
-        super().__init__(
-            height=height,
-            width=width,
-            batch_size=batch_size,
-            eval_batch_size=eval_batch_size,
-            num_workers=num_workers,
-            seed=seed,
-            pin_memory=pin_memory,
-            persistent_workers=persistent_workers,
-        )
+        super().__init__(**kwargs)
+        self.flow = parse_flow(flow, default="ground_truth")
+        if not isinstance(self.flow, GroundTruthFlow):
+            raise ValueError(
+                f"flow.source={self.flow.source}: dataset=vkitti feeds the model Virtual KITTI's "
+                "ground-truth flow (its flowgt / forwardFlow files); flow=ground_truth, its "
+                "default, is the only flow source it has"
+            )
         if split not in SPLITS:
             raise ValueError(f"dataset.split must be one of {sorted(SPLITS)}, got {split!r}")
         default_train, default_test = SPLITS[split]
         self.train_worlds = [normalize_world(w) for w in (train_worlds or default_train)]
         self.test_worlds = [normalize_world(w) for w in (test_worlds or default_test)]
-        overlap = sorted(set(self.train_worlds) & set(self.test_worlds))
-        if overlap:
-            raise ValueError(f"worlds {overlap} are in both the training and the test split")
-        if not 0.0 < float(val_fraction) < 1.0:
-            raise ValueError(
-                f"dataset.val_fraction must be in (0, 1) (a tail of each training world), "
-                f"got {val_fraction}"
-            )
+        val_fraction = check_split(self.train_worlds, self.test_worlds, val_fraction, "worlds")
         self.split_name = split
         self.dataset_kwargs: dict[str, Any] = {
             "data_root": data_root,
             "variation": variation,
             "version": normalize_version(version),
-            "height": height,
-            "width": width,
-            "val_fraction": float(val_fraction),
+            "height": self.height,
+            "width": self.width,
+            "val_fraction": val_fraction,
             "object_threshold": float(object_threshold),
             "load_rgb": load_rgb,
             "skip_bad_samples": skip_bad_samples,
         }
 
     def build_dataset(self, split: str) -> VirtualKittiDataset:
-        if split not in ("train", "val", "test"):
-            raise ValueError(f"unknown split {split!r}")
-        worlds = self.test_worlds if split == "test" else self.train_worlds
-        portion = {"train": "train", "val": "val", "test": "all"}[split]
+        worlds, portion = split_sequences(split, self.train_worlds, self.test_worlds)
         return VirtualKittiDataset(
             worlds=worlds, split=split, portion=portion, **self.dataset_kwargs
         )
-
-    def teardown(self, stage: str | None = None) -> None:
-        report_skipped(self.datasets)

@@ -40,7 +40,7 @@ import torch
 from torch import Tensor
 
 from mfg_lightning import geometry
-from mfg_lightning.trajectories import evaluation_poses
+from mfg_lightning.trajectories import check_sequence_pair, evaluation_poses
 
 __all__ = [
     "ALIGN_MODES",
@@ -152,11 +152,7 @@ def align_trajectory(
         trajectory metric does: :func:`mfg_lightning.trajectories.evaluation_poses`).
     """
     check_align_options(mode, n_to_align)
-    if pred.shape != target.shape or pred.dim() != 3 or tuple(pred.shape[-2:]) != (4, 4):
-        raise ValueError(
-            "pred and target must both be the poses of one sequence shaped (N, 4, 4), got "
-            f"{tuple(pred.shape)} and {tuple(target.shape)}"
-        )
+    check_sequence_pair(pred, target)
     if pred.shape[0] == 0:
         raise ValueError("cannot align an empty trajectory")
     P = evaluation_poses(pred)

@@ -42,7 +42,7 @@ from torchmetrics import Metric
 from mfg_lightning import geometry
 from mfg_lightning.metrics.alignment import align_trajectory, check_align_options
 from mfg_lightning.metrics.stats import MetricValues, cat_state, summary
-from mfg_lightning.trajectories import evaluation_poses
+from mfg_lightning.trajectories import check_sequence_pair, evaluation_poses
 
 __all__ = [
     "DRIFT_NAMES",
@@ -87,11 +87,7 @@ def kitti_segment_errors(
         first frame, then length: translational error per metre (a fraction), rotational error in
         radians per metre, and the segment's nominal length in metres.
     """
-    if pred.shape != target.shape or pred.dim() != 3 or tuple(pred.shape[-2:]) != (4, 4):
-        raise ValueError(
-            "pred and target must both be the poses of one sequence shaped (N, 4, 4), got "
-            f"{tuple(pred.shape)} and {tuple(target.shape)}"
-        )
+    check_sequence_pair(pred, target)
     if step < 1:
         raise ValueError(f"step must be >= 1, got {step}")
     check_align_options(align, n_to_align)
@@ -167,20 +163,14 @@ def kitti_drift_by_length(
     return out
 
 
-def kitti_drift(
-    pred: Tensor,
-    target: Tensor,
-    lengths: Sequence[float] = KITTI_SEGMENT_LENGTHS,
-    step: int = KITTI_STEP,
-    align: str = "none",
-    n_to_align: int | None = None,
-) -> MetricValues:
+def kitti_drift(pred: Tensor, target: Tensor, **options: Any) -> MetricValues:
     """KITTI drift of one sequence: the functional twin of :class:`KittiDrift`.
 
     Args:
         pred, target: ``(N, 4, 4)`` estimated and ground-truth camera-to-world poses (metres).
-        lengths, step: the devkit's segment lengths (m) and start spacing (frames).
-        align, n_to_align: alignment of the estimate first (:func:`kitti_segment_errors`).
+        options: ``lengths``, ``step`` (the devkit's segment lengths in m and start spacing in
+            frames), ``align``, ``n_to_align`` (alignment of the estimate first) of
+            :func:`kitti_segment_errors`, with its defaults.
 
     Returns:
         ``{"drift_t_err", "drift_r_err"}`` (:data:`DRIFT_NAMES`): float64 scalars, the mean
@@ -188,7 +178,7 @@ def kitti_drift(
         degrees per 100 m; NaN without segments. ``"t_err"``, ``"r_err"`` (the names before
         issue 15) still read.
     """
-    t_err, r_err, _ = kitti_segment_errors(pred, target, lengths, step, align, n_to_align)
+    t_err, r_err, _ = kitti_segment_errors(pred, target, **options)
     return _drift(t_err, r_err)
 
 

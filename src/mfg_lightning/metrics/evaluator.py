@@ -9,7 +9,7 @@ processes under DDP), orders them by sequence and frame, forms snippets and full
 * ``ate`` / ``ate_std`` / ``ate_rmse`` (:class:`~.ate.SnippetATE`): frame-by-frame snippets
   (Table 1's †) from the motions ``k → k+1``;
 * ``ate_central`` / …: central-frame snippets (Table 1's *), when the split provides flows from
-  each centre frame to the frames at offsets −2, −1, +1, +2 (``dataset.test_offsets``);
+  each centre frame to the frames at offsets −2, −1, +1, +2 (``dataset.offsets``);
 * ``rpe_trans`` / ``rpe_rot`` (+ ``_std``, ``_rmse``; :class:`~.rpe.RelativePoseError`): RPE
   with Δ = ``delta`` over the full trajectory composed from the motions ``k → k+1`` (Table 2);
 * ``drift_t_err`` (%) / ``drift_r_err`` (deg / 100 m; :class:`~.drift.KittiDrift`): KITTI

@@ -24,17 +24,13 @@ from torchmetrics import Metric
 
 from mfg_lightning import geometry
 from mfg_lightning.metrics.stats import MetricValues, cat_state, summary
-from mfg_lightning.trajectories import evaluation_poses
+from mfg_lightning.trajectories import check_sequence_pair, evaluation_poses
 
 __all__ = ["RPE_NAMES", "RelativePoseError", "relative_pose_error", "relative_pose_errors"]
 
 
 def _check_sequence(pred: Tensor, target: Tensor, delta: int) -> None:
-    if pred.shape != target.shape or pred.dim() != 3 or tuple(pred.shape[-2:]) != (4, 4):
-        raise ValueError(
-            "pred and target must both be the poses of one sequence shaped (N, 4, 4), got "
-            f"{tuple(pred.shape)} and {tuple(target.shape)}"
-        )
+    check_sequence_pair(pred, target)
     if delta < 1:
         raise ValueError(f"delta must be a positive number of frames, got {delta}")
 
