@@ -219,3 +219,21 @@ def test_the_picture_grid_takes_extra_panels(frames, world, K):
     assert [t for t, _ in columns[0]][-1] == "estimated flow"
     with pytest.raises(ValueError, match="same, non-zero number of panels"):
         picture_grid([columns[0], columns[1][:2]])
+
+
+def test_a_frame_that_sees_no_box_renders_road_and_sky():
+    """An open stretch of road (no facade, parked box or mover in view) renders, and its exact
+    flow is defined: KITTI 09's world has such frames."""
+    from mfg_lightning.data.worlds import WorldConfig
+
+    poses = synthetic.procedural_trajectory(synthetic._rng(5, "trajectory", "r"), 12)
+    empty = WorldConfig(
+        facade_coverage=0.0, parked_per_100m=0.0, cars_per_100m=0.0, pedestrians_per_100m=0.0
+    )
+    world = World.generate(poses, seed=5, name="open", config=empty)
+    K = synthetic.kitti_like_intrinsics(48, 128)
+    f = render_frame(world, 3, K, 48, 128)
+    assert (f.instance == -1).all()
+    assert set(f.region.unique().tolist()) <= {REGION_ROAD, REGION_FAR}
+    flow = exact_flow(world, 3, 4, K, 48, 128)
+    assert flow["flow_valid"].any() and torch.isfinite(flow["flow"][:, flow["flow_valid"]]).all()

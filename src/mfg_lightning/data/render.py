@@ -960,7 +960,8 @@ def render_frame(
     )
     rgb = image.round_().clamp_(0, 255).to(torch.uint8)
 
-    obj = boxes.instance[box.clamp_min(0)]
+    # A frame may see no box at all (an open stretch of road): nothing to look up then.
+    obj = boxes.instance[box.clamp_min(0)] if len(boxes.instance) else torch.full_like(box, -1)
     is_moving = on_box & (obj >= 0)
     region = torch.where(
         on_ground,

@@ -147,8 +147,9 @@ class Study:
         from mfg_lightning.data.base import collate_samples
 
         ds = dm.dataset(split)
-        if forward_only and hasattr(ds, "index"):
-            ds = Subset(ds, [i for i, (_, s, t) in enumerate(ds.index) if t == s + 1])
+        if forward_only:
+            # every dataset of the study lists its samples as (sequence, source, target)
+            ds = Subset(ds, [i for i, (_, s, t) in enumerate(ds.samples) if t == s + 1])
         return DataLoader(
             ds, batch_size=int(self.cfg.budget.eval_batch_size), collate_fn=collate_samples
         )
