@@ -73,6 +73,12 @@ def run(study: S.Study, report: Path) -> Path:
                 "seconds": time.perf_counter() - start,
                 **{f"{s}_pairs": len(dm.dataset(s)) for s in ("train", "val", "test")},
             }
+        start = time.perf_counter()
+        central = study.test_datamodule(main_extra)
+        out["central_test"] = {
+            "seconds": time.perf_counter() - start,
+            "test_pairs": len(central.dataset("test")),
+        }
         return out
 
     study.stage("data", data)
@@ -84,8 +90,10 @@ def run(study: S.Study, report: Path) -> Path:
         model = study.model(main)
         dm = study.datamodule(study.train_config("main", main_extra, 1))
         ks = [float(k) for k in cfg.table1.top_k]
+        central = study.test_datamodule(main_extra)
         return {
-            "test": S.mfg_scores(model, study.loader(dm, "test"), ks),
+            "train_offsets": main_extra,
+            "test": S.mfg_scores(model, study.loader(central, "test"), ks),
             "val": S.mfg_scores(model, study.loader(dm, "val"), ks),
         }
 

@@ -88,7 +88,8 @@ def claim_table1(t1: dict | None, th: Thresholds) -> tuple[Row, Any]:
             f"{fmt(test.get('0.01', {}).get(f'{s}/ate'))} (1 %); "
             f"* {fmt(test['1'].get(f'{s}/ate_central'))}"
         )
-    row.ours = "; ".join(parts)
+    trained = " ".join(t1.get("train_offsets", [])) or "the default offsets"
+    row.ours = f"(model trained with {trained}) " + "; ".join(parts)
     row.verdict = worst(verdicts) if verdicts else NOT_HOLD
     panels = []
     for key, label in (("ate", "ATE † (m)"), ("ate_central", "ATE * (m)")):

@@ -31,6 +31,9 @@ log = logging.getLogger("mfg_lightning.study")
 
 Result = dict[str, Any]
 
+#: The test samples of Table 1's * protocol: motions from each centre frame to ±1, ±2.
+CENTRAL_OFFSETS = "dataset.offsets=[-2,-1,1,2]"
+
 
 class Study:
     """The study's configuration, its work directory and its cached stage results.
@@ -110,6 +113,21 @@ class Study:
 
         dm = instantiate(cfg.dataset)
         dm.prepare_data()
+        return dm
+
+    def test_datamodule(self, extra: list[str]) -> Any:
+        """A DataModule whose test split has Table 1's * samples (every centre frame to its
+        :data:`CENTRAL_OFFSETS`, the +1 pairs giving †), whatever offsets the model trained
+        on; only the test split's missing flow is computed."""
+        from hydra.utils import instantiate
+
+        cfg = self.train_config(
+            "main", [*extra, CENTRAL_OFFSETS, "dataset.precompute_flow=false"], 1
+        )
+        dm = instantiate(cfg.dataset)
+        ds = dm.dataset("test")
+        if hasattr(ds, "precompute_flow"):
+            ds.precompute_flow(progress=False, workers=int(self.cfg.budget.workers))
         return dm
 
     def train(self, name: str, extra: list[str], steps: int) -> Result:
