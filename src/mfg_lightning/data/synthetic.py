@@ -1037,6 +1037,12 @@ class SyntheticDataModule(MFGDataModule):
         self.train_sequences = train_sequences
         self.test_sequences = test_sequences
         self.sequence_length = sequence_length
+        if max_frames is not None and (
+            isinstance(max_frames, bool) or not isinstance(max_frames, int) or max_frames < 2
+        ):
+            raise ValueError(
+                f"dataset.max_frames must be an integer ≥ 2 or null, got {max_frames!r}"
+            )
         self.max_frames = max_frames
         self.val_fraction = val_fraction
         self.world = dict(world or {})

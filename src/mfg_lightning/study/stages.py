@@ -104,6 +104,9 @@ class Study:
             f"paths.cache_dir={self.cfg.paths.cache_dir}",
             *extra,
         ]
+        if b.max_frames is not None:
+            # before ``extra``, which may set its own (Table 2's smaller training set)
+            ov.insert(len(self.cfg.data), f"dataset.max_frames={int(b.max_frames)}")
         if b.max_time:
             ov.append(f"++trainer.max_time={b.max_time}")
         return compose("train", ov)
