@@ -91,21 +91,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "'exact exact:100 dis:100'; at most one dis run",
     )
     p.add_argument("--dis-preset", default="medium", help="flow.preset of the DIS source")
-    p.add_argument(
-        "--render-size",
-        type=int,
-        nargs=2,
-        default=None,
-        metavar=("H", "W"),
-        help="flow.height flow.width of the DIS source (default: the dataset's, 192 512)",
+    size = "flow.height flow.width of the DIS source (default: the dataset's, 192 512)"
+    p.add_argument("--render-size", type=int, nargs=2, metavar=("H", "W"), help=size)
+    work = (
+        "stage results and the flow cache (default <cache dir>/bench-accuracy, the cache dir "
+        "being $MFG_CACHE_DIR or ~/.cache/mfg_lightning; a temporary one with --tiny)"
     )
-    p.add_argument(
-        "--work",
-        type=Path,
-        default=None,
-        help="stage results and the flow cache (default <cache dir>/bench-accuracy, the cache "
-        "dir being $MFG_CACHE_DIR or ~/.cache/mfg_lightning; a temporary one with --tiny)",
-    )
+    p.add_argument("--work", type=Path, help=work)
     p.add_argument("--fresh", action="store_true", help="discard the cached stages first")
     p.add_argument(
         "--workers",

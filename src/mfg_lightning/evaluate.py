@@ -4,8 +4,7 @@
 Figure 4) and writes ``metrics.json``, tables (:mod:`~mfg_lightning.result_tables`), trajectories
 (:mod:`~mfg_lightning.pose_io`) and figures (:mod:`~mfg_lightning.plots`); ``task=object_motion``
 scores the object masks of section 4 and draws Figure 1 (:mod:`~mfg_lightning.object_motion_viz`).
-The README's "Evaluation" lists the files. Trainer and loggers are configured as in training.
-"""
+The README's "Evaluation" lists the files. Trainer and loggers are configured as in training."""
 
 from __future__ import annotations
 

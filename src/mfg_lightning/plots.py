@@ -14,7 +14,7 @@ metrics of :mod:`mfg_lightning.metrics` (alignment, per-pose errors, drift per s
 from __future__ import annotations
 
 import io
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -514,24 +514,38 @@ def line_figure(
         log_x, log_y: logarithmic axes.
     """
     fig = _new_figure(4.2 * max(len(panels), 1), 3.4)
-    labels = list(dict.fromkeys(name for _, lines in panels for name in lines))
-    for i, (y_label, lines) in enumerate(panels):
-        ax = fig.add_subplot(1, len(panels), i + 1)
+    for ax, lines, index in _side_by_side(fig, panels, log_y):
         for name, (x, y) in lines.items():
-            ys = [float("nan") if finite_or_none(v) is None else float(v) for v in y]
-            ax.plot(x, ys, marker="o", color=method_colour(labels.index(name)), label=name)
+            ax.plot(x, _nan_for_none(y), marker="o", color=method_colour(index(name)), label=name)
         ax.set_xlabel(x_label)
-        ax.set_ylabel(y_label)
         if log_x:
             ax.set_xscale("log")
-        if log_y:
-            ax.set_yscale("log")
         ax.grid(True, which="both", alpha=0.3)
-        if i == 0 and lines:
-            ax.legend(fontsize="small")
     if title:
         fig.suptitle(title)
     return fig
+
+
+def _nan_for_none(values: Sequence[float | None]) -> list[float]:
+    """Floats to plot: NaN (a gap) where a value is None or not finite."""
+    return [float("nan") if finite_or_none(v) is None else float(v) for v in values]
+
+
+def _side_by_side(
+    fig: Figure, panels: Sequence[tuple[str, Mapping[str, Any]]], log_y: bool
+) -> Iterator[tuple[Any, Mapping[str, Any], Callable[[str], int]]]:
+    """One axis per ``(y label, series)`` panel, side by side: yields the axis, its series and
+    the index of a series name among all panels' (its colour and place, the same in every
+    panel); the first panel gets the legend once the caller has drawn it."""
+    names = list(dict.fromkeys(n for _, series in panels for n in series))
+    for i, (y_label, series) in enumerate(panels):
+        ax = fig.add_subplot(1, len(panels), i + 1)
+        ax.set_ylabel(y_label)
+        if log_y:
+            ax.set_yscale("log")
+        yield ax, series, names.index
+        if i == 0 and series:
+            ax.legend(fontsize="small")
 
 
 def bar_figure(
@@ -543,23 +557,16 @@ def bar_figure(
     """Side-by-side panels of grouped bars: per panel a y label and, per series (one colour
     each, the same in every panel), one value per category (None: no bar)."""
     fig = _new_figure(max(4.2 * len(panels), 1.1 * len(categories) * len(panels)), 3.8)
-    names = list(dict.fromkeys(n for _, series in panels for n in series))
+    n = max(len({k for _, series in panels for k in series}), 1)
     x = np.arange(len(categories))
-    width = 0.8 / max(len(names), 1)
-    for i, (y_label, series) in enumerate(panels):
-        ax = fig.add_subplot(1, len(panels), i + 1)
+    width = 0.8 / n
+    for ax, series, index in _side_by_side(fig, panels, log_y):
         for name, values in series.items():
-            j = names.index(name)
-            ys = [float("nan") if finite_or_none(v) is None else float(v) for v in values]
-            ax.bar(x + (j - (len(names) - 1) / 2) * width, ys, width, label=name,
+            j = index(name)
+            ax.bar(x + (j - (n - 1) / 2) * width, _nan_for_none(values), width, label=name,
                    color=method_colour(j))  # fmt: skip
         ax.set_xticks(x, list(categories), rotation=30, ha="right", fontsize="small")
-        ax.set_ylabel(y_label)
-        if log_y:
-            ax.set_yscale("log")
         ax.grid(True, axis="y", alpha=0.3)
-        if i == 0 and series:
-            ax.legend(fontsize="small")
     if title:
         fig.suptitle(title)
     return fig
