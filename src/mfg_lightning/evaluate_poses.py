@@ -108,8 +108,8 @@ UNITS: dict[str, str] = {
     "rpe_rot": "rad",
     "rpe_rot_std": "rad",
     "rpe_rot_rmse": "rad",
-    "kitti_t_err": "%",
-    "kitti_r_err": "deg/100m",
+    "drift_t_err": "%",
+    "drift_r_err": "deg/100m",
 }
 
 
@@ -241,7 +241,7 @@ def summarise(errors: Sequence[SequenceErrors]) -> dict[str, float | int | None]
         Flat dict: ``ate``, ``ate_std``, ``ate_rmse``, ``ate_traj``, ``ate_traj_mean``,
         ``ate_traj_std``, ``ate_traj_scale`` (of one sequence; None pooled), ``rpe_trans``,
         ``rpe_trans_std``, ``rpe_trans_rmse``, ``rpe_rot``, ``rpe_rot_std``, ``rpe_rot_rmse``,
-        ``kitti_t_err``, ``kitti_r_err`` (units in :data:`UNITS`; None where undefined, e.g.
+        ``drift_t_err``, ``drift_r_err`` (units in :data:`UNITS`; None where undefined, e.g.
         fewer frames than a snippet or a path shorter than 100 m), plus the counts
         ``num_poses``, ``num_snippets``, ``num_pairs``, ``num_segments``.
     """
@@ -271,7 +271,7 @@ def summarise(errors: Sequence[SequenceErrors]) -> dict[str, float | int | None]
         out[f"rpe_{part}"] = _value(stats["mean"])
         out[f"rpe_{part}_std"] = _value(stats["std"])
         out[f"rpe_{part}_rmse"] = _value(stats["rmse"])
-    out.update({f"kitti_{key}": _value(v) for key, v in drift.items()})
+    out.update({f"drift_{key}": _value(v) for key, v in drift.items()})
     return out
 
 
@@ -450,8 +450,8 @@ def _print_table(result: dict[str, float | int | None], args: argparse.Namespace
             UNITS[f"rpe_{part}"],
         )
     segments = result["num_segments"]
-    table.add_row(f"KITTI t_err ({segments} segments)", cell("kitti_t_err"), "", "", "%")
-    table.add_row(f"KITTI r_err ({segments} segments)", cell("kitti_r_err"), "", "", "deg/100m")
+    table.add_row(f"KITTI t_err ({segments} segments)", cell("drift_t_err"), "", "", "%")
+    table.add_row(f"KITTI r_err ({segments} segments)", cell("drift_r_err"), "", "", "deg/100m")
     Console(width=max(100, Console().width)).print(table)
 
 

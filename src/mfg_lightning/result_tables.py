@@ -94,7 +94,7 @@ def pose_results_table(
         Column("t_err", "%", 2), Column("r_err", "deg/100m", 2),
     ], title=title)  # fmt: skip
     keys = ("ate_traj", "ate_traj_mean", "ate_traj_std", "ate_traj_scale", "ate", "ate_std",
-            "rpe_trans", "rpe_rot", "kitti_t_err", "kitti_r_err")  # fmt: skip
+            "rpe_trans", "rpe_rot", "drift_t_err", "drift_r_err")  # fmt: skip
     for name, m in results.items():
         table.add_row([name, *(m[k] for k in keys)])
     return table

@@ -334,7 +334,7 @@ class MFGDataModule(L.LightningDataModule):
         height: int = 48,
         width: int = 128,
         batch_size: int = 16,
-        eval_batch_size: int = 32,
+        eval_batch_size: int = 64,
         num_workers: int = 0,
         seed: int = 0,
         pin_memory: bool = False,
