@@ -113,6 +113,7 @@ def write_report(study: S.Study, report: Path, th: Thresholds) -> Path:
         "otherwise does not hold. Claims of several parts: all met holds, some partly.",
         "",
         table.markdown(),
+        *_notes(report),
         "## Stages",
         "",
         "| stage | seconds |",
@@ -123,3 +124,13 @@ def write_report(study: S.Study, report: Path, th: Thresholds) -> Path:
     path = atomic_write_text(report, "\n".join(text))
     print(f"wrote {path}", flush=True)
     return path
+
+
+def _notes(report: Path) -> list[str]:
+    """The reading of the results that a person wrote beside the report
+    (``<report stem>_notes.md``), kept apart so that a rerun of the study does not overwrite it;
+    nothing when there is none."""
+    notes = report.with_name(f"{report.stem}_notes.md")
+    if not notes.is_file():
+        return []
+    return ["## Reading the results", "", notes.read_text().strip(), ""]
