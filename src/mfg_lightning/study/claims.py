@@ -38,6 +38,11 @@ PAPER_TABLE1 = {
     0.005: (0.120, 0.076),
 }
 PAPER_TABLE1_CENTRAL = (0.020, 0.023)
+#: Table 1's * over its † at k = 100 %, per test sequence.
+PAPER_CENTRAL_OVER_FRAME = {
+    "09": PAPER_TABLE1_CENTRAL[0] / PAPER_TABLE1[1.0][0],
+    "10": PAPER_TABLE1_CENTRAL[1] / PAPER_TABLE1[1.0][1],
+}
 #: Table 2, RPE translation (m) and rotation (rad) by k.
 PAPER_TABLE2 = {
     1.0: (0.1769, 0.0011),
@@ -70,27 +75,43 @@ def claim_table1(t1: dict | None, th: Thresholds) -> tuple[Row, Any]:
         "1",
         "Table 1's shape: ATE 09/10 by k, † and *",
         "† 0.012/0.013 at k = 100, 10, 5 %; 0.018/0.017 at 2 %; 0.049/0.034 at 1 %; "
-        "* 0.020/0.023 (ratio ATE(5 %)/ATE(100 %) = 1.00)",
+        "* 0.020/0.023 (ratios ATE(5 %)/ATE(100 %) = 1.00; * / † = 1.67/1.77)",
     )
     if t1 is None:
         return row, None
     test = t1["test"]
     seqs = _seqs(test["1"])
     ks = sorted((float(k) for k in test), reverse=True)
-    parts, verdicts = [], []
+    parts, verdicts, central_verdicts = [], [], []
     for s in seqs:
         full = test["1"].get(f"{s}/ate")
         at5 = test.get("0.05", {}).get(f"{s}/ate")
         ratio = at5 / full if full and at5 is not None else None
         verdicts.append(relative_verdict(ratio, 1.0, th))
+        central = test["1"].get(f"{s}/ate_central")
+        # The * protocol's cost over † (the paper's own ratio, so that the synthetic data's
+        # different scale of ATE does not decide the verdict).
+        paper_ratio = PAPER_CENTRAL_OVER_FRAME.get(s)
+        central_ratio = central / full if central is not None and full else None
+        if paper_ratio is not None:
+            central_verdicts.append(relative_verdict(central_ratio, paper_ratio, th))
         parts.append(
             f"{s}: † {fmt(full)} (all) → {fmt(at5)} (5 %, ×{fmt(ratio, 2)}) → "
             f"{fmt(test.get('0.01', {}).get(f'{s}/ate'))} (1 %); "
-            f"* {fmt(test['1'].get(f'{s}/ate_central'))}"
+            f"* {fmt(central)} (* / † ×{fmt(central_ratio, 2)})"
         )
     trained = " ".join(t1.get("train_offsets", [])) or "the default offsets"
     row.ours = f"(model trained with {trained}) " + "; ".join(parts)
-    row.verdict = worst(verdicts) if verdicts else NOT_HOLD
+    # Two parts, the shape in k (†) and the centre-frame protocol (*): both met holds, one
+    # partly, neither does not hold (the report's rule for claims of several parts).
+    halves = [worst(v) for v in (verdicts, central_verdicts) if v]
+    row.verdict = (
+        NOT_HOLD
+        if not halves or all(v == NOT_HOLD for v in halves)
+        else HOLDS
+        if all(v == HOLDS for v in halves)
+        else PARTLY
+    )
     panels = []
     for key, label in (("ate", "ATE † (m)"), ("ate_central", "ATE * (m)")):
         lines = {
