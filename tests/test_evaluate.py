@@ -69,8 +69,11 @@ def test_top_k_sweep_writes_table_plot_and_pose_files(trained: Path, tmp_path: P
         torch.from_numpy(np.stack(kitti.poses_se3)), torch.from_numpy(np.stack(gt.poses_se3))
     )
     per_k = {k: m["test/test00/rpe_trans"] for k, m in payload["top_k_sweep"].items()}
-    assert float(rpe["trans"]) == pytest.approx(per_k["1"], rel=1e-4), per_k
-    assert float(rpe["trans"]) != pytest.approx(per_k["0.02"], rel=1e-4), per_k
+    # (the tiny model's k = 2 % differs from its k = 100 % by ~4e-5 relative: the files must be
+    # much closer to the one than to the other)
+    here = float(rpe["trans"])
+    assert here == pytest.approx(per_k["1"], rel=1e-6), per_k
+    assert 100 * abs(here - per_k["1"]) < abs(here - per_k["0.02"]), per_k
 
 
 def test_object_motion_task_scores_ours_and_the_baseline(trained: Path, tmp_path: Path) -> None:
