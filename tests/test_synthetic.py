@@ -99,6 +99,30 @@ def test_central_frame_offsets() -> None:
         _dm(offsets=[0, 1])
 
 
+def test_frame_stride_thins_training_and_validation_not_test(tmp_path: Path) -> None:
+    """``dataset.frame_stride=3``: train and val keep the source frames 0, 3, 6, … of every
+    trajectory (their union is train+val's, which prepare_data fills) with all offsets; test
+    keeps every frame; the flow cache is the same as at stride 1 (same worlds, same pairs)."""
+    full = _dm(offsets=[-2, -1, 1, 2], val_fraction=0.25)
+    thin = _dm(offsets=[-2, -1, 1, 2], val_fraction=0.25, frame_stride=3)
+    for split in ("train", "val", "train+val"):
+        want = [s for s in full.build_dataset(split).samples if s[1] % 3 == 0]
+        assert thin.build_dataset(split).samples == want, split
+        assert want and len(want) < len(full.build_dataset(split).samples), split
+    union = thin.build_dataset("train").samples + thin.build_dataset("val").samples
+    assert sorted(union) == sorted(thin.build_dataset("train+val").samples)
+    assert thin.dataset("test").samples == full.dataset("test").samples
+    dis = {"source": "dis", "height": 64, "width": 192}
+    roots = {
+        _dm(flow=dis, frame_stride=s, cache_dir=str(tmp_path)).build_dataset("train").cache.root
+        for s in (1, 3)
+    }
+    assert len(roots) == 1
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(ValueError, match="dataset.frame_stride must be a positive integer"):
+            _dm(frame_stride=bad)
+
+
 class _RecordOffsets(L.Callback):
     """The ``target - frame`` offsets of every training batch."""
 

@@ -400,6 +400,8 @@ class TrajectoryDataset(MotionDataset):
         offsets: target frame offsets from each source frame (``[1]``: consecutive frames;
             ``[-2, -1, 1, 2]``: the central-frame snippets).
         name: dataset name used in sample ids.
+        stride: use the source frames whose index is a multiple of ``stride`` (1: all); counted
+            from frame 0 of the sequence, so that a split's frames are those of the union.
     """
 
     def __init__(
@@ -411,6 +413,7 @@ class TrajectoryDataset(MotionDataset):
         seed: int = 0,
         offsets: Sequence[int] = (1,),
         name: str = "synthetic",
+        stride: int = 1,
     ) -> None:
         self.height, self.width, self.seed, self.name = height, width, seed, name
         self.trajectories = trajectories
@@ -419,7 +422,7 @@ class TrajectoryDataset(MotionDataset):
         self.samples = []
         for seq, (first, last) in frames.items():
             n = trajectories[seq].shape[0]
-            for k in range(first, last + 1):
+            for k in range(first + (-first) % stride, last + 1, stride):
                 for off in self.offsets:
                     if 0 <= k + off < n:
                         self.samples.append((seq, k, k + off))
@@ -990,6 +993,9 @@ class SyntheticDataModule(MFGDataModule):
         offsets: target offsets of every split, ``target = frame + offset`` (``[1]``; ``[-2, -1,
             1, 2]``: the flows from a centre frame to its neighbours, for central-frame ATE), as
             ``dataset=kitti``'s.
+        frame_stride: training and validation use the source frames whose index is a multiple
+            of it (1: all; 3: a third of the pairs to render, on the same worlds and cache).
+            The test split always uses every frame, as the published protocols do.
         scene: :class:`SceneConfig` fields.
         scene_seed: seed of the trajectories and scenes (None: ``seed``, which then also sets
             the training order); the config fixes it so that runs differing in ``seed`` see the
@@ -1008,6 +1014,7 @@ class SyntheticDataModule(MFGDataModule):
         val_fraction: float = 0.05,
         flow: FlowSource | dict[str, Any] | None = None,
         offsets: Sequence[int] = (1,),
+        frame_stride: int = 1,
         scene: dict | None = None,
         scene_seed: int | None = None,
         world: dict[str, Any] | None = None,
@@ -1044,6 +1051,11 @@ class SyntheticDataModule(MFGDataModule):
                 f"dataset.max_frames must be an integer ≥ 2 or null, got {max_frames!r}"
             )
         self.max_frames = max_frames
+        if isinstance(frame_stride, bool) or not isinstance(frame_stride, int) or frame_stride < 1:
+            raise ValueError(
+                f"dataset.frame_stride must be a positive integer, got {frame_stride!r}"
+            )
+        self.frame_stride = frame_stride
         self.val_fraction = val_fraction
         self.world = dict(world or {})
         self.cache_dir = cache_dir
@@ -1114,6 +1126,7 @@ class SyntheticDataModule(MFGDataModule):
             "seed": self.scene_seed + (7919 if split == "test" else 0),
             "offsets": self.offsets,
             "name": f"synthetic/{split}",
+            "stride": 1 if split == "test" else self.frame_stride,
         }
         if isinstance(self.flow, EstimatedFlow):
             return RenderedDrivingDataset(

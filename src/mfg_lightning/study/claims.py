@@ -100,7 +100,7 @@ def claim_table1(t1: dict | None, th: Thresholds) -> tuple[Row, Any]:
             f"{fmt(test.get('0.01', {}).get(f'{s}/ate'))} (1 %); "
             f"* {fmt(central)} (* / † ×{fmt(central_ratio, 2)})"
         )
-    trained = " ".join(t1.get("train_offsets", [])) or "the default offsets"
+    trained = " ".join(t1.get("train_overrides", [])) or "the default offsets"
     row.ours = f"(model trained with {trained}) " + "; ".join(parts)
     # Two parts, the shape in k (†) and the centre-frame protocol (*): both met holds, one
     # partly, neither does not hold (the report's rule for claims of several parts).

@@ -84,7 +84,8 @@ def write_report(study: S.Study, report: Path, th: Thresholds) -> Path:
         name = str(path.relative_to(study.work).with_suffix(""))
         r = study.cached(name) or {}
         total += r.get("seconds", 0.0)
-        stage_rows.append(f"| {name} | {r.get('seconds', 0.0):.0f} |")
+        trained = f"{r['steps']} × {r['batch_size']}" if "steps" in r else ""
+        stage_rows.append(f"| {name} | {r.get('seconds', 0.0):.0f} | {trained} |")
     main = study.cached("main")
     recipe = main["recipe"] if main else None
     machine = _machine()
@@ -97,9 +98,10 @@ def write_report(study: S.Study, report: Path, th: Thresholds) -> Path:
         "sequences only, then fixed.",
         "",
         *(f"- **{k}**: {v}" for k, v in machine.items()),
-        f"- **budget used**: {total / 60:.1f} min over the stages below (main model "
-        f"{cfg.budget.main_steps} steps, the others {cfg.budget.other_steps}, batch "
-        f"{cfg.budget.batch_size}, frames per sequence {cfg.budget.max_frames or 'all'})",
+        f"- **main model**: `{' '.join(cfg.main)}`",
+        f"- **budget used**: {total / 60:.1f} min over the stages below (each trained "
+        "model's steps × batch in its row, from its cached result), frames per sequence "
+        f"{cfg.budget.max_frames or 'all'}",
         "- **recipe**: "
         + (
             f"CPU: batch {recipe['batch_size']}, {recipe['optimizer']} lr {recipe['lr']:g}, betas "
@@ -116,8 +118,8 @@ def write_report(study: S.Study, report: Path, th: Thresholds) -> Path:
         *_notes(report),
         "## Stages",
         "",
-        "| stage | seconds |",
-        "|---|---:|",
+        "| stage | seconds | trained (steps × batch) |",
+        "|---|---:|---:|",
         *stage_rows,
         "",
     ]

@@ -27,7 +27,14 @@ def check(cfg: DictConfig) -> None:
     unknown = [s for s in cfg.stages if s not in known]
     if unknown:
         raise ValueError(f"stages: unknown {unknown}; known: {', '.join(STAGES)}")
-    for key in ("main_steps", "other_steps", "val_every", "batch_size", "eval_batch_size"):
+    for key in (
+        "main_steps",
+        "other_steps",
+        "val_every",
+        "batch_size",
+        "eval_batch_size",
+        "main_frame_stride",
+    ):
         if int(cfg.budget[key]) <= 0:
             raise ValueError(f"budget.{key} must be positive, got {cfg.budget[key]}")
     Thresholds(**cfg.thresholds)
@@ -51,7 +58,7 @@ def run(study: S.Study, report: Path) -> Path:
     """Every selected stage in order, the report rewritten after each."""
     cfg = study.cfg
     th = Thresholds(**cfg.thresholds)
-    main_extra = [cfg.offsets]
+    main_extra = list(cfg.main)
     write = lambda: write_report(study, report, th)  # noqa: E731
 
     def data() -> dict:
@@ -82,7 +89,7 @@ def run(study: S.Study, report: Path) -> Path:
         ks = [float(k) for k in cfg.table1.top_k]
         central = study.test_datamodule(main_extra)
         return {
-            "train_offsets": main_extra,
+            "train_overrides": main_extra,
             "test": S.mfg_scores(model, study.loader(central, "test"), ks),
             "val": S.mfg_scores(model, study.loader(dm, "val"), ks),
         }
