@@ -253,6 +253,19 @@ def test_configs_build_the_datamodule(fk: FakeKitti, tmp_path: Path) -> None:
     assert (cfg.dataset.height, cfg.dataset.width) == (48, 128)
     assert cfg.model.optimizer.lr == 1e-5 and list(cfg.model.optimizer.betas) == [0.99, 0.999]
     assert cfg.model.loss.w_s == 100
+    # Table 1's *: the same setting on the motions from a centre frame to its four neighbours
+    star = compose(
+        "train",
+        [
+            "experiment=paper_kitti_central",
+            f"dataset.data_root={fk.root}",
+            f"paths.cache_dir={tmp_path}",
+        ],
+    )
+    dm = instantiate(star.dataset)
+    assert dm.offsets == [-2, -1, 1, 2] and not dm.backward_flow
+    assert {b - a for _, a, b in dm.dataset("test").samples} == {-2, -1, 1, 2}
+    assert star.model == cfg.model and star.dataset.batch_size == 1
 
 
 @pytest.mark.slow
