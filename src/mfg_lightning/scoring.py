@@ -31,6 +31,7 @@ __all__ = [
     "Method",
     "classical_methods",
     "mfg_method",
+    "mfg_top_k_methods",
     "object_coverage",
     "score_methods",
     "scored_rows",
@@ -67,16 +68,45 @@ class Method:
 
 
 def mfg_method(model: Any, top_k: float | None) -> Predict:
-    """MFG (a :class:`~mfg_lightning.models.mfg_module.MFGLitModule`) keeping the ``top_k``
-    fraction of its most active hidden units (None: all), in inference mode."""
+    """MFG (a :class:`~mfg_lightning.models.mfg_module.MFGLitModule` in evaluation mode) keeping
+    the ``top_k`` fraction of its most active hidden units (None: all), in inference mode: the
+    motion of ``model.predict_motion(flow, K, top_k=top_k)``."""
+    return mfg_top_k_methods(model, [top_k])[0]
 
-    def run(batch: dict) -> tuple[Tensor, Tensor]:
-        flow, _, _ = sanitize_flow(batch["flow"], batch["flow_valid"])
-        with torch.inference_mode():
-            t, w, _ = model.predict_motion(flow, batch["intrinsics"], top_k=top_k)
-        return t, w
 
-    return run
+def mfg_top_k_methods(model: Any, top_ks: Iterable[float | None]) -> list[Predict]:
+    """:func:`mfg_method` at every ``top_k`` of ``top_ks``, sharing one encoder pass per batch:
+    the first of them to see a batch encodes it, the others reuse its hidden activations (top-k
+    only changes which units reach the decoders). The predictions are those of
+    :func:`mfg_method`; the encoder's time is counted in the first method's seconds."""
+    from mfg_lightning.models.mfg import keep_top_k, validate_top_k
+
+    net = model.net
+    last: dict[str, Any] = {"batch": None, "hidden": None}
+
+    def hidden_of(batch: dict) -> Tensor:
+        if net.training:  # top-k is an evaluation-time setting (MFG.forward skips it in training)
+            raise ValueError("MFG scoring: put the model in evaluation mode (model.eval())")
+        if last["batch"] is not batch:
+            flow, _, _ = sanitize_flow(batch["flow"], batch["flow_valid"])
+            if flow.shape[-2:] != (net.height, net.width):
+                raise ValueError(
+                    f"MFG was built for {net.height}×{net.width} flow, got {tuple(flow.shape[-2:])}"
+                )
+            last["hidden"], last["batch"] = net.encode(flow)[0], batch
+        return last["hidden"]
+
+    def at(top_k: float | None) -> Predict:
+        k = validate_top_k(top_k)
+
+        def run(batch: dict) -> tuple[Tensor, Tensor]:
+            with torch.inference_mode():
+                v_t, v_w = net.decode(keep_top_k(hidden_of(batch), k))
+                return geometry.recover_motion(v_t, v_w, batch["intrinsics"])
+
+        return run
+
+    return [at(k) for k in top_ks]
 
 
 def _gt_norm(batch: dict) -> Tensor:

@@ -155,15 +155,22 @@ def run(study: S.Study, report: Path) -> Path:
     write()
 
     def robustness() -> dict | None:
-        from mfg_lightning.scoring import Method, classical_methods, mfg_method, score_methods
+        from mfg_lightning.scoring import (
+            Method,
+            classical_methods,
+            mfg_top_k_methods,
+            score_methods,
+        )
 
         model = study.model(main)
         dm = study.datamodule(study.train_config("main", main_extra, 1))
         ds = dm.dataset("test")
         k_star = S.smallest_k(t1["val"], float(cfg.sparsity.ate_tolerance)) if t1 else None
-        rows = [Method("MFG (all units)", mfg_method(model, None))]
-        if k_star and k_star < 1:
-            rows.append(Method(f"MFG k = {100 * k_star:g} % (val)", mfg_method(model, k_star)))
+        sparse = k_star is not None and k_star < 1
+        predicts = mfg_top_k_methods(model, [None, k_star] if sparse else [None])
+        rows = [Method("MFG (all units)", predicts[0])]
+        if sparse:
+            rows.append(Method(f"MFG k = {100 * k_star:g} % (val)", predicts[1]))
         rows += classical_methods(ds.height, ds.width, oracle=False)
         score_methods(rows, study.loader(dm, "test", forward_only=True))
         edges = [float(e) for e in cfg.robustness.coverage_bins]

@@ -197,15 +197,15 @@ def recipe_of(cfg: DictConfig) -> dict[str, Any]:
 
 def mfg_scores(model: Any, loader: DataLoader, ks: list[float]) -> dict[str, dict[str, float]]:
     """The trajectory metrics of MFG at every k (``"1"``: all units) over one loader."""
-    from mfg_lightning.scoring import Method, mfg_method, score_methods
+    from mfg_lightning.scoring import Method, mfg_top_k_methods, score_methods
 
-    batches = list(loader)
-    out = {}
-    for k in ks:
-        m = Method(f"k={k:g}", mfg_method(model, None if k >= 1 else float(k)))
-        score_methods([m], batches, warm_up=False)
-        out[f"{k:g}"] = {key: float(v) for key, v in m.evaluator.compute().metrics.items()}
-    return out
+    predicts = mfg_top_k_methods(model, [None if k >= 1 else float(k) for k in ks])
+    rows = [Method(f"k={k:g}", p) for k, p in zip(ks, predicts, strict=True)]
+    score_methods(rows, loader, warm_up=False)
+    return {
+        f"{k:g}": {key: float(v) for key, v in m.evaluator.compute().metrics.items()}
+        for k, m in zip(ks, rows, strict=True)
+    }
 
 
 def smallest_k(val: dict[str, dict[str, float]], tolerance: float) -> float | None:
