@@ -82,3 +82,30 @@ def test_tiny_study_runs_and_resumes(tmp_path: Path) -> None:
         checkpoints
     )
     assert report.read_text().split("## Stages")[1] == text.split("## Stages")[1]
+
+
+def test_a_run_whose_val_ate_was_never_defined_is_evaluated_at_its_last_checkpoint(
+    tmp_path: Path,
+) -> None:
+    """Validation on every 3rd frame has no five-frame snippet: val/ate is NaN at every
+    validation, and the "best" checkpoint is merely the first. The study takes last.ckpt then,
+    and the best one when some validation defined val/ate."""
+    from mfg_lightning.study.stages import chosen_checkpoint
+
+    ckpts = tmp_path / "checkpoints"
+    ckpts.mkdir()
+    for name in ("best-000500.ckpt", "last.ckpt"):
+        (ckpts / name).write_bytes(b"")
+    (tmp_path / "csv").mkdir()
+    log = tmp_path / "csv" / "metrics.csv"
+    log.write_text(
+        "step,train/loss,val/ate,val/ate_central\n0,1.0,,\n499,,nan,0.13\n999,,nan,0.05\n"
+    )
+    assert chosen_checkpoint(tmp_path) == (
+        ckpts / "last.ckpt",
+        "last (val/ate undefined at every validation)",
+    )
+    log.write_text("step,val/ate\n499,0.2\n999,nan\n")
+    assert chosen_checkpoint(tmp_path) == (ckpts / "best-000500.ckpt", "val/ate")
+    (ckpts / "best-000500.ckpt").unlink()
+    assert chosen_checkpoint(tmp_path) == (ckpts / "last.ckpt", "last (no validation)")

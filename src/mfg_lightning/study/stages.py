@@ -143,8 +143,7 @@ class Study:
         start = time.perf_counter()
         train(cfg)
         seconds = time.perf_counter() - start
-        best = sorted((out / "checkpoints").glob("best-*.ckpt"))
-        chosen = best[-1] if best else out / "checkpoints" / "last.ckpt"
+        chosen, selected_on = chosen_checkpoint(out)
         return {
             "name": name,
             "overrides": list(extra),
@@ -154,7 +153,7 @@ class Study:
             "train_seconds": seconds,
             "resumed": resumed,
             "checkpoint": str(chosen),
-            "selected_on": "val/ate" if best else "last (no validation)",
+            "selected_on": selected_on,
             "recipe": recipe_of(cfg),
         }
 
@@ -222,6 +221,20 @@ def active_fraction(model: Any, loader: DataLoader) -> float | None:
     from mfg_lightning.basis import population_statistics
 
     return population_statistics(model.net, loader).summary()["active_fraction_mean"]
+
+
+def chosen_checkpoint(run_dir: Path) -> tuple[Path, str]:
+    """The checkpoint a study evaluates from a training run, and why: the best by ``val/ate``
+    when some validation defined it, else ``last.ckpt``. (Validation on every Nth source frame,
+    ``dataset.frame_stride`` > 1, has no five consecutive frames, so its frame-by-frame ATE is
+    NaN at every validation: "best" would then be whichever checkpoint came first.)"""
+    best = sorted((run_dir / "checkpoints").glob("best-*.ckpt"))
+    last = run_dir / "checkpoints" / "last.ckpt"
+    if not best:
+        return last, "last (no validation)"
+    if not any(math.isfinite(r.get("val/ate", math.nan)) for r in logged_curve(run_dir)):
+        return last, "last (val/ate undefined at every validation)"
+    return best[-1], "val/ate"
 
 
 def logged_curve(run_dir: Path) -> list[dict[str, float]]:
