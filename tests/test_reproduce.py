@@ -109,3 +109,19 @@ def test_a_run_whose_val_ate_was_never_defined_is_evaluated_at_its_last_checkpoi
     assert chosen_checkpoint(tmp_path) == (ckpts / "best-000500.ckpt", "val/ate")
     (ckpts / "best-000500.ckpt").unlink()
     assert chosen_checkpoint(tmp_path) == (ckpts / "last.ckpt", "last (no validation)")
+
+
+def test_learning_curve_falls_back_to_the_centre_frame_ate_when_the_chain_is_undefined() -> None:
+    from mfg_lightning.study.claims import claim_learning_curve
+
+    th = Thresholds(holds=0.05, partly=0.20)
+    pts = [
+        {"samples": s, "val/ate": math.nan, "val/ate_central": a, "val/rpe_trans": 0.1}
+        for s, a in ((100, 0.2), (300, 0.104), (400, 0.1))
+    ]
+    row, fig = claim_learning_curve({"points": pts, "test_ate": 0.05}, th)
+    assert row.ours.startswith("val ATE * (no † ATE") and "0.1040 (75 %)" in row.ours
+    assert row.verdict == HOLDS and fig is not None  # 4 % over the last quarter
+    pts = [{**p, "val/ate": 2 * p["val/ate_central"]} for p in pts]
+    row, _ = claim_learning_curve({"points": pts, "test_ate": 0.05}, th)
+    assert row.ours.startswith("val ATE † 0.4000") and "0.2080 (75 %)" in row.ours
