@@ -74,3 +74,12 @@ def test_scoring_refuses_a_model_in_training_mode(tiny) -> None:
             mfg_method(model, 0.1)(batches[0])
     finally:
         model.eval()
+
+
+def test_scoring_refuses_flow_of_another_size(tiny) -> None:
+    model, batches = tiny
+    batch = {**batches[0]}
+    batch["flow"] = batch["flow"][..., :-2]
+    batch["flow_valid"] = batch["flow_valid"][..., :-2]
+    with pytest.raises(ValueError, match="MFG was built for 32×64 flow"):
+        mfg_method(model, None)(batch)

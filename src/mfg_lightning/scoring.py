@@ -89,10 +89,6 @@ def mfg_top_k_methods(model: Any, top_ks: Iterable[float | None]) -> list[Predic
             raise ValueError("MFG scoring: put the model in evaluation mode (model.eval())")
         if last["batch"] is not batch:
             flow, _, _ = sanitize_flow(batch["flow"], batch["flow_valid"])
-            if flow.shape[-2:] != (net.height, net.width):
-                raise ValueError(
-                    f"MFG was built for {net.height}×{net.width} flow, got {tuple(flow.shape[-2:])}"
-                )
             last["hidden"], last["batch"] = net.encode(flow)[0], batch
         return last["hidden"]
 

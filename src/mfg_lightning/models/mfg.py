@@ -150,6 +150,10 @@ class MFG(nn.Module):
 
     def encode(self, flow: Tensor) -> tuple[Tensor, Tensor]:
         """``(B, 2, H, W)`` flow → hidden ``(B, M)`` (before top-k) and the map ``(B, M, h, w)``."""
+        if flow.shape[-2:] != (self.height, self.width):
+            raise ValueError(
+                f"MFG was built for {self.height}×{self.width} flow, got {tuple(flow.shape[-2:])}"
+            )
         hidden_map = self.encoder(flow * self.input_scale if self.input_scale != 1.0 else flow)
         return hidden_map.amax(dim=(2, 3)), hidden_map
 
@@ -178,10 +182,6 @@ class MFG(nn.Module):
 
         Top-k (``top_k`` argument, else ``self.top_k``) applies in evaluation mode only.
         """
-        if flow.shape[-2:] != (self.height, self.width):
-            raise ValueError(
-                f"MFG was built for {self.height}×{self.width} flow, got {tuple(flow.shape[-2:])}"
-            )
         hidden, hidden_map = self.encode(flow)
         if not self.training:
             hidden = keep_top_k(hidden, validate_top_k(top_k) if top_k is not None else self.top_k)

@@ -98,7 +98,7 @@ def write_report(study: S.Study, report: Path, th: Thresholds) -> Path:
         "sequences only, then fixed.",
         "",
         *(f"- **{k}**: {v}" for k, v in machine.items()),
-        f"- **main model**: `{' '.join(cfg.main)}`",
+        f"- **main model**: `{' '.join(main['overrides'] if main else cfg.main)}`",
         f"- **budget used**: {total / 60:.1f} min over the stages below (each trained "
         "model's steps × batch in its row, from its cached result), frames per sequence "
         f"{cfg.budget.max_frames or 'all'}",
