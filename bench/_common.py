@@ -1,6 +1,6 @@
 """What every benchmark script shares: the environment record, Markdown tables, results files.
 
-Tables and numbers are :mod:`mfg_lightning.tables`' (``markdown_table`` and ``fmt`` here).
+Tables and numbers are :mod:`mfg_lightning.core.tables`' (``markdown_table`` and ``fmt`` here).
 
 A results file is Markdown: a title, the exact command that produced it, the machine (cores, CPU,
 load average at the start and the end, since the machine may be shared) and the library versions,
@@ -19,7 +19,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 # One number format for every table of the project: bench scripts import it from here.
-from mfg_lightning.tables import Column, Table, fmt  # noqa: F401
+from mfg_lightning.core.tables import Column, Table, fmt  # noqa: F401
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS_DIR = REPO / "bench" / "results"
@@ -77,7 +77,7 @@ def versions() -> dict[str, str]:
         except PackageNotFoundError:
             out[dist] = "-"
     try:
-        from mfg_lightning.runs import git_commit
+        from mfg_lightning.run.runs import git_commit
 
         out["mfg-lightning commit"] = (git_commit() or "-")[:12]
     except ImportError:
@@ -96,7 +96,8 @@ def command_line() -> str:
 
 
 def markdown_table(header: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
-    """A GitHub Markdown table (:class:`mfg_lightning.tables.Table`; cells converted with ``str``,
+    """A GitHub Markdown table (:class:`mfg_lightning.core.tables.Table`; cells converted with
+    ``str``,
     so the scripts format their numbers with :func:`fmt`)."""
     table = Table([Column(str(h)) for h in header], [[str(c) for c in row] for row in rows])
     return table.markdown()
@@ -147,7 +148,7 @@ class Report:
 
     def write(self) -> Path:
         """Write ``<out_dir>/<name>.md`` (atomically) and return its path."""
-        from mfg_lightning.atomic import atomic_write_text
+        from mfg_lightning.core.atomic import atomic_write_text
 
         text = f"# {self.title}\n\n" + "\n".join(self.sections)
         text += "\n## Environment\n\n" + self.environment()

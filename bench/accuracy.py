@@ -26,7 +26,8 @@ frames (``exact exact:100 dis:100``). Rows:
 * an oracle that recovers (t, ω) from the exact motion fields: the floor of the pipeline.
 
 The classical methods see a single pair of frames and cannot know the scale: their translation is
-given the ground-truth length (:mod:`mfg_lightning.baselines`). The paper's Table 1 numbers are
+given the ground-truth length (:mod:`mfg_lightning.motion.baselines`). The paper's Table 1 numbers
+are
 quoted beside MFG's rows as reference values: they are on real KITTI images with PWC-Net flow, not
 on this synthetic data.
 
@@ -162,7 +163,7 @@ def datamodule_for(args: argparse.Namespace, flow: str, max_frames: int | None):
     """The config and the DataModule of one flow source, as ``mfg_lightning.train`` builds them."""
     from hydra.utils import instantiate
 
-    from mfg_lightning.config import compose
+    from mfg_lightning.core.config import compose
 
     cfg = compose("train", overrides(args, args.work / "run", flow, max_frames))
     return cfg, instantiate(cfg.dataset)
@@ -175,8 +176,8 @@ def train_mfg(
     import lightning as L
     from hydra.utils import instantiate
 
-    from mfg_lightning.config import compose
-    from mfg_lightning.runs import build_model
+    from mfg_lightning.core.config import compose
+    from mfg_lightning.run.runs import build_model
 
     cfg = compose("train", overrides(args, output_dir, flow, max_frames))
     L.seed_everything(cfg.seed, workers=True)
@@ -189,9 +190,10 @@ def train_mfg(
 
 
 def methods(model, height: int, width: int) -> list:
-    """Every row (:class:`mfg_lightning.scoring.Method`): MFG at all units, 5 % and 2 %, then the
+    """Every row (:class:`mfg_lightning.analysis.scoring.Method`): MFG at all units, 5 % and 2 %,
+    then the
     classical methods and the oracle."""
-    from mfg_lightning.scoring import Method, classical_methods, mfg_method
+    from mfg_lightning.analysis.scoring import Method, classical_methods, mfg_method
 
     return [
         Method("MFG (all units)", mfg_method(model, None), paper=PAPER_TABLE_1[None]),
@@ -202,11 +204,12 @@ def methods(model, height: int, width: int) -> list:
 
 
 def evaluate(model, datamodule, eval_batch_size: int) -> tuple[list, int]:
-    """Run every method on every test batch (:func:`mfg_lightning.scoring.score_methods`)."""
+    """Run every method on every test batch
+    (:func:`mfg_lightning.analysis.scoring.score_methods`)."""
     from torch.utils.data import DataLoader
 
+    from mfg_lightning.analysis.scoring import score_methods
     from mfg_lightning.data.base import collate_samples
-    from mfg_lightning.scoring import score_methods
 
     model.eval()
     dataset = datamodule.dataset("test")
@@ -217,7 +220,7 @@ def evaluate(model, datamodule, eval_batch_size: int) -> tuple[list, int]:
 
 def scored(rows: list) -> list[dict]:
     """Every row's metrics as JSON-able dicts (what a stage caches)."""
-    from mfg_lightning.scoring import scored_rows
+    from mfg_lightning.analysis.scoring import scored_rows
 
     return scored_rows(rows)
 
@@ -269,7 +272,7 @@ def _read(path: Path) -> dict | None:
 
 
 def _write(path: Path, payload: dict) -> None:
-    from mfg_lightning.atomic import atomic_write_text
+    from mfg_lightning.core.atomic import atomic_write_text
 
     atomic_write_text(path, json.dumps(payload, indent=2) + "\n")
 
@@ -350,7 +353,7 @@ def stage_breakdown(args: argparse.Namespace, max_frames: int | None, pairs: int
         return done
     import cv2
 
-    from mfg_lightning.data import render
+    from mfg_lightning.scene import render
 
     threads = torch.get_num_threads(), cv2.getNumThreads()
     torch.set_num_threads(1)
@@ -600,7 +603,7 @@ def main(argv: list[str] | None = None) -> Path:
     cv2.setNumThreads(args.threads or os.cpu_count() or 1)
     with tempfile.TemporaryDirectory() as tmp:
         if args.work is None:
-            from mfg_lightning.data.kitti import default_cache_dir
+            from mfg_lightning.flow.cache import default_cache_dir
 
             args.work = Path(tmp) if args.tiny else default_cache_dir() / "bench-accuracy"
         if args.fresh and args.work.exists():

@@ -89,7 +89,7 @@ def parameter_count(tiny: bool) -> int:
     """Parameters of the benchmarked model: the size of the gradient all-reduce."""
     from hydra.utils import instantiate
 
-    from mfg_lightning.config import compose
+    from mfg_lightning.core.config import compose
 
     cfg = compose("train", ["debug=tiny"] if tiny else [])
     return sum(p.numel() for p in instantiate(cfg.model.net).parameters())

@@ -75,14 +75,14 @@ def base_overrides(tiny: bool) -> list[str]:
 @cache
 def _config(overrides: tuple[str, ...]):
     """The composed train config (composing is slow; every measurement builds a fresh model)."""
-    from mfg_lightning.config import compose
+    from mfg_lightning.core.config import compose
 
     return compose("train", list(overrides))
 
 
 def build_model(overrides: list[str], seed: int = 0):
     """An ``MFGLitModule`` from the train config with these overrides, seeded."""
-    from mfg_lightning.runs import build_model as build
+    from mfg_lightning.run.runs import build_model as build
 
     cfg = _config(tuple(overrides))
     torch.manual_seed(seed)
@@ -161,7 +161,7 @@ def bare_step_fn(
 
     The options are the candidate speed-ups of the training step; all off is the reference.
     """
-    from mfg_lightning import geometry
+    from mfg_lightning.core import geometry
 
     net, loss_fn = model.net, model.loss_fn
     if channels_last:
@@ -240,7 +240,7 @@ def inference_rates(overrides: list[str], batches: list[dict], steps: int, repea
     The two alternate in short chunks (many more than ``repeats``), and each keeps the median
     chunk: a load spike on a shared machine hits both alike instead of one of them.
     """
-    from mfg_lightning import geometry
+    from mfg_lightning.core import geometry
 
     model, _ = build_model(overrides)
     model.eval()
@@ -269,7 +269,7 @@ def generator_rate(overrides: list[str], n: int, repeats: int) -> float:
     """Samples per second of the synthetic dataset's ``__getitem__`` (one process)."""
     from hydra.utils import instantiate
 
-    from mfg_lightning.config import compose
+    from mfg_lightning.core.config import compose
 
     dataset = instantiate(compose("train", overrides).dataset).dataset("train")
 
@@ -290,7 +290,7 @@ def generator_profile(overrides: list[str], n: int) -> list[tuple[str, float]]:
 
     from hydra.utils import instantiate
 
-    from mfg_lightning.config import compose
+    from mfg_lightning.core.config import compose
 
     dataset = instantiate(compose("train", overrides).dataset).dataset("train")
     dataset[0]

@@ -19,7 +19,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from mfg_lightning.evaluate_poses import main
-from mfg_lightning.pose_io import read_kitti_poses, write_kitti_poses, write_tum_poses
+from mfg_lightning.trajectory.pose_io import read_kitti_poses, write_kitti_poses, write_tum_poses
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -6,7 +6,7 @@ decode with what was written:
 
 * :func:`make_vkitti` — Virtual KITTI 1.3.1 (``version=1``) or 2.0.3 (``version=2``). Every
   frame's depth is a smooth random surface with a far-plane sky band on top; the flow is the
-  exact rigid flow of the camera motion (:func:`mfg_lightning.geometry.reprojection_flow`) plus
+  exact rigid flow of the camera motion (:func:`mfg_lightning.core.geometry.reprojection_flow`) plus
   a known extra displacement inside a "moving car" box. Part of the sky is marked invalid
   (``B == 0``) and part carries a bogus *valid* flow, which must still never become an object.
 * :func:`make_kitti` — KITTI odometry: textured images in which frame ``k`` is the texture shifted
@@ -24,8 +24,8 @@ import cv2
 import numpy as np
 import torch
 
-from mfg_lightning import geometry
-from mfg_lightning.data import flow_io
+from mfg_lightning.core import geometry
+from mfg_lightning.flow import io as flow_io
 
 SHARED_POSES = (
     Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti_odometry" / "poses"

@@ -12,8 +12,7 @@ import pytest
 import torch
 
 from conftest import run_module
-from mfg_lightning import geometry
-from mfg_lightning.basis import (
+from mfg_lightning.analysis.basis import (
     SELECTIVITY_COLUMNS,
     decoder_norms,
     example_indices,
@@ -21,6 +20,7 @@ from mfg_lightning.basis import (
     preferred_motions,
     selectivity_rows,
 )
+from mfg_lightning.core import geometry
 from mfg_lightning.models.mfg import MFG
 
 PNGS = (

@@ -7,7 +7,8 @@ import math
 import pytest
 import torch
 
-from mfg_lightning import baselines, geometry
+from mfg_lightning.core import geometry
+from mfg_lightning.motion import baselines
 
 # KITTI's camera at a quarter of the model's resolution (fx, fy, cx, cy), pixels.
 K = torch.tensor([74.1, 74.1, 62.6, 18.5], dtype=torch.float64)

@@ -18,6 +18,7 @@ import pytest
 import torch
 
 from conftest import REPO
+from mfg_lightning.scene import boxes, camera, raycast
 
 BENCH = REPO / "bench"
 
@@ -147,24 +148,23 @@ def test_run_all_runs_every_script_and_fails_loudly(tmp_path: Path) -> None:
 def test_grid_ray_cast_equals_the_general_ray_cast() -> None:
     """The generator's fast path (``ray_cast_grid``, timed by bench/throughput.py) renders
     exactly what the general ray caster gives for the same rays."""
-    from mfg_lightning import geometry
-    from mfg_lightning.data import synthetic
+    from mfg_lightning.core import geometry
 
-    K = synthetic.kitti_like_intrinsics(40, 96)
+    K = camera.kitti_like_intrinsics(40, 96)
     xy = geometry.normalized_grid(K[None], 40, 96)[0]
     rays = torch.stack([xy[0].flatten(), xy[1].flatten(), torch.ones(40 * 96, dtype=xy.dtype)], -1)
     rng = np.random.default_rng(0)
     hits = set()
     for _ in range(30):
-        boxes = torch.from_numpy(synthetic._sample_boxes(rng, synthetic.SceneConfig())[0])
-        depth, hit = synthetic.ray_cast(rays, boxes)
-        depth_g, hit_g = synthetic.ray_cast_grid(xy[0, 0], xy[1, :, 0], boxes)
+        corners = torch.from_numpy(boxes.sample_boxes(rng, boxes.SceneConfig())[0])
+        depth, hit = raycast.ray_cast(rays, corners)
+        depth_g, hit_g = raycast.ray_cast_grid(xy[0, 0], xy[1, :, 0], corners)
         assert torch.equal(depth_g.flatten(), depth)
         assert torch.equal(hit_g.flatten(), hit)
         hits |= set(hit.unique().tolist())
     # Sky, ground and boxes were all hit: every branch was compared.
     assert {-2, -1} <= hits and max(hits) >= 0
     # No boxes at all: sky and ground only.
-    depth_0, hit_0 = synthetic.ray_cast_grid(xy[0, 0], xy[1, :, 0], torch.zeros(0, 2, 3))
-    assert torch.equal(hit_0.flatten(), synthetic.ray_cast(rays, torch.zeros(0, 2, 3))[1])
-    assert torch.equal(depth_0.flatten(), synthetic.ray_cast(rays, torch.zeros(0, 2, 3))[0])
+    depth_0, hit_0 = raycast.ray_cast_grid(xy[0, 0], xy[1, :, 0], torch.zeros(0, 2, 3))
+    assert torch.equal(hit_0.flatten(), raycast.ray_cast(rays, torch.zeros(0, 2, 3))[1])
+    assert torch.equal(depth_0.flatten(), raycast.ray_cast(rays, torch.zeros(0, 2, 3))[0])

@@ -12,7 +12,8 @@ import yaml
 from omegaconf import OmegaConf
 
 from conftest import REPO, run_module
-from mfg_lightning.checkpoints import (
+from mfg_lightning.core.config import compose
+from mfg_lightning.run.checkpoints import (
     CheckpointError,
     CheckpointSizeError,
     ModelSize,
@@ -23,8 +24,7 @@ from mfg_lightning.checkpoints import (
     load_checkpoint,
     module_from_checkpoint,
 )
-from mfg_lightning.config import compose
-from mfg_lightning.runs import build_model
+from mfg_lightning.run.runs import build_model
 
 
 class WritesAFile:
@@ -114,7 +114,10 @@ def test_every_target_of_the_project_configs_is_allowed() -> None:
 def test_targets_outside_the_allow_list_are_refused_at_any_depth(target: str) -> None:
     cfg = {
         "_target_": "mfg_lightning.models.mfg_module.MFGLitModule",
-        "loss": {"_target_": "mfg_lightning.losses.MFGLoss", "extra": [{"_target_": target}]},
+        "loss": {
+            "_target_": "mfg_lightning.models.losses.MFGLoss",
+            "extra": [{"_target_": target}],
+        },
     }
     with pytest.raises(UnsafeConfigError) as err:
         check_targets(cfg, "somewhere.ckpt")
@@ -286,7 +289,7 @@ def test_settings_newer_than_a_checkpoint_keep_its_old_behaviour(
         del ckpt["mfg_model_config"]["net"][key]
     del ckpt["mfg_model_config"]["loss"]["balance_squared"]
     torch.save(ckpt, path)
-    with caplog.at_level("WARNING", logger="mfg_lightning.checkpoints"):
+    with caplog.at_level("WARNING", logger="mfg_lightning.run.checkpoints"):
         module = module_from_checkpoint(path)
     assert module.net.align_corners is False and module.net.input_scale == 1.0
     assert module.loss_fn.balance_squared is True
@@ -297,15 +300,15 @@ def test_settings_newer_than_a_checkpoint_keep_its_old_behaviour(
     ckpt = _tiny_checkpoint(path)
     ckpt["mfg_model_config"]["net"]["align_corners"] = True
     torch.save(ckpt, path)
-    with caplog.at_level("WARNING", logger="mfg_lightning.checkpoints"):
+    with caplog.at_level("WARNING", logger="mfg_lightning.run.checkpoints"):
         assert module_from_checkpoint(path).net.align_corners is True
     assert "predates" not in caplog.text
 
 
 def test_dataset_configs_from_before_the_flow_group_read_their_flow(tmp_path: Path) -> None:
     """Checkpoints written before ``conf/flow`` stored the flow settings as dataset keys."""
-    from mfg_lightning.checkpoints import with_legacy_dataset_settings
     from mfg_lightning.data.synthetic import SyntheticDataModule
+    from mfg_lightning.run.checkpoints import with_legacy_dataset_settings
 
     path = tmp_path / "old.ckpt"
     ckpt = _tiny_checkpoint(path)
@@ -340,7 +343,7 @@ def test_synthetic_test_offsets_is_read_as_offsets(tmp_path: Path, caplog) -> No
     del old["offsets"]
     old["test_offsets"] = [-2, -1, 1, 2]
     ckpt["mfg_dataset_config"] = old
-    with caplog.at_level("WARNING", logger="mfg_lightning.checkpoints"):
+    with caplog.at_level("WARNING", logger="mfg_lightning.run.checkpoints"):
         read = dataset_config(ckpt, path)
     assert read["offsets"] == [-2, -1, 1, 2] and "test_offsets" not in read
     assert "dataset.test_offsets is now dataset.offsets" in caplog.text

@@ -9,7 +9,7 @@ import pytest
 
 from conftest import run_module
 from fake_datasets import make_kitti, make_vkitti, tree_snapshot
-from mfg_lightning.config import compose
+from mfg_lightning.core.config import compose
 from mfg_lightning.data.check import check_dataset
 
 

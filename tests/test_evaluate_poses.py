@@ -16,8 +16,8 @@ from scipy.spatial.transform import Rotation
 from conftest import SHARED
 from mfg_lightning.evaluate_poses import main
 from mfg_lightning.metrics import relative_pose_error, snippet_ate
-from mfg_lightning.pose_io import read_kitti_poses, write_kitti_poses, write_tum_poses
-from mfg_lightning.trajectories import snippets_from_poses
+from mfg_lightning.trajectory.pose_io import read_kitti_poses, write_kitti_poses, write_tum_poses
+from mfg_lightning.trajectory.trajectories import snippets_from_poses
 
 KITTI_POSES = SHARED / "data" / "kitti_odometry" / "poses"
 METRIC_KEYS = {
@@ -297,7 +297,7 @@ def test_many_methods_write_tables_json_and_figures(kitti_methods, tmp_path: Pat
 
     for name, directory in (("a", a), ("b", b)):
         for seq in ("09", "10"):
-            from mfg_lightning.pose_io import read_poses
+            from mfg_lightning.trajectory.pose_io import read_poses
 
             expected = evaluate_trajectory(
                 gts[seq], read_poses(directory / f"{seq}.txt").poses, align="sim3"

@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from mfg_lightning import geometry
+from mfg_lightning.core import geometry
 from mfg_lightning.metrics import (
     KittiDrift,
     RelativePoseError,
@@ -19,7 +19,7 @@ from mfg_lightning.metrics import (
     snippet_ate,
 )
 from mfg_lightning.metrics.evaluator import TrajectoryEvaluator
-from mfg_lightning.trajectories import snippets_from_poses
+from mfg_lightning.trajectory.trajectories import snippets_from_poses
 
 
 def _trajectory(n: int, seed: int) -> torch.Tensor:

@@ -14,15 +14,17 @@ from hydra.utils import instantiate
 
 from conftest import run_module, tiny_training
 from fake_datasets import synthetic_drive, tree_snapshot
-from mfg_lightning import geometry, pose_io
-from mfg_lightning.config import compose
+from mfg_lightning.core import geometry
+from mfg_lightning.core.config import compose
 from mfg_lightning.data import export as export_module
-from mfg_lightning.data import flow_io, kitti, vkitti
+from mfg_lightning.data import kitti, vkitti
 from mfg_lightning.data.check import check_dataset, check_split
-from mfg_lightning.data.render import FAR_PLANE, exact_flow, render_frame
-from mfg_lightning.data.synthetic import kitti_like_intrinsics
 from mfg_lightning.data.transforms import resize_intrinsics
-from mfg_lightning.data.worlds import World
+from mfg_lightning.flow import io as flow_io
+from mfg_lightning.scene.camera import kitti_like_intrinsics
+from mfg_lightning.scene.render import FAR_PLANE, exact_flow, render_frame
+from mfg_lightning.scene.worlds import World
+from mfg_lightning.trajectory import pose_io
 
 H, W = 64, 192  # the tests' render size (version=1 is always 1242 × 375)
 FRAMES = 5

@@ -10,8 +10,11 @@ from hydra.utils import instantiate
 
 from conftest import run_module
 from fake_datasets import make_kitti, tree_snapshot
-from mfg_lightning.config import compose
-from mfg_lightning.data.flow_estimation import (
+from mfg_lightning.core.config import compose
+from mfg_lightning.data.kitti import KittiDataModule
+from mfg_lightning.data.synthetic import SyntheticDataModule
+from mfg_lightning.data.vkitti import VirtualKittiDataModule
+from mfg_lightning.flow.estimators import (
     DISFlowEstimator,
     EstimatedFlow,
     ExactFlow,
@@ -19,9 +22,6 @@ from mfg_lightning.data.flow_estimation import (
     GroundTruthFlow,
     parse_flow,
 )
-from mfg_lightning.data.kitti import KittiDataModule
-from mfg_lightning.data.synthetic import SyntheticDataModule
-from mfg_lightning.data.vkitti import VirtualKittiDataModule
 
 
 def test_each_dataset_gets_its_default_and_the_override_wins(tmp_path: Path) -> None:

@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from mfg_lightning import geometry
-from mfg_lightning.data import flow_io, transforms
-from mfg_lightning.data.errors import DataFileError
+from mfg_lightning.core import geometry
+from mfg_lightning.core.data_errors import DataFileError
+from mfg_lightning.data import transforms
+from mfg_lightning.flow import io as flow_io
 
 
 def _random_flow(h: int = 12, w: int = 17, scale: float = 20.0, seed: int = 0) -> np.ndarray:

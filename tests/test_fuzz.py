@@ -26,20 +26,20 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from conftest import quiet_trainer
-from mfg_lightning import pose_io
-from mfg_lightning.callbacks import BatchChecks
-from mfg_lightning.data import flow_io
+from mfg_lightning.core.data_errors import DataFileError
 from mfg_lightning.data.base import collate_samples
-from mfg_lightning.data.errors import DataFileError
 from mfg_lightning.data.kitti import read_kitti_calib
 from mfg_lightning.data.kitti import read_kitti_poses as kitti_dataset_poses
 from mfg_lightning.data.sample import SampleError
 from mfg_lightning.data.synthetic import SyntheticDataModule
 from mfg_lightning.data.vkitti import read_vkitti_extrinsics, read_vkitti_intrinsics
-from mfg_lightning.losses import MFGLoss
+from mfg_lightning.flow import io as flow_io
+from mfg_lightning.models.losses import MFGLoss
 from mfg_lightning.models.mfg import MFG
 from mfg_lightning.models.mfg_module import MFGLitModule, NonFiniteLossError
-from mfg_lightning.pose_io import PoseFileError
+from mfg_lightning.run.callbacks import BatchChecks
+from mfg_lightning.trajectory import pose_io
+from mfg_lightning.trajectory.pose_io import PoseFileError
 
 FUZZ = settings(
     max_examples=40,

@@ -9,7 +9,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from mfg_lightning import geometry as G
+from mfg_lightning.core import geometry as G
 
 KITTI_QUARTER = torch.tensor([180.0, 180.0, 64.0, 24.0], dtype=torch.float64)
 

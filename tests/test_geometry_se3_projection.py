@@ -7,7 +7,7 @@ import torch
 from scipy.linalg import polar
 from scipy.spatial.transform import Rotation
 
-from mfg_lightning import geometry as G
+from mfg_lightning.core import geometry as G
 
 
 def _poses(rotations: np.ndarray, translations: np.ndarray) -> torch.Tensor:

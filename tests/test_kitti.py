@@ -12,13 +12,14 @@ from hydra.utils import instantiate
 
 from conftest import tiny_training
 from fake_datasets import FakeKitti, make_kitti, tree_snapshot
-from mfg_lightning import geometry
-from mfg_lightning.config import compose
-from mfg_lightning.data import flow_io, kitti
+from mfg_lightning.core import geometry
+from mfg_lightning.core.config import compose
+from mfg_lightning.core.data_errors import DataFileError, DataRootError, report_skipped
+from mfg_lightning.data import kitti
 from mfg_lightning.data.base import collate_samples
-from mfg_lightning.data.errors import DataFileError, DataRootError, report_skipped
 from mfg_lightning.data.kitti import KittiDataModule, KittiOdometryDataset
 from mfg_lightning.data.sample import check_sample
+from mfg_lightning.flow import io as flow_io
 
 H, W = 48, 128
 

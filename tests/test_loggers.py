@@ -18,7 +18,7 @@ import yaml
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from conftest import run_module
-from mfg_lightning.config import compose
+from mfg_lightning.core.config import compose
 
 FINAL = ("test/trans_err", "test/rot_err", "test/ate", "val/trans_err")
 
@@ -143,7 +143,7 @@ def test_a_wandb_run_left_open_by_a_failed_job_is_finished(
     """Lightning's WandbLogger reuses any open W&B run: a job of a multirun that failed must not
     leave its run for the next job to log into."""
     wandb = pytest.importorskip("wandb")
-    from mfg_lightning.runs import finish_stale_logger_runs
+    from mfg_lightning.run.runs import finish_stale_logger_runs
 
     for name in ("DIR", "CACHE_DIR", "CONFIG_DIR", "DATA_DIR", "ARTIFACT_DIR"):
         monkeypatch.setenv(f"WANDB_{name}", str(tmp_path / name.lower()))

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from mfg_lightning.losses import MFGLoss, balancing_weights, sparsity_count
+from mfg_lightning.models.losses import MFGLoss, balancing_weights, sparsity_count
 
 
 def test_sparsity_count_matches_the_generalised_logistic() -> None:
@@ -92,8 +92,8 @@ def test_balancing_weights_of_real_fields_for_both_readings(
 ) -> None:
     """The two readings of w = max(‖v_ω‖ / ‖v_t‖, 1) at 48 × 128 with KITTI intrinsics: the
     paper's squared ratio reaches the clamp where the released code's is 42."""
-    from mfg_lightning import geometry
-    from mfg_lightning.data.synthetic import kitti_like_intrinsics
+    from mfg_lightning.core import geometry
+    from mfg_lightning.scene.camera import kitti_like_intrinsics
 
     K = kitti_like_intrinsics(48, 128).float()[None]
     v_t = geometry.translational_field(torch.tensor([[0.0, 0.0, tz]]), K, 48, 128)

@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 from conftest import SHARED
 from mfg_lightning.metrics import TrajectoryATE, align_trajectory, ate_traj, ate_traj_errors
 from mfg_lightning.metrics.alignment import umeyama
-from mfg_lightning.pose_io import read_kitti_poses
+from mfg_lightning.trajectory.pose_io import read_kitti_poses
 
 KITTI_POSES = SHARED / "data" / "kitti_odometry" / "poses"
 # A few hundred poses keep evo's Python loops quick.

@@ -18,7 +18,7 @@ from mfg_lightning.metrics import (
     kitti_drift_from_segments,
     kitti_segment_errors,
 )
-from mfg_lightning.pose_io import read_kitti_poses
+from mfg_lightning.trajectory.pose_io import read_kitti_poses
 
 KITTI_POSES = SHARED / "data" / "kitti_odometry" / "poses"
 LENGTHS = (100, 200, 300, 400, 500, 600, 700, 800)

@@ -14,7 +14,7 @@ from evo.core.trajectory import PosePath3D
 from scipy.spatial.transform import Rotation
 
 from mfg_lightning.metrics import RelativePoseError, relative_pose_error, relative_pose_errors
-from mfg_lightning.pose_io import read_kitti_poses
+from mfg_lightning.trajectory.pose_io import read_kitti_poses
 
 KITTI_POSES = Path(__file__).parents[2] / "shared" / "data" / "kitti_odometry" / "poses"
 

@@ -72,8 +72,8 @@ def test_wrong_input_size_is_refused() -> None:
 def _upsampling_residual(align_corners: bool) -> float:
     """Largest |error| (px) of the best decoder column for the translational field at unit
     depth of a forward motion, at 24 × 64 with KITTI intrinsics, decoded at half resolution."""
-    from mfg_lightning import geometry
-    from mfg_lightning.data.synthetic import kitti_like_intrinsics
+    from mfg_lightning.core import geometry
+    from mfg_lightning.scene.camera import kitti_like_intrinsics
 
     H, W = 24, 64
     n = (H // 2) * (W // 2)
@@ -140,8 +140,8 @@ def test_config_defaults_are_the_released_codes_and_match_the_code() -> None:
     the authors' released code where the paper is silent or ambiguous (README)."""
     import inspect
 
-    from mfg_lightning.config import compose
-    from mfg_lightning.losses import MFGLoss
+    from mfg_lightning.core.config import compose
+    from mfg_lightning.models.losses import MFGLoss
 
     cfg = compose("train", [])
     net = inspect.signature(MFG).parameters

@@ -10,10 +10,10 @@ import torch
 
 from conftest import quiet_trainer
 from mfg_lightning.data.synthetic import SyntheticDataModule, SyntheticDrivingDataset
-from mfg_lightning.losses import MFGLoss
+from mfg_lightning.models.losses import MFGLoss
 from mfg_lightning.models.mfg import MFG
 from mfg_lightning.models.mfg_module import MFGLitModule, NonFiniteLossError
-from mfg_lightning.runs import build_model
+from mfg_lightning.run.runs import build_model
 
 
 class CorruptFlowDataset(torch.utils.data.Dataset):
@@ -141,7 +141,7 @@ def test_batch_transfer_is_skipped_on_a_cpu_only() -> None:
 def test_top_k_has_one_knob() -> None:
     """model.top_k is the setting; a top_k given to the network as well is refused, not
     silently overwritten."""
-    from mfg_lightning.config import compose
+    from mfg_lightning.core.config import compose
 
     cfg = compose("train", ["debug=tiny", "paths.output_dir=/tmp/unused", "+model.net.top_k=0.1"])
     with pytest.raises(Exception, match="model.net.top_k=0.1 .* set model.top_k instead"):

@@ -14,8 +14,8 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from mfg_lightning import geometry
-from mfg_lightning.object_motion import (
+from mfg_lightning.core import geometry
+from mfg_lightning.motion.object_motion import (
     ObjectMotionConfig,
     ObjectMotionError,
     egomotion_field,
@@ -26,11 +26,11 @@ from mfg_lightning.object_motion import (
     residual,
     threshold_baseline,
 )
-from mfg_lightning.object_motion_viz import (
+from mfg_lightning.pictures.grids import save_png
+from mfg_lightning.pictures.object_motion import (
     object_motion_grid,
     object_motion_grid_batch,
     object_motion_panels,
-    save_png,
 )
 
 REPO = Path(__file__).resolve().parents[1]

@@ -33,7 +33,8 @@ def test_wheel_ships_the_configs(tmp_path: Path) -> None:
         check=True, capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     out = subprocess.run(
-        [sys.executable, "-c", "from mfg_lightning.config import config_dir; print(config_dir())"],
+        [sys.executable, "-c",
+         "from mfg_lightning.core.config import config_dir; print(config_dir())"],
         cwd=tmp_path, env={"PYTHONPATH": str(target), "PATH": "/usr/bin:/bin"},
         capture_output=True, text=True, check=True, timeout=120,
     )  # fmt: skip

@@ -6,7 +6,7 @@ import numpy as np
 import torch
 from matplotlib.colors import to_hex
 
-from mfg_lightning.plots import figure_png, figure_rgb, sequence_figures, trajectory_curves
+from mfg_lightning.pictures.plots import figure_png, figure_rgb, sequence_figures, trajectory_curves
 
 
 def _circle(n: int, radius: float) -> torch.Tensor:

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from mfg_lightning import pose_io
-from mfg_lightning.pose_io import (
+from mfg_lightning.trajectory import pose_io
+from mfg_lightning.trajectory.pose_io import (
     PoseFileError,
     detect_pose_format,
     read_kitti_poses,

@@ -16,12 +16,13 @@ import torch
 
 from conftest import run_module
 from fake_datasets import make_kitti, tree_snapshot
-from mfg_lightning import geometry, trajectories
-from mfg_lightning.data.errors import DataRootError
+from mfg_lightning.core import geometry
+from mfg_lightning.core.data_errors import DataRootError
 from mfg_lightning.data.image_folder import ImageFolderDataModule, NoGroundTruthError
 from mfg_lightning.data.kitti import KittiDataModule
-from mfg_lightning.pose_io import read_kitti_poses, read_poses, read_tum_poses
 from mfg_lightning.predict import MOTION_COLUMNS, PredictionError, gather
+from mfg_lightning.trajectory import trajectories
+from mfg_lightning.trajectory.pose_io import read_kitti_poses, read_poses, read_tum_poses
 
 H, W = 32, 64  # the input size of debug=tiny
 

@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-from mfg_lightning import geometry
-from mfg_lightning.data import synthetic
-from mfg_lightning.data.render import (
+from mfg_lightning.core import geometry
+from mfg_lightning.pictures.rendered_frames import frame_panels, picture_grid
+from mfg_lightning.scene import camera, seeding
+from mfg_lightning.scene.render import (
     FAR_PLANE,
     REGION_FAR,
     REGION_MOVING,
@@ -17,25 +18,23 @@ from mfg_lightning.data.render import (
     REGION_ROAD,
     REGION_STRUCTURE,
     exact_flow,
-    frame_panels,
-    picture_grid,
     render_frame,
 )
-from mfg_lightning.data.worlds import World
-from mfg_lightning.pose_io import read_kitti_poses
+from mfg_lightning.scene.worlds import World
+from mfg_lightning.trajectory.pose_io import read_kitti_poses
 
 H, W = 96, 256
 
 
 @pytest.fixture(scope="module")
 def world() -> World:
-    poses = synthetic.procedural_trajectory(synthetic._rng(5, "trajectory", "r"), 120)
+    poses = camera.procedural_trajectory(seeding.seeded_rng(5, "trajectory", "r"), 120)
     return World.generate(poses, seed=5, name="r")
 
 
 @pytest.fixture(scope="module")
 def K() -> torch.Tensor:
-    return synthetic.kitti_like_intrinsics(H, W)
+    return camera.kitti_like_intrinsics(H, W)
 
 
 @pytest.fixture(scope="module")
@@ -152,7 +151,7 @@ def test_warping_the_next_frame_back_reproduces_this_one(world, K, frames):
 
 
 def test_moving_objects_move_by_their_own_motion(world):
-    K2 = synthetic.kitti_like_intrinsics(48, 128)
+    K2 = camera.kitti_like_intrinsics(48, 128)
     k = _frame_with_moving_object(world, K2)
     src = render_frame(world, k, K2, 48, 128)
     flow = exact_flow(world, k, k + 2, K2, 48, 128, source=src)
@@ -184,7 +183,7 @@ def test_driving_a_real_kitti_trajectory_keeps_the_road_under_the_camera(shared_
     poses = torch.from_numpy(read_kitti_poses(shared_poses / "00.txt"))[:400]
     world = World.generate(poses, seed=0, name="00")
     h, w = 48, 128
-    K = synthetic.kitti_like_intrinsics(h, w)
+    K = camera.kitti_like_intrinsics(h, w)
     for k in range(0, len(poses), 16):
         f = render_frame(world, k, K, h, w)
         # Ground under the camera (a car in the next lane may cover part of the bottom row).
@@ -195,9 +194,9 @@ def test_driving_a_real_kitti_trajectory_keeps_the_road_under_the_camera(shared_
 
 
 def test_any_size_renders_and_impossible_sizes_are_refused(world):
-    f = render_frame(world, 10, synthetic.kitti_like_intrinsics(20, 60), 20, 60)
+    f = render_frame(world, 10, camera.kitti_like_intrinsics(20, 60), 20, 60)
     assert f.rgb.shape == (3, 20, 60)
-    K = synthetic.kitti_like_intrinsics(H, W)
+    K = camera.kitti_like_intrinsics(H, W)
     for h, w in ((8, 64), (64, 10), (0, 0), (64, 5000), (64.5, 128)):
         with pytest.raises(ValueError, match=f"render size {h} x {w}"):
             render_frame(world, 10, K, h, w)
@@ -224,14 +223,14 @@ def test_the_picture_grid_takes_extra_panels(frames, world, K):
 def test_a_frame_that_sees_no_box_renders_road_and_sky():
     """An open stretch of road (no facade, parked box or mover in view) renders, and its exact
     flow is defined: KITTI 09's world has such frames."""
-    from mfg_lightning.data.worlds import WorldConfig
+    from mfg_lightning.scene.worlds import WorldConfig
 
-    poses = synthetic.procedural_trajectory(synthetic._rng(5, "trajectory", "r"), 12)
+    poses = camera.procedural_trajectory(seeding.seeded_rng(5, "trajectory", "r"), 12)
     empty = WorldConfig(
         facade_coverage=0.0, parked_per_100m=0.0, cars_per_100m=0.0, pedestrians_per_100m=0.0
     )
     world = World.generate(poses, seed=5, name="open", config=empty)
-    K = synthetic.kitti_like_intrinsics(48, 128)
+    K = camera.kitti_like_intrinsics(48, 128)
     f = render_frame(world, 3, K, 48, 128)
     assert (f.instance == -1).all()
     assert set(f.region.unique().tolist()) <= {REGION_ROAD, REGION_FAR}

@@ -11,15 +11,11 @@ import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from conftest import run_module
-from mfg_lightning.data import render
-from mfg_lightning.data.flow_estimation import DISFlowEstimator, EstimatedFlow
+from mfg_lightning.data.rendered import QUALITY_REGIONS, RenderedDrivingDataset, flow_quality
 from mfg_lightning.data.sample import check_sample
-from mfg_lightning.data.synthetic import (
-    QUALITY_REGIONS,
-    RenderedDrivingDataset,
-    SyntheticDataModule,
-    flow_quality,
-)
+from mfg_lightning.data.synthetic import SyntheticDataModule
+from mfg_lightning.flow.estimators import DISFlowEstimator, EstimatedFlow
+from mfg_lightning.scene import render
 
 H, W = 32, 64  # model input
 RH, RW = 64, 128  # render size

@@ -18,9 +18,9 @@ import yaml
 
 import mfg_lightning
 from conftest import REPO, run_module
-from mfg_lightning.config import compose
+from mfg_lightning.core.config import compose
 from mfg_lightning.data.synthetic import SyntheticDataModule
-from mfg_lightning.runs import build_model
+from mfg_lightning.run.runs import build_model
 
 pytestmark = pytest.mark.slow
 
@@ -104,7 +104,7 @@ def test_cfg_job_prints_the_config_that_would_run_and_runs_nothing(tmp_path: Pat
     assert printed["trainer"]["max_steps"] == 5
     assert (
         printed["callbacks"]["last_checkpoint"]["_target_"]
-        == "mfg_lightning.callbacks.LastCheckpoint"
+        == "mfg_lightning.run.callbacks.LastCheckpoint"
     )
     assert not (tmp_path / "outputs").exists()  # nothing ran, no run directory
 

@@ -28,9 +28,9 @@ import numpy as np
 import pytest
 import torch
 
-from mfg_lightning.callbacks import AtomicCheckpointIO, StorageError, storage_error
 from mfg_lightning.data.kitti import FlowCache
 from mfg_lightning.data.resumable_loader import EpochShuffleSampler, ResumableDataLoader
+from mfg_lightning.run.callbacks import AtomicCheckpointIO, StorageError, storage_error
 
 pytestmark = pytest.mark.slow
 
@@ -233,7 +233,7 @@ def test_sigterm_saves_a_checkpoint_of_the_current_step_and_resume_continues_exa
 def test_resume_true_without_a_checkpoint_starts_fresh_and_a_truncated_one_is_refused(
     tmp_path: Path,
 ) -> None:
-    from mfg_lightning.train import resolve_ckpt_path
+    from mfg_lightning.run.training import resolve_ckpt_path
 
     assert resolve_ckpt_path(None, tmp_path, resume=True) is None
     assert resolve_ckpt_path(None, tmp_path, resume=False) is None
@@ -307,7 +307,7 @@ _WRITER = textwrap.dedent(
     import os, sys, time
     from pathlib import Path
     import torch
-    from mfg_lightning.callbacks import AtomicCheckpointIO
+    from mfg_lightning.run.callbacks import AtomicCheckpointIO
 
     path, marker = Path(sys.argv[1]), Path(sys.argv[2])
     io = AtomicCheckpointIO()
@@ -409,7 +409,8 @@ def test_a_full_disk_keeps_the_previous_checkpoint_and_cache_entry(small_disk: P
     assert err.value.errno == errno.ENOSPC
     message = str(storage_error(err.value.filename, err.value, hint=f"cache {small_disk}"))
     assert message.startswith("cannot write") and "no space left on device" in message
-    # When the name is known, a temporary file of mfg_lightning.atomic is reported as its target.
+    # When the name is known, a temporary file of mfg_lightning.core.atomic is reported as its
+    # target.
     temporary = entry.with_name(f".{entry.name}.{'0' * 32}.tmp")
     full = OSError(errno.ENOSPC, "No space left on device", str(temporary))
     assert str(storage_error(full.filename, full)).startswith(

@@ -1,4 +1,4 @@
-"""Scoring MFG at several k from one encoder pass (mfg_lightning.scoring)."""
+"""Scoring MFG at several k from one encoder pass (mfg_lightning.analysis.scoring)."""
 
 from __future__ import annotations
 
@@ -9,11 +9,11 @@ import torch
 from hydra.utils import instantiate
 from torch.utils.data import DataLoader
 
-from mfg_lightning.config import compose
+from mfg_lightning.analysis.scoring import Method, mfg_method, mfg_top_k_methods, score_methods
+from mfg_lightning.core.config import compose
 from mfg_lightning.data.base import collate_samples
 from mfg_lightning.data.sample import sanitize_flow
-from mfg_lightning.runs import build_model
-from mfg_lightning.scoring import Method, mfg_method, mfg_top_k_methods, score_methods
+from mfg_lightning.run.runs import build_model
 
 KS = [None, 0.5, 0.1, 0.02]
 

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from conftest import run_module
-from mfg_lightning.config import compose
+from mfg_lightning.analysis.sweeps import seed_groups, swept_keys
+from mfg_lightning.core.config import compose
+from mfg_lightning.core.tables import pm
 from mfg_lightning.report import write_report
-from mfg_lightning.sweeps import seed_groups, swept_keys
-from mfg_lightning.tables import pm
 from test_sweeps import _fake_job, _metrics
 
 
@@ -97,7 +97,7 @@ def test_seed_search_varies_the_seed_and_keeps_the_synthetic_scenes() -> None:
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
 
-    from mfg_lightning.config import CONFIG_DIR
+    from mfg_lightning.core.config import CONFIG_DIR
 
     with initialize_config_dir(version_base="1.3", config_dir=CONFIG_DIR):
         cfg = hydra_compose("train", ["hparams_search=seeds"], return_hydra_config=True)

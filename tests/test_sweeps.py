@@ -12,10 +12,10 @@ import yaml
 from hydra import compose, initialize_config_dir
 
 from conftest import run_module
-from mfg_lightning.config import CONFIG_DIR
-from mfg_lightning.plots import SWEEP_FIGURES
+from mfg_lightning.analysis.sweep_figures import SWEEP_FIGURES
+from mfg_lightning.analysis.sweeps import NotAMultirunError, collect_jobs, swept_keys
+from mfg_lightning.core.config import CONFIG_DIR
 from mfg_lightning.report import main, write_report
-from mfg_lightning.sweeps import NotAMultirunError, collect_jobs, swept_keys
 
 
 def _rows(path: Path) -> list[dict[str, str]]:

@@ -9,12 +9,12 @@ import pytest
 import torch
 from hydra.utils import instantiate
 
-from mfg_lightning import geometry
-from mfg_lightning.config import compose
+from mfg_lightning.core import geometry
+from mfg_lightning.core.config import compose
 from mfg_lightning.data.base import EmptySplitError
 from mfg_lightning.data.sample import check_sample
 from mfg_lightning.data.synthetic import SyntheticDataModule, SyntheticDrivingDataset
-from mfg_lightning.runs import build_model, build_trainer
+from mfg_lightning.run.runs import build_model, build_trainer
 
 SHARED_POSES = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti_odometry" / "poses"
 

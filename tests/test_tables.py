@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from mfg_lightning.tables import Column, Table, fmt
+from mfg_lightning.core.tables import Column, Table, fmt
 
 
 def _table() -> Table:

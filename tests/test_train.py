@@ -11,7 +11,7 @@ import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from conftest import run_module
-from mfg_lightning.config import compose
+from mfg_lightning.core.config import compose
 
 pytestmark = pytest.mark.slow
 

@@ -7,8 +7,8 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from mfg_lightning import geometry as G
-from mfg_lightning import trajectories as T
+from mfg_lightning.core import geometry as G
+from mfg_lightning.trajectory import trajectories as T
 
 
 def _random_poses(n: int, seed: int) -> torch.Tensor:

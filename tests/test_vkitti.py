@@ -12,14 +12,14 @@ from hydra.utils import instantiate
 
 from conftest import run_module, tiny_training
 from fake_datasets import FakeVkitti, make_vkitti, tree_snapshot
-from mfg_lightning import geometry
-from mfg_lightning.config import compose
+from mfg_lightning.core import geometry
+from mfg_lightning.core.config import compose
+from mfg_lightning.core.data_errors import DataFileError, DataRootError
 from mfg_lightning.data import transforms, vkitti
 from mfg_lightning.data.base import collate_samples
-from mfg_lightning.data.errors import DataFileError, DataRootError
-from mfg_lightning.data.flow_estimation import GroundTruthFlow
 from mfg_lightning.data.sample import check_sample
 from mfg_lightning.data.vkitti import VirtualKittiDataModule, VirtualKittiDataset
+from mfg_lightning.flow.estimators import GroundTruthFlow
 
 H, W = 48, 128
 

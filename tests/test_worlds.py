@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from mfg_lightning.data import synthetic
-from mfg_lightning.data.worlds import (
+from mfg_lightning.scene import camera, seeding
+from mfg_lightning.scene.worlds import (
     CAR,
     FACADE,
     PEDESTRIAN,
@@ -15,12 +15,12 @@ from mfg_lightning.data.worlds import (
     World,
     WorldConfig,
 )
-from mfg_lightning.pose_io import read_kitti_poses
+from mfg_lightning.trajectory.pose_io import read_kitti_poses
 
 
 @pytest.fixture(scope="module")
 def poses() -> torch.Tensor:
-    return synthetic.procedural_trajectory(synthetic._rng(3, "trajectory", "w"), 300)
+    return camera.procedural_trajectory(seeding.seeded_rng(3, "trajectory", "w"), 300)
 
 
 @pytest.fixture(scope="module")
@@ -117,7 +117,7 @@ def test_the_ground_is_under_the_camera_of_a_procedural_drive(poses, world):
         float(world.ground_height(pos[k : k + 1, 0], pos[k : k + 1, 2], k)[0][0] - pos[k, 1])
         for k in range(0, len(poses), 10)
     ]
-    np.testing.assert_allclose(heights, synthetic.CAMERA_HEIGHT, atol=0.08)
+    np.testing.assert_allclose(heights, camera.CAMERA_HEIGHT, atol=0.08)
 
 
 def test_the_ground_follows_a_real_kitti_trajectory(shared_poses):
@@ -132,7 +132,7 @@ def test_the_ground_follows_a_real_kitti_trajectory(shared_poses):
         ]
     )
     # Hills and pitch are followed; the ground is not a plane (KITTI 00 climbs 10 m here).
-    assert np.abs(heights - synthetic.CAMERA_HEIGHT).max() < 0.25
+    assert np.abs(heights - camera.CAMERA_HEIGHT).max() < 0.25
     assert np.ptp(pos[:, 1].numpy()) > 5
     assert world.num_sections == int(np.ceil(world.frame_s.max() / SECTION))
 
@@ -155,7 +155,7 @@ def test_a_standing_car_gets_a_straight_road():
     heading = world.path_dir
     assert np.allclose(heading, heading[0]) and np.allclose(heading[0], [0.0, 1.0])
     y, _, _ = world.ground_height(torch.tensor([0.0]), torch.tensor([0.0]))
-    assert float(y[0]) == pytest.approx(synthetic.CAMERA_HEIGHT, abs=1e-3)
+    assert float(y[0]) == pytest.approx(camera.CAMERA_HEIGHT, abs=1e-3)
 
 
 def test_sections_agree_around_the_camera_where_they_switch(poses, world):

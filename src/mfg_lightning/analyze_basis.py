@@ -1,8 +1,9 @@
 """Analyse the egomotion basis of a trained MFG and its population sparsity.
 
 ``python -m mfg_lightning.analyze_basis ckpt_path=… [dataset=…] [n_units=100] [out_dir=…]``
-(config: ``conf/analyze_basis.yaml``). Loads the checkpoint (:mod:`mfg_lightning.checkpoints`),
-builds the dataset (given, or the checkpoint's) and runs :func:`mfg_lightning.basis.analyze`,
+(config: ``conf/analyze_basis.yaml``). Loads the checkpoint (:mod:`mfg_lightning.run.checkpoints`),
+builds the dataset (given, or the checkpoint's) and runs
+:func:`mfg_lightning.analysis.basis.analyze`,
 whose module docstring lists every file written into ``out_dir``.
 """
 
@@ -13,16 +14,16 @@ import logging
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from mfg_lightning.basis import analyze
-from mfg_lightning.checkpoints import (
+from mfg_lightning.analysis.basis import analyze
+from mfg_lightning.core.config import CONFIG_DIR
+from mfg_lightning.core.errors import exit_on_unknown_choice, exit_on_user_error
+from mfg_lightning.run.checkpoints import (
     build_module,
     dataset_config,
     load_checkpoint,
     model_size,
 )
-from mfg_lightning.config import CONFIG_DIR
-from mfg_lightning.errors import exit_on_unknown_choice, exit_on_user_error
-from mfg_lightning.runs import checkpoint_datamodule
+from mfg_lightning.run.runs import checkpoint_datamodule
 
 log = logging.getLogger("mfg_lightning.analyze_basis")
 

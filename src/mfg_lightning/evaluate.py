@@ -1,9 +1,12 @@
 """Evaluate a checkpoint: ``python -m mfg_lightning.evaluate ckpt_path=… [dataset=…]``.
 
 ``task=egomotion`` (default) tests every k of ``eval.top_k_sweep`` (Table 1, supplementary
-Figure 4) and writes ``metrics.json``, tables (:mod:`~mfg_lightning.result_tables`), trajectories
-(:mod:`~mfg_lightning.pose_io`) and figures (:mod:`~mfg_lightning.plots`); ``task=object_motion``
-scores the object masks of section 4 and draws Figure 1 (:mod:`~mfg_lightning.object_motion_viz`).
+Figure 4) and writes ``metrics.json``, tables (:mod:`~mfg_lightning.analysis.result_tables`),
+trajectories
+(:mod:`~mfg_lightning.trajectory.pose_io`) and figures (:mod:`~mfg_lightning.pictures.plots`);
+``task=object_motion``
+scores the object masks of section 4 and draws Figure 1
+(:mod:`~mfg_lightning.pictures.object_motion`).
 The README's "Evaluation" lists the files. Trainer and loggers are configured as in training."""
 
 from __future__ import annotations
@@ -17,17 +20,18 @@ import lightning as L
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from mfg_lightning import plots, runs
-from mfg_lightning.atomic import atomic_write_bytes
-from mfg_lightning.checkpoints import module_from_checkpoint
-from mfg_lightning.config import CONFIG_DIR
-from mfg_lightning.errors import exit_on_unknown_choice, exit_on_user_error
+from mfg_lightning.analysis.result_tables import object_motion_table, sequence_table, top_k_table
+from mfg_lightning.core.atomic import atomic_write_bytes
+from mfg_lightning.core.config import CONFIG_DIR
+from mfg_lightning.core.errors import exit_on_unknown_choice, exit_on_user_error
+from mfg_lightning.core.tables import Table
 from mfg_lightning.metrics.evaluator import EvaluationResult
 from mfg_lightning.models.mfg import validate_top_k
 from mfg_lightning.models.mfg_module import MFGLitModule
-from mfg_lightning.pose_io import write_trajectory
-from mfg_lightning.result_tables import object_motion_table, sequence_table, top_k_table
-from mfg_lightning.tables import Table
+from mfg_lightning.pictures import plots
+from mfg_lightning.run import runs
+from mfg_lightning.run.checkpoints import module_from_checkpoint
+from mfg_lightning.trajectory.pose_io import write_trajectory
 
 log = logging.getLogger("mfg_lightning.evaluate")
 
@@ -82,8 +86,9 @@ def evaluate_object_motion(
     cfg: DictConfig, model: MFGLitModule, datamodule: L.LightningDataModule, trainer: L.Trainer
 ) -> tuple[dict[str, Any], Table, dict[str, Any]]:
     """Score the object masks and fields; draw the first test batch in Figure 1's layout."""
-    from mfg_lightning.object_motion import require_ground_truth
-    from mfg_lightning.object_motion_viz import object_motion_pictures, save_png
+    from mfg_lightning.motion.object_motion import require_ground_truth
+    from mfg_lightning.pictures.grids import save_png
+    from mfg_lightning.pictures.object_motion import object_motion_pictures
 
     model.object_motion = instantiate(cfg.object_motion)
     datamodule.setup("test")

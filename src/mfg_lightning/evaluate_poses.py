@@ -14,7 +14,7 @@ Inputs. ``--gt`` is a pose file or a directory of ``<seq>.txt`` files (KITTI's `
 ``--pred`` is repeated once per method, ``name=<file|dir>`` (or just ``<file|dir>``, named after
 it): a directory holds ``<seq>.txt`` per sequence, a file is one sequence. Every file is KITTI
 (12 numbers per line) or TUM (``timestamp tx ty tz qx qy qz qw``), camera-to-world
-(:mod:`mfg_lightning.pose_io`). The sequences evaluated are those of the ground truth, or
+(:mod:`mfg_lightning.trajectory.pose_io`). The sequences evaluated are those of the ground truth, or
 ``--seqs``; a method without one of them is an error, unless ``--seqs`` leaves it out.
 
 Reported per sequence and overall (``../shared/docs/protocols.md``):
@@ -69,15 +69,15 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from mfg_lightning.errors import report_user_error
-from mfg_lightning.pose_io import PoseFile, PoseFileError, read_poses
-from mfg_lightning.result_tables import pose_results_table
+from mfg_lightning.analysis.result_tables import pose_results_table
+from mfg_lightning.core.errors import report_user_error
+from mfg_lightning.trajectory.pose_io import PoseFile, PoseFileError, read_poses
 
 if TYPE_CHECKING:
     from torch import Tensor
 
+    from mfg_lightning.core.tables import Table
     from mfg_lightning.metrics import Alignment
-    from mfg_lightning.tables import Table
 
 __all__ = [
     "SequenceErrors",
@@ -207,7 +207,7 @@ def sequence_errors(
         kitti_segment_errors,
         relative_pose_errors,
     )
-    from mfg_lightning.trajectories import evaluation_poses, snippets_from_poses
+    from mfg_lightning.trajectory.trajectories import evaluation_poses, snippets_from_poses
 
     Q = evaluation_poses(torch.from_numpy(np.asarray(gt, dtype=np.float64)))
     P = evaluation_poses(torch.from_numpy(np.asarray(pred, dtype=np.float64)))
@@ -413,7 +413,7 @@ def _print_table(result: dict[str, float | int | None], args: argparse.Namespace
     from rich.console import Console
     from rich.table import Table
 
-    from mfg_lightning.tables import fmt
+    from mfg_lightning.core.tables import fmt
 
     def cell(key: str, digits: int = 5) -> str:
         return fmt(result[key], digits) if result[key] is not None else "n/a"
@@ -605,9 +605,9 @@ def _write_out(
     """Draw every figure, then write tables, ``results.json`` and figures into ``out``."""
     import torch
 
-    from mfg_lightning import plots
-    from mfg_lightning.atomic import atomic_write_text
+    from mfg_lightning.core.atomic import atomic_write_text
     from mfg_lightning.metrics import kitti_drift_by_length
+    from mfg_lightning.pictures import plots
 
     figures = {}
     for seq in inputs.gt:
@@ -649,7 +649,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _run(args)
     except Exception as exc:
         # PoseFileError and InputError answer before torch and the metrics are imported;
-        # everything is classified as every entry point does (mfg_lightning.errors).
+        # everything is classified as every entry point does (mfg_lightning.core.errors).
         return report_user_error(exc)
 
 

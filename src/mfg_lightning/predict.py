@@ -23,7 +23,8 @@ Written into the run directory (``hydra.run.dir``):
 
 * ``poses/kitti/<seq>.txt`` and ``poses/tum/<seq>.txt``: the trajectory ``T_world_cam`` of
   every frame, composed from the predicted motions (the first frame is the identity; see
-  :func:`mfg_lightning.trajectories.sequence_trajectory`), in the formats ``evo`` and the KITTI
+  :func:`mfg_lightning.trajectory.trajectories.sequence_trajectory`), in the formats ``evo`` and
+  the KITTI
   devkit read; TUM timestamps from the dataset (KITTI's ``times.txt``) or ``frame / frame_rate``;
 * ``motions/<seq>.csv``: per frame pair, the predicted ``t`` (m) and ``ω`` (rad), camera ``k + 1``
   in camera ``k`` (x right, y down, z forward);
@@ -51,17 +52,18 @@ from lightning.pytorch.utilities.model_helpers import is_overridden
 from omegaconf import DictConfig
 from torch import Tensor
 
-from mfg_lightning import geometry, trajectories
-from mfg_lightning.atomic import atomic_write_bytes, atomic_write_text
-from mfg_lightning.checkpoints import module_from_checkpoint
-from mfg_lightning.config import CONFIG_DIR
+from mfg_lightning.core import geometry
+from mfg_lightning.core.atomic import atomic_write_bytes, atomic_write_text
+from mfg_lightning.core.config import CONFIG_DIR
+from mfg_lightning.core.errors import UserError, exit_on_unknown_choice, exit_on_user_error
 from mfg_lightning.data.sample import sanitize_flow
-from mfg_lightning.errors import UserError, exit_on_unknown_choice, exit_on_user_error
 from mfg_lightning.models.mfg import validate_top_k
 from mfg_lightning.models.mfg_module import MFGLitModule
-from mfg_lightning.object_motion import ObjectMotionConfig, extract_object_motion
-from mfg_lightning.pose_io import write_trajectory
-from mfg_lightning.runs import run_info
+from mfg_lightning.motion.object_motion import ObjectMotionConfig, extract_object_motion
+from mfg_lightning.run.checkpoints import module_from_checkpoint
+from mfg_lightning.run.runs import run_info
+from mfg_lightning.trajectory import trajectories
+from mfg_lightning.trajectory.pose_io import write_trajectory
 
 log = logging.getLogger("mfg_lightning.predict")
 

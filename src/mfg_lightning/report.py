@@ -32,8 +32,9 @@ of its directory is reported as ``failed`` with the reason; the other jobs are s
 Exit codes: 0 report written; 1 report written but no job finished; 2 not a multirun directory
 (missing, empty, a single run, or no job directories: one ``error: …`` line).
 
-The jobs are read by :mod:`mfg_lightning.sweeps`, the tables built by
-:mod:`mfg_lightning.result_tables` and the figures drawn by :mod:`mfg_lightning.plots`.
+The jobs are read by :mod:`mfg_lightning.analysis.sweeps`, the tables built by
+:mod:`mfg_lightning.analysis.result_tables` and the figures drawn by
+:mod:`mfg_lightning.pictures.plots`.
 """
 
 from __future__ import annotations
@@ -45,11 +46,14 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from mfg_lightning.atomic import atomic_write_bytes, atomic_write_text
-from mfg_lightning.errors import report_user_error
-from mfg_lightning.plots import figure_png, sweep_figures
-from mfg_lightning.result_tables import seeds_csv_table, seeds_table, sweep_csv_table, sweep_table
-from mfg_lightning.sweeps import (
+from mfg_lightning.analysis.result_tables import (
+    seeds_csv_table,
+    seeds_table,
+    sweep_csv_table,
+    sweep_table,
+)
+from mfg_lightning.analysis.sweep_figures import sweep_figures
+from mfg_lightning.analysis.sweeps import (
     JobRecord,
     SeedGroup,
     collect_jobs,
@@ -58,7 +62,10 @@ from mfg_lightning.sweeps import (
     seed_groups,
     swept_keys,
 )
-from mfg_lightning.tables import markdown_text
+from mfg_lightning.core.atomic import atomic_write_bytes, atomic_write_text
+from mfg_lightning.core.errors import report_user_error
+from mfg_lightning.core.tables import markdown_text
+from mfg_lightning.pictures.plots import figure_png
 
 __all__ = ["Report", "main", "report_markdown", "write_report"]
 

@@ -15,8 +15,8 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig
 
-from mfg_lightning.config import CONFIG_DIR
-from mfg_lightning.errors import exit_on_unknown_choice, exit_on_user_error
+from mfg_lightning.core.config import CONFIG_DIR
+from mfg_lightning.core.errors import exit_on_unknown_choice, exit_on_user_error
 from mfg_lightning.study import stages as S
 from mfg_lightning.study.run import check, run
 

@@ -7,7 +7,7 @@ triples (:func:`portion_frames` for the training head / validation tail of a seq
 index problems with :meth:`FileMotionDataset.report_problems` and loads one sample in ``_load``;
 and an :class:`MFGDataModule` subclass whose :meth:`~MFGDataModule.build_dataset` picks the
 sequences of a split (:func:`split_sequences`). Errors and the skip counter are in
-:mod:`mfg_lightning.data.errors`.
+:mod:`mfg_lightning.core.data_errors`.
 """
 
 from __future__ import annotations
@@ -25,15 +25,15 @@ import torch
 import torch.distributed as dist
 from torch.utils.data import DataLoader, Dataset, DistributedSampler, default_collate
 
-from mfg_lightning import geometry
-from mfg_lightning.data import transforms
-from mfg_lightning.data.errors import (
+from mfg_lightning.core import geometry
+from mfg_lightning.core.data_errors import (
     DataFileError,
     DataRootError,
     SkipCounter,
     read_bytes,
     report_skipped,
 )
+from mfg_lightning.data import transforms
 from mfg_lightning.data.resumable_loader import ResumableDataLoader
 
 log = logging.getLogger(__name__)
@@ -89,7 +89,8 @@ class FileMotionDataset(MotionDataset):
 
     Subclasses call this ``__init__`` first, fill ``samples`` and ``name`` and implement
     :meth:`_load`. A file error is re-raised naming the sample, or, with ``skip_bad_samples``,
-    warned about, counted in ``skipped`` (a :class:`~mfg_lightning.data.errors.SkipCounter`), and
+    warned about, counted in ``skipped`` (a :class:`~mfg_lightning.core.data_errors.SkipCounter`),
+    and
     the sample dropped (``None``; :func:`collate_samples` leaves it out).
 
     Args:
@@ -151,7 +152,7 @@ class FileMotionDataset(MotionDataset):
 
     def report_problems(self, problems: list[str]) -> None:
         """Problems found while indexing (missing frames, short pose files): one
-        :class:`~mfg_lightning.data.errors.DataFileError` listing them all, or with
+        :class:`~mfg_lightning.core.data_errors.DataFileError` listing them all, or with
         ``skip_bad_samples`` one warning (the affected samples are already left out)."""
         if not problems:
             return
@@ -187,7 +188,7 @@ def portion_frames(n_frames: int, portion: str, val_fraction: float, span: int) 
 
 
 def check_data_root(data_root: str | os.PathLike | None, point_at: str, layout: str = "") -> Path:
-    """``data_root`` expanded (``~``), or a :class:`~mfg_lightning.data.errors.DataRootError`
+    """``data_root`` expanded (``~``), or a :class:`~mfg_lightning.core.data_errors.DataRootError`
     when it is not set or not a directory.
 
     Args:
@@ -205,7 +206,7 @@ def check_data_root(data_root: str | os.PathLike | None, point_at: str, layout: 
 
 
 def read_text_lines(path: str | os.PathLike) -> list[str]:
-    """The lines of a UTF-8 text file, or a :class:`~mfg_lightning.data.errors.DataFileError`
+    """The lines of a UTF-8 text file, or a :class:`~mfg_lightning.core.data_errors.DataFileError`
     naming it (missing, unreadable, not text). Callers name the line of what they parse."""
     try:
         return read_bytes(path).decode("utf-8").splitlines()

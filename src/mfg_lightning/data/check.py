@@ -39,11 +39,11 @@ import torch
 from hydra.utils import get_class, instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from mfg_lightning import geometry
-from mfg_lightning.config import CONFIG_DIR
-from mfg_lightning.data import flow_io
-from mfg_lightning.data.errors import DataFileError, DataRootError
-from mfg_lightning.errors import exit_on_unknown_choice, exit_on_user_error
+from mfg_lightning.core import geometry
+from mfg_lightning.core.config import CONFIG_DIR
+from mfg_lightning.core.data_errors import DataFileError, DataRootError
+from mfg_lightning.core.errors import exit_on_unknown_choice, exit_on_user_error
+from mfg_lightning.flow import io as flow_io
 
 log = logging.getLogger("mfg_lightning.data.check")
 

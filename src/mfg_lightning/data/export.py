@@ -7,11 +7,11 @@ Virtual KITTI 1.3.1 and 2.0.3), readable by ``dataset=kitti|vkitti`` and by othe
 The trajectories, seeds and world settings are those of ``dataset=synthetic`` (its config is
 composed, so ``dataset.trajectory=kitti dataset.poses_dir=…``, ``dataset.train_sequences``,
 ``dataset.sequence_length``, ``dataset.max_frames`` … apply): each trajectory's persistent
-:class:`~mfg_lightning.data.worlds.World` is the one ``dataset=synthetic flow=dis`` renders
+:class:`~mfg_lightning.scene.worlds.World` is the one ``dataset=synthetic flow=dis`` renders
 (same name and seed), every frame is rendered once
-(:func:`~mfg_lightning.data.render.render_frame`) and, for Virtual KITTI, the forward flow of
+(:func:`~mfg_lightning.scene.render.render_frame`) and, for Virtual KITTI, the forward flow of
 frame ``t → t + 1`` is the exact flow from that rendering
-(:func:`~mfg_lightning.data.render.exact_flow`). Layouts (``../shared/docs/formats.md``)::
+(:func:`~mfg_lightning.scene.render.exact_flow`). Layouts (``../shared/docs/formats.md``)::
 
     layout=kitti (any size; default KITTI 00's 1241 × 376 and its P2)
     sequences/XX/image_2/000000.png …   8-bit RGB
@@ -60,9 +60,9 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from mfg_lightning import geometry
-from mfg_lightning.config import CONFIG_DIR
-from mfg_lightning.errors import exit_on_unknown_choice, exit_on_user_error
+from mfg_lightning.core import geometry
+from mfg_lightning.core.config import CONFIG_DIR
+from mfg_lightning.core.errors import exit_on_unknown_choice, exit_on_user_error
 
 log = logging.getLogger(__name__)
 
@@ -166,7 +166,7 @@ class KittiTree:
     version = None
 
     def __init__(self, root: Path, height: int, width: int) -> None:
-        from mfg_lightning.data.synthetic import kitti_like_intrinsics
+        from mfg_lightning.scene.camera import kitti_like_intrinsics
 
         self.root, self.height, self.width = Path(root), int(height), int(width)
         self.intrinsics = kitti_like_intrinsics(self.height, self.width)
@@ -178,15 +178,15 @@ class KittiTree:
 
     def write_frame(self, seq: Sequence, world: Any, k: int, frame: Any) -> None:
         """Frame ``k`` of ``seq``, rendered (``frame``: a ``RenderedFrame``)."""
-        from mfg_lightning.data import flow_io
+        from mfg_lightning.flow import io as flow_io
 
         path = self.root / "sequences" / seq.name / "image_2" / f"{k:06d}.png"
         flow_io.write_rgb(path, frame.rgb.permute(1, 2, 0).numpy())
 
     def write_sequence(self, seq: Sequence) -> None:
         """The per-sequence files, after its frames (so a sequence with poses is complete)."""
-        from mfg_lightning import pose_io
         from mfg_lightning.data.kitti import write_kitti_calib
+        from mfg_lightning.trajectory import pose_io
 
         folder = self.root / "sequences" / seq.name
         write_kitti_calib(folder / "calib.txt", self.intrinsics.numpy())
@@ -224,8 +224,8 @@ class VkittiTree:
         return [d.name for d in self.paths.top_dirs()]
 
     def write_frame(self, seq: Sequence, world: Any, k: int, frame: Any) -> None:
-        from mfg_lightning.data import flow_io
-        from mfg_lightning.data.render import FAR_PLANE, exact_flow
+        from mfg_lightning.flow import io as flow_io
+        from mfg_lightning.scene.render import FAR_PLANE, exact_flow
 
         P = self.paths
         flow_io.write_rgb(P.file("rgb", seq.name, VARIATION, k), frame.rgb.permute(1, 2, 0).numpy())
@@ -295,7 +295,7 @@ def _prepare_out(out: Path, overwrite: bool) -> None:
 def _write_manifest(
     tree: KittiTree | VkittiTree, sequences: list[Sequence], cfg: DictConfig, complete: bool
 ) -> None:
-    from mfg_lightning.atomic import atomic_write_text
+    from mfg_lightning.core.atomic import atomic_write_text
 
     manifest = {
         "format": _MANIFEST_FORMAT,
@@ -315,7 +315,7 @@ def _write_manifest(
 
 
 def _image_size(cfg: DictConfig) -> tuple[int, int]:
-    from mfg_lightning.data.render import check_render_size
+    from mfg_lightning.scene.render import check_render_size
 
     height, width = cfg.get("height"), cfg.get("width")
     try:
@@ -334,10 +334,11 @@ def export(cfg: DictConfig, progress: bool = True) -> dict[str, Any]:
     from hydra.utils import get_class, instantiate
     from tqdm.auto import tqdm
 
-    from mfg_lightning.data.render import render_frame
-    from mfg_lightning.data.synthetic import SyntheticDataModule, _world_config
+    from mfg_lightning.data.rendered import world_config
+    from mfg_lightning.data.synthetic import SyntheticDataModule
     from mfg_lightning.data.vkitti import normalize_version
-    from mfg_lightning.data.worlds import World
+    from mfg_lightning.scene.render import render_frame
+    from mfg_lightning.scene.worlds import World
 
     layout = cfg.get("layout")
     if layout not in LAYOUTS:
@@ -363,7 +364,7 @@ def export(cfg: DictConfig, progress: bool = True) -> dict[str, Any]:
         tree = VkittiTree(out, height, width, version)
     datamodule = instantiate(cfg.dataset, flow={"source": "exact"})
     sequences = synthetic_sequences(datamodule, layout)
-    world_config = _world_config(datamodule.world)
+    worlds_config = world_config(datamodule.world)
 
     _prepare_out(out, bool(cfg.get("overwrite")))
     out.mkdir(parents=True, exist_ok=True)
@@ -374,7 +375,7 @@ def export(cfg: DictConfig, progress: bool = True) -> dict[str, Any]:
     start = time.perf_counter()
     try:
         for seq in sequences:
-            world = World.generate(seq.poses, seed=seq.seed, name=seq.world, config=world_config)
+            world = World.generate(seq.poses, seed=seq.seed, name=seq.world, config=worlds_config)
             for k in range(len(seq.poses)):
                 frame = render_frame(world, k, tree.intrinsics, height, width)
                 tree.write_frame(seq, world, k, frame)

@@ -29,11 +29,11 @@ from typing import Any
 import numpy as np
 from torch.utils.data import DataLoader
 
-from mfg_lightning import pose_io
-from mfg_lightning.data import flow_io
+from mfg_lightning.core.data_errors import DataFileError
 from mfg_lightning.data.base import MFGDataModule, check_data_root, normalize_sequence
-from mfg_lightning.data.errors import DataFileError
 from mfg_lightning.data.kitti import KittiOdometryDataset, _Sequence, kitti_flow_source
+from mfg_lightning.flow import io as flow_io
+from mfg_lightning.trajectory import pose_io
 
 __all__ = ["ImageFolderDataModule", "ImageFolderDataset", "NoGroundTruthError"]
 

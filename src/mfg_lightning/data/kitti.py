@@ -42,7 +42,7 @@ Flow, one of:
   and its values rescaled. A missing file is an error listing the expected names.
 
 Poses: ``sample['pose'] = T_world_cam(src)^-1 · T_world_cam(tgt)`` (camera at the target in the
-camera at the source), from :func:`mfg_lightning.geometry.relative_pose`. Intrinsics come from
+camera at the source), from :func:`mfg_lightning.core.geometry.relative_pose`. Intrinsics come from
 ``P2`` and are scaled to the input size.
 
 Sequences without ground truth (KITTI ships ``poses/`` for 00–10 only): the ``predict`` split
@@ -65,8 +65,9 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from mfg_lightning import geometry, pose_io
-from mfg_lightning.data import flow_io, transforms
+from mfg_lightning.core import geometry
+from mfg_lightning.core.data_errors import DataFileError, DataRootError
+from mfg_lightning.data import transforms
 from mfg_lightning.data.base import (
     FileMotionDataset,
     MFGDataModule,
@@ -79,8 +80,10 @@ from mfg_lightning.data.base import (
     some_of,
     split_sequences,
 )
-from mfg_lightning.data.errors import DataFileError, DataRootError
-from mfg_lightning.data.flow_estimation import (
+from mfg_lightning.data.sample import sanitize_flow
+from mfg_lightning.flow import io as flow_io
+from mfg_lightning.flow.cache import default_cache_dir
+from mfg_lightning.flow.estimators import (
     DIS_PRESETS,
     DISFlowEstimator,
     EstimatedFlow,
@@ -89,7 +92,7 @@ from mfg_lightning.data.flow_estimation import (
     FlowSource,
     parse_flow,
 )
-from mfg_lightning.data.sample import sanitize_flow
+from mfg_lightning.trajectory import pose_io
 
 log = logging.getLogger(__name__)
 
@@ -100,7 +103,6 @@ __all__ = [
     "FlowCache",
     "KittiDataModule",
     "KittiOdometryDataset",
-    "default_cache_dir",
     "normalize_sequence",
     "read_kitti_calib",
     "read_kitti_poses",
@@ -127,12 +129,6 @@ KITTI_LAYOUT = """\
 
 # Bump when the cached array layout changes, so old caches are not misread.
 _CACHE_FORMAT = 1
-
-
-def default_cache_dir() -> Path:
-    """``$MFG_CACHE_DIR`` or ``~/.cache/mfg_lightning`` (the ``paths.cache_dir`` default)."""
-    env = os.environ.get("MFG_CACHE_DIR")
-    return Path(env).expanduser() if env else Path.home() / ".cache" / "mfg_lightning"
 
 
 def kitti_flow_source(flow: FlowSource | dict[str, Any] | None) -> EstimatedFlow | FlowFiles:
@@ -201,7 +197,7 @@ def write_kitti_calib(
         intrinsics: ``(4,)`` ``(fx, fy, cx, cy)`` in pixels, finite, ``fx, fy > 0``.
         baseline: the stereo baseline in metres.
     """
-    from mfg_lightning.atomic import atomic_write_text
+    from mfg_lightning.core.atomic import atomic_write_text
 
     fx, fy, cx, cy = (float(v) for v in np.asarray(intrinsics, np.float64).reshape(4))
     if not (np.isfinite([fx, fy, cx, cy]).all() and fx > 0 and fy > 0):
@@ -221,7 +217,7 @@ def _sci(value: float) -> str:
 
 
 def read_kitti_poses(path: str | os.PathLike) -> np.ndarray:
-    """Read a KITTI pose file (``poses/XX.txt``) with :mod:`mfg_lightning.pose_io`.
+    """Read a KITTI pose file (``poses/XX.txt``) with :mod:`mfg_lightning.trajectory.pose_io`.
 
     Returns:
         ``(N, 4, 4)`` float64 ``T_world_cam`` (camera-to-world, metres).
@@ -300,7 +296,7 @@ class KittiOdometryDataset(FileMotionDataset):
         offsets: target offsets, ``target = frame + offset`` (non-zero integers).
         val_fraction: fraction of each sequence held out as its validation tail.
         flow: the flow source, a ``conf/flow`` config or its parsed form
-            (:func:`~mfg_lightning.data.flow_estimation.parse_flow`): ``{"source": "dis",
+            (:func:`~mfg_lightning.flow.estimators.parse_flow`): ``{"source": "dis",
             "preset": …, "params": …, "height": …, "width": …}`` (the default: DIS ``medium``
             at the native size; ``height × width`` is the size the images are resized to before
             estimation) or ``{"source": "files", "dir": <flow_dir>}`` (user-supplied flow,

@@ -13,7 +13,7 @@ key                 shape / type         meaning
                                          non-finite in the file)
 ``pose``            ``(4, 4)`` f32       relative pose ``T_src,tgt`` = camera at the target
                                          frame expressed in the camera at the source frame
-                                         (metres); see :mod:`mfg_lightning.geometry`
+                                         (metres); see :mod:`mfg_lightning.core.geometry`
 ``intrinsics``      ``(4,)`` f32         ``(fx, fy, cx, cy)`` in pixels at the input resolution
 ``depth``           ``(H, W)`` f32       (optional) depth of the source frame along z, metres;
                                          0 where unknown

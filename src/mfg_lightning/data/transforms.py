@@ -22,7 +22,7 @@ Choices, and why:
 * **Masks** (object masks) keep an output pixel when at least half of the input pixels it
   covers, among those where the mask is defined, are set.
 * **RGB** uses ``cv2.INTER_AREA`` (anti-aliased shrinking).
-* **Intrinsics** go through :func:`mfg_lightning.geometry.scale_intrinsics` (pixel centres map
+* **Intrinsics** go through :func:`mfg_lightning.core.geometry.scale_intrinsics` (pixel centres map
   as ``u' = (u + 0.5) · s − 0.5``).
 
 When the output is larger than the input, bilinear interpolation replaces the area average, with
@@ -35,7 +35,7 @@ import cv2
 import numpy as np
 import torch
 
-from mfg_lightning import geometry
+from mfg_lightning.core import geometry
 
 __all__ = [
     "flow_to_tensor",

@@ -38,7 +38,7 @@ Each sample (schema of :mod:`mfg_lightning.data.sample`) at the model's input si
   ``intrinsic.txt`` (2.0.3), scaled to the input size;
 * ``object_mask``, ``object_flow``: independently moving pixels, found at the *native*
   resolution as pixels whose ground-truth flow differs from the rigid flow of the camera motion
-  (:func:`mfg_lightning.geometry.reprojection_flow` of the depth and pose) by more than
+  (:func:`mfg_lightning.core.geometry.reprojection_flow` of the depth and pose) by more than
   ``object_threshold`` native pixels. Only pixels with valid flow and a real depth count: the far
   plane (sky) and invalid flow are never objects. ``object_flow = flow − rigid flow`` on the mask
   (0 elsewhere), resized like the flow (mean over the object pixels of each output pixel); an
@@ -59,8 +59,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from mfg_lightning import geometry
-from mfg_lightning.data import flow_io, transforms
+from mfg_lightning.core import geometry
+from mfg_lightning.core.data_errors import DataFileError, DataRootError
+from mfg_lightning.data import transforms
 from mfg_lightning.data.base import (
     FileMotionDataset,
     MFGDataModule,
@@ -71,9 +72,9 @@ from mfg_lightning.data.base import (
     some_of,
     split_sequences,
 )
-from mfg_lightning.data.errors import DataFileError, DataRootError
-from mfg_lightning.data.flow_estimation import FlowSource, GroundTruthFlow, parse_flow
 from mfg_lightning.data.sample import sanitize_flow
+from mfg_lightning.flow import io as flow_io
+from mfg_lightning.flow.estimators import FlowSource, GroundTruthFlow, parse_flow
 
 log = logging.getLogger(__name__)
 
@@ -199,7 +200,7 @@ _MATRIX_HEADER = "r1,1 r1,2 r1,3 t1 r2,1 r2,2 r2,3 t2 r3,1 r3,2 r3,3 t3 0 0 0 1"
 def _write_table(path: str | os.PathLike, header: str, rows: np.ndarray, ints: int) -> None:
     """A header line, then one row per line: the first ``ints`` columns as integers, the rest as
     the shortest text that reads back exactly (``repr``)."""
-    from mfg_lightning.atomic import atomic_write_text
+    from mfg_lightning.core.atomic import atomic_write_text
 
     lines = [header]
     for row in rows:
@@ -575,7 +576,7 @@ def moving_object_mask(
 
     Returns:
         ``(mask, residual)``: ``(H, W)`` bool, and ``(H, W, 2)`` float32 ``flow − rigid flow``
-        (the rigid flow from :func:`mfg_lightning.geometry.reprojection_flow`; 0 where the
+        (the rigid flow from :func:`mfg_lightning.core.geometry.reprojection_flow`; 0 where the
         pixel has no valid flow or no real depth).
     """
     defined = valid & ~far & (depth > 0)

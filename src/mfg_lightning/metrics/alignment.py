@@ -27,7 +27,7 @@ the same, ``σ_p² = 0``, or ``Σ p·p = 0`` for ``scale``) get ``s = 0``: any s
 aligned points, and the error is that of predicting no motion, finite (as the snippet ATE of
 :mod:`mfg_lightning.metrics.ate`).
 
-Poses follow :mod:`mfg_lightning.geometry`'s conventions (camera-to-world ``T_world_cam``);
+Poses follow :mod:`mfg_lightning.core.geometry`'s conventions (camera-to-world ``T_world_cam``);
 alignment acts on the world frame, from the left, and never re-derives the SE(3) helpers.
 """
 
@@ -39,8 +39,8 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from mfg_lightning import geometry
-from mfg_lightning.trajectories import check_sequence_pair, evaluation_poses
+from mfg_lightning.core import geometry
+from mfg_lightning.trajectory.trajectories import check_sequence_pair, evaluation_poses
 
 __all__ = [
     "ALIGN_MODES",
@@ -149,7 +149,7 @@ def align_trajectory(
 
     Returns:
         :class:`Alignment` (float64, rotation blocks projected onto SO(3) first, as every
-        trajectory metric does: :func:`mfg_lightning.trajectories.evaluation_poses`).
+        trajectory metric does: :func:`mfg_lightning.trajectory.trajectories.evaluation_poses`).
     """
     check_align_options(mode, n_to_align)
     check_sequence_pair(pred, target)

@@ -28,9 +28,9 @@ import torch
 from torch import Tensor
 from torchmetrics import Metric
 
-from mfg_lightning import geometry
+from mfg_lightning.core import geometry
 from mfg_lightning.metrics.stats import cat_state, summary
-from mfg_lightning.trajectories import evaluation_poses
+from mfg_lightning.trajectory.trajectories import evaluation_poses
 
 __all__ = ["ATE_NAMES", "SnippetATE", "snippet_ate", "snippet_ate_errors"]
 

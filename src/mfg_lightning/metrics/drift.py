@@ -16,7 +16,8 @@ Definition (``../shared/docs/protocols.md``, "KITTI odometry drift", as computed
 
 Differences from the C++ devkit, on purpose: float64 instead of float32 throughout (the devkit's
 float32 path length can move a segment's last frame by one at exact ties), and rotation blocks
-projected onto SO(3) first (:func:`mfg_lightning.trajectories.evaluation_poses`). Neither changes a
+projected onto SO(3) first (:func:`mfg_lightning.trajectory.trajectories.evaluation_poses`).
+Neither changes a
 leaderboard-scale number. With no complete segment (a path shorter than 100 m) the drift is
 undefined and NaN is returned.
 
@@ -39,10 +40,10 @@ import torch
 from torch import Tensor
 from torchmetrics import Metric
 
-from mfg_lightning import geometry
+from mfg_lightning.core import geometry
 from mfg_lightning.metrics.alignment import align_trajectory, check_align_options
 from mfg_lightning.metrics.stats import MetricValues, cat_state, summary
-from mfg_lightning.trajectories import check_sequence_pair, evaluation_poses
+from mfg_lightning.trajectory.trajectories import check_sequence_pair, evaluation_poses
 
 __all__ = [
     "DRIFT_NAMES",

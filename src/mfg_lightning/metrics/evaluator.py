@@ -3,7 +3,7 @@
 The network predicts one relative motion per sample; the published metrics compare trajectories.
 :class:`TrajectoryEvaluator` collects the predictions of a validation or test epoch (across
 processes under DDP), orders them by sequence and frame, forms snippets and full trajectories with
-:mod:`mfg_lightning.trajectories` and feeds them to the metrics of this package
+:mod:`mfg_lightning.trajectory.trajectories` and feeds them to the metrics of this package
 (``../shared/docs/protocols.md``), one instance per sequence and one pooled over all of them:
 
 * ``ate`` / ``ate_std`` / ``ate_rmse`` (:class:`~.ate.SnippetATE`): frame-by-frame snippets
@@ -32,11 +32,11 @@ import torch.distributed as dist
 from torch import Tensor
 from torchmetrics import Metric
 
-from mfg_lightning import trajectories
 from mfg_lightning.metrics.ate import SnippetATE
 from mfg_lightning.metrics.ate_traj import TrajectoryATE
 from mfg_lightning.metrics.drift import KittiDrift
 from mfg_lightning.metrics.rpe import RelativePoseError
+from mfg_lightning.trajectory import trajectories
 
 __all__ = ["EvaluationResult", "SequencePrediction", "TrajectoryEvaluator"]
 

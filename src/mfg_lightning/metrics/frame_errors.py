@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from torch import Tensor
 
-from mfg_lightning import geometry
+from mfg_lightning.core import geometry
 
 
 def frame_errors(t_pred: Tensor, omega_pred: Tensor, pose_gt: Tensor) -> tuple[Tensor, Tensor]:

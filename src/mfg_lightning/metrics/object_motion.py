@@ -2,7 +2,8 @@
 
 The paper reports object motion qualitatively only (§5.4, Figure 4); these scores are this
 project's addition (``shared/docs/protocols.md``, "Object motion"). They compare a predicted object
-mask and object motion field (:func:`mfg_lightning.object_motion.extract_object_motion`) with a
+mask and object motion field (:func:`mfg_lightning.motion.object_motion.extract_object_motion`)
+with a
 sample's ground-truth ``object_mask`` and ``object_flow`` (:mod:`mfg_lightning.data.sample`).
 
 Pooling
@@ -39,7 +40,7 @@ import torch
 from torch import Tensor
 from torchmetrics import Metric
 
-from mfg_lightning.object_motion import depth_validity
+from mfg_lightning.motion.object_motion import depth_validity
 
 __all__ = ["ObjectMotionScores"]
 

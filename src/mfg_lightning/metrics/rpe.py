@@ -11,7 +11,8 @@ all ``i`` (and all sequences): mean, population standard deviation and RMSE. Thi
 ``evo_rpe --delta Δ --delta_unit f`` with pose relations ``trans_part`` and ``angle_rad``
 (cross-checked in ``tests/test_metrics_rpe.py``); for Δ > 1 add ``--all_pairs``, since evo's
 default then steps the first frame by Δ instead of taking every ``i``. Rotation blocks are first
-projected onto SO(3) (:func:`mfg_lightning.trajectories.evaluation_poses`): rounding in pose files
+projected onto SO(3) (:func:`mfg_lightning.trajectory.trajectories.evaluation_poses`): rounding in
+pose files
 otherwise puts a floor of ~5e-4 rad under the arccos.
 """
 
@@ -22,9 +23,9 @@ from typing import Any
 from torch import Tensor
 from torchmetrics import Metric
 
-from mfg_lightning import geometry
+from mfg_lightning.core import geometry
 from mfg_lightning.metrics.stats import MetricValues, cat_state, summary
-from mfg_lightning.trajectories import check_sequence_pair, evaluation_poses
+from mfg_lightning.trajectory.trajectories import check_sequence_pair, evaluation_poses
 
 __all__ = ["RPE_NAMES", "RelativePoseError", "relative_pose_error", "relative_pose_errors"]
 

@@ -1,8 +1,8 @@
 """The LightningModule that trains and evaluates MFG.
 
 Training: ground-truth translational (ρ = 1) and rotational fields are built from each sample's
-relative pose with :mod:`mfg_lightning.geometry`, and the network is fit with
-``w_t L_t + w_ω L_ω + w_s L_s`` (:class:`mfg_lightning.losses.MFGLoss`). Validation and test:
+relative pose with :mod:`mfg_lightning.core.geometry`, and the network is fit with
+``w_t L_t + w_ω L_ω + w_s L_s`` (:class:`mfg_lightning.models.losses.MFGLoss`). Validation and test:
 the predicted fields are turned into ``(t̃, ω̃)`` in closed form and scored per frame.
 """
 
@@ -18,19 +18,19 @@ from lightning.pytorch.loggers import TensorBoardLogger
 from torch import Tensor, nn
 from torchmetrics import MeanMetric, SumMetric
 
-from mfg_lightning import geometry
+from mfg_lightning.core import geometry
 from mfg_lightning.data.sample import sanitize_flow
-from mfg_lightning.losses import LossTerms, MFGLoss
 from mfg_lightning.metrics.evaluator import EvaluationResult, TrajectoryEvaluator
 from mfg_lightning.metrics.frame_errors import constant_motion_errors, frame_errors
 from mfg_lightning.metrics.object_motion import ObjectMotionScores
+from mfg_lightning.models.losses import LossTerms, MFGLoss
 from mfg_lightning.models.mfg import MFG, MFGOutput, validate_top_k
-from mfg_lightning.object_motion import (
+from mfg_lightning.motion.object_motion import (
     ObjectMotionConfig,
     extract_object_motion,
     threshold_baseline,
 )
-from mfg_lightning.visualization import activation_map, flows_to_rgb
+from mfg_lightning.pictures.colours import activation_map, flows_to_rgb
 
 log = logging.getLogger(__name__)
 
@@ -70,7 +70,7 @@ class MFGLitModule(L.LightningModule):
     ) -> None:
         super().__init__()
         # Plain values only: the optimiser and scheduler partials would make every checkpoint
-        # need more than tensors and plain data to unpickle (mfg_lightning.checkpoints).
+        # need more than tensors and plain data to unpickle (mfg_lightning.run.checkpoints).
         self.save_hyperparameters(
             ignore=["net", "loss", "object_motion", "optimizer", "scheduler"], logger=False
         )
@@ -89,7 +89,7 @@ class MFGLitModule(L.LightningModule):
         self.max_consecutive_nonfinite = max_consecutive_nonfinite
         self._consecutive_nonfinite = 0
         #: the model's config, set by the entry point and stored in checkpoints so that
-        #: :mod:`mfg_lightning.checkpoints` can rebuild the network without the run directory.
+        #: :mod:`mfg_lightning.run.checkpoints` can rebuild the network without the run directory.
         self.model_config: dict | None = None
         #: the training dataset's config, stored in checkpoints for evaluation defaults
         self.dataset_config: dict | None = None

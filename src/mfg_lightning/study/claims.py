@@ -13,7 +13,8 @@ import statistics
 from dataclasses import dataclass
 from typing import Any
 
-from mfg_lightning import plots
+from mfg_lightning.core.tables import fmt
+from mfg_lightning.pictures import plots
 from mfg_lightning.study.verdicts import (
     HOLDS,
     NOT_HOLD,
@@ -24,7 +25,6 @@ from mfg_lightning.study.verdicts import (
     relative_verdict,
     worst,
 )
-from mfg_lightning.tables import fmt
 
 #: Table 1 (†, frame by frame), ATE 09 / 10 (m) by k.
 PAPER_TABLE1 = {
@@ -264,7 +264,7 @@ def claim_basis(bs: dict | None, residual: float) -> tuple[Row, Any]:
     )
     if bs is None:
         return row, None
-    from mfg_lightning.basis import selectivity_figure
+    from mfg_lightning.analysis.basis import selectivity_figure
 
     n = len(bs["residual_t"])
     expl_t = sum(r <= residual for r in bs["residual_t"])

@@ -8,18 +8,18 @@ import platform
 import time
 from pathlib import Path
 
-from mfg_lightning.atomic import atomic_write_bytes, atomic_write_text
-from mfg_lightning.plots import figure_png
+from mfg_lightning.core.atomic import atomic_write_bytes, atomic_write_text
+from mfg_lightning.core.tables import Column, Table
+from mfg_lightning.pictures.plots import figure_png
 from mfg_lightning.study import claims as C
 from mfg_lightning.study import stages as S
 from mfg_lightning.study.verdicts import Thresholds
-from mfg_lightning.tables import Column, Table
 
 
 def _machine() -> dict[str, str]:
     import torch
 
-    from mfg_lightning.runs import git_commit
+    from mfg_lightning.run.runs import git_commit
 
     try:
         cores = len(os.sched_getaffinity(0))

@@ -134,7 +134,7 @@ def run(study: S.Study, report: Path) -> Path:
             write()
 
     def table2() -> dict:
-        from mfg_lightning.scoring import classical_methods, score_methods, scored_rows
+        from mfg_lightning.analysis.scoring import classical_methods, score_methods, scored_rows
 
         extra = list(cfg.table2.overrides)
         trained = study.train("table2", extra, cfg.budget.other_steps)
@@ -155,7 +155,7 @@ def run(study: S.Study, report: Path) -> Path:
     write()
 
     def robustness() -> dict | None:
-        from mfg_lightning.scoring import (
+        from mfg_lightning.analysis.scoring import (
             Method,
             classical_methods,
             mfg_top_k_methods,

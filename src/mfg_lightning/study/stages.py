@@ -2,11 +2,13 @@
 
 Each stage computes one JSON-able result, cached atomically as ``<work_dir>/<stage>.json`` and
 skipped when cached (an interrupted study resumes). Models are trained by
-:func:`mfg_lightning.train.train` from the ``train`` config composed with the study's overrides,
+:func:`mfg_lightning.run.training.train` from the ``train`` config composed with the study's
+overrides,
 into ``<work_dir>/models/<name>`` with ``resume=true`` (an interrupted training continues from its
 ``last.ckpt``); checkpoints are selected on validation (``val/ate``) only, never on the test
-sequences. Evaluation reuses :mod:`mfg_lightning.scoring` (MFG at any k, classical baselines),
-:mod:`mfg_lightning.basis`, :mod:`mfg_lightning.object_motion` and its scores.
+sequences. Evaluation reuses :mod:`mfg_lightning.analysis.scoring` (MFG at any k, classical
+baselines),
+:mod:`mfg_lightning.analysis.basis`, :mod:`mfg_lightning.motion.object_motion` and its scores.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torch.utils.data import DataLoader, Subset
 
-from mfg_lightning.atomic import atomic_write_text
+from mfg_lightning.core.atomic import atomic_write_text
 
 log = logging.getLogger("mfg_lightning.study")
 
@@ -84,7 +86,7 @@ class Study:
 
     def train_config(self, name: str, extra: list[str], steps: int) -> DictConfig:
         """The ``train`` config of model ``name``: the study's data, then ``extra``."""
-        from mfg_lightning.config import compose
+        from mfg_lightning.core.config import compose
 
         b = self.cfg.budget
         ov = [
@@ -135,7 +137,7 @@ class Study:
 
     def train(self, name: str, extra: list[str], steps: int) -> Result:
         """Train (or resume) model ``name``; its best checkpoint by ``val/ate``."""
-        from mfg_lightning.train import train
+        from mfg_lightning.run.training import train
 
         cfg = self.train_config(name, extra, steps)
         out = Path(cfg.paths.output_dir)
@@ -158,7 +160,7 @@ class Study:
         }
 
     def model(self, trained: Result) -> Any:
-        from mfg_lightning.checkpoints import module_from_checkpoint
+        from mfg_lightning.run.checkpoints import module_from_checkpoint
 
         return module_from_checkpoint(trained["checkpoint"]).eval()
 
@@ -196,7 +198,7 @@ def recipe_of(cfg: DictConfig) -> dict[str, Any]:
 
 def mfg_scores(model: Any, loader: DataLoader, ks: list[float]) -> dict[str, dict[str, float]]:
     """The trajectory metrics of MFG at every k (``"1"``: all units) over one loader."""
-    from mfg_lightning.scoring import Method, mfg_top_k_methods, score_methods
+    from mfg_lightning.analysis.scoring import Method, mfg_top_k_methods, score_methods
 
     predicts = mfg_top_k_methods(model, [None if k >= 1 else float(k) for k in ks])
     rows = [Method(f"k={k:g}", p) for k, p in zip(ks, predicts, strict=True)]
@@ -218,7 +220,7 @@ def smallest_k(val: dict[str, dict[str, float]], tolerance: float) -> float | No
 
 def active_fraction(model: Any, loader: DataLoader) -> float | None:
     """Mean fraction of hidden units active (> 0, before top-k) over a loader."""
-    from mfg_lightning.basis import population_statistics
+    from mfg_lightning.analysis.basis import population_statistics
 
     return population_statistics(model.net, loader).summary()["active_fraction_mean"]
 
@@ -276,7 +278,8 @@ def selectivity(model: Any, intrinsics: torch.Tensor, units: int) -> dict[str, A
     """Per-unit closed-form fits of the ``units`` largest units' decoder fields: relative
     residuals, preferred motions and their spread (resultant length of the unit directions:
     1 = one direction, 0 = spread evenly)."""
-    from mfg_lightning import basis, geometry
+    from mfg_lightning.analysis import basis
+    from mfg_lightning.core import geometry
 
     net = model.net
     rows = basis.selectivity_rows(net, intrinsics, units)
@@ -317,7 +320,7 @@ def object_motion_scores(
     scores' own depth split)."""
     from mfg_lightning.data.sample import sanitize_flow
     from mfg_lightning.metrics.object_motion import ObjectMotionScores
-    from mfg_lightning.object_motion import extract_object_motion, threshold_baseline
+    from mfg_lightning.motion.object_motion import extract_object_motion, threshold_baseline
 
     groups = ("all", "slow", "fast")
     scores = {m: {g: ObjectMotionScores() for g in groups} for m in ("filters", "threshold")}

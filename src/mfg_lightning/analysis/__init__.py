@@ -1,0 +1,3 @@
+"""Reading trained models and finished runs: scoring methods on a loader (:mod:`.scoring`), the
+learned basis (:mod:`.basis`), sweep directories (:mod:`.sweeps`, :mod:`.sweep_figures`) and
+their result tables (:mod:`.result_tables`)."""

@@ -1,0 +1,54 @@
+"""Where the Hydra configs live, and composing them outside a Hydra app (tests, notebooks).
+
+``conf/`` sits at the top level of the repository. A wheel ships it inside the package as
+``mfg_lightning/conf`` (pyproject's ``force-include``); an editable install reads the
+repository's copy.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+from omegaconf import DictConfig
+
+
+def config_dir() -> Path:
+    """Absolute path of the config directory, for installed and editable packages alike."""
+    package = Path(__file__).resolve().parents[1]  # mfg_lightning/
+    packaged = package / "conf"
+    if packaged.is_dir():
+        return packaged
+    repo = package.parents[1] / "conf"
+    if repo.is_dir():
+        return repo
+    raise FileNotFoundError(
+        f"mfg_lightning's configs are neither at {packaged} nor at {repo}; reinstall the package"
+    )
+
+
+CONFIG_DIR = str(config_dir())
+
+
+def compose(config_name: str = "train", overrides: Sequence[str] = ()) -> DictConfig:
+    """Compose a config as the entry points would, without running anything.
+
+    Inside a running Hydra app it composes with that app's Hydra (whose search path is
+    :data:`CONFIG_DIR` for this package's entry points). ``hydra:`` interpolations (the run
+    directory) are not available outside an app: pass
+    ``paths.output_dir=...`` in ``overrides`` when the config will be instantiated.
+    """
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    if GlobalHydra.instance().is_initialized():
+        # Inside a running app (an entry point that composes the configs of its own runs, e.g.
+        # mfg_lightning.reproduce): its Hydra already searches CONFIG_DIR.
+        return hydra_compose(
+            config_name=config_name, overrides=list(overrides), return_hydra_config=False
+        )
+    with initialize_config_dir(version_base="1.3", config_dir=CONFIG_DIR):
+        return hydra_compose(
+            config_name=config_name, overrides=list(overrides), return_hydra_config=False
+        )

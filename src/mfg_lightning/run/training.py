@@ -1,0 +1,153 @@
+"""One training run from a composed ``train`` config: build everything with
+``hydra.utils.instantiate``, fit, test the best checkpoint, write ``metrics.json``.
+
+:mod:`mfg_lightning.train` is its command line; the reproduction study calls :func:`train` for
+each of its models. A run stopped at any point continues exactly where its last checkpoint left
+it with ``ckpt_path=last`` or ``resume=true`` and the same ``hydra.run.dir``
+(:mod:`mfg_lightning.run.callbacks`: atomic checkpoints, a data order that resumes mid-epoch, a
+checkpoint on SIGTERM)."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import signal
+import time
+import zipfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+from hydra.utils import instantiate
+from lightning.pytorch.utilities.exceptions import SIGTERMException
+from omegaconf import DictConfig, OmegaConf
+
+from mfg_lightning.core.atomic import atomic_write_text
+from mfg_lightning.run.callbacks import LastCheckpoint
+from mfg_lightning.run.checkpoints import CheckpointError
+from mfg_lightning.run.runs import (
+    build_model,
+    build_trainer,
+    finish_stale_logger_runs,
+    instantiate_list,
+    log_final_metrics,
+    log_hyperparameters,
+    run_info,
+    write_metrics,
+)
+
+# The command line's logger: a run's log reads the same whoever started it.
+log = logging.getLogger("mfg_lightning.train")
+
+
+def resolve_ckpt_path(ckpt_path: str | None, output_dir: Path, resume: bool = False) -> str | None:
+    """The checkpoint to resume from, or None for a fresh start.
+
+    ``ckpt_path="last"`` means ``<run dir>/checkpoints/last.ckpt``; without ``ckpt_path``,
+    ``resume=True`` picks that file up if it exists (a requeued job resumes, a first one starts).
+    A missing file named by ``ckpt_path`` or an unreadable (truncated) one is a clear error.
+    """
+    last = output_dir / "checkpoints" / "last.ckpt"
+    if ckpt_path is None:
+        if not (resume and last.is_file()):
+            return None
+        path = last
+    else:
+        path = last if ckpt_path == "last" else Path(ckpt_path)
+    if not path.is_file():
+        raise FileNotFoundError(f"ckpt_path: checkpoint not found: {path}")
+    # torch.save writes a zip archive whose directory sits at the end of the file, so a file cut
+    # short (a save killed by an older, non-atomic writer) fails this cheap check.
+    if not zipfile.is_zipfile(path):
+        raise CheckpointError(f"ckpt_path: {path} is not a readable checkpoint (truncated?)")
+    log.info("resuming from %s", path)
+    return str(path)
+
+
+def flat_hparams(cfg: DictConfig) -> dict[str, Any]:
+    """The run's settings as ``{"model.loss.w_s": 100.0, ...}`` scalars for TensorBoard HParams.
+
+    Hydra's own settings and paths are left out; lists become strings.
+    """
+    container = OmegaConf.to_container(cfg, resolve=True)
+    flat: dict[str, Any] = {}
+
+    def walk(prefix: str, node: Any) -> None:
+        if isinstance(node, dict):
+            for key, value in node.items():
+                if prefix == "" and key in ("paths", "hydra", "callbacks", "logger"):
+                    continue
+                walk(f"{prefix}{key}.", value)
+        else:
+            key = prefix[:-1]
+            flat[key] = node if isinstance(node, (int, float, str, bool)) else str(node)
+
+    walk("", container)
+    return flat
+
+
+@contextlib.contextmanager
+def exit_on_sigterm(trainer: L.Trainer) -> Iterator[None]:
+    """Lightning ends a fit or test stopped by SIGTERM with ``SIGTERMException`` (a
+    ``SystemExit`` of status 0); exit with 143 instead, the conventional status of a process
+    ended by SIGTERM, so that schedulers and scripts see an interrupted job. During a fit,
+    ``LastCheckpoint`` has saved ``last.ckpt`` by then."""
+    try:
+        yield
+    except SIGTERMException:
+        log.warning("stopped by SIGTERM at step %d", trainer.global_step)
+        raise SystemExit(128 + signal.SIGTERM) from None
+
+
+def train(cfg: DictConfig) -> dict[str, Any]:
+    """Fit and test as configured. Returns the final metrics (``val/*`` and ``test/*``)."""
+    output_dir = Path(cfg.paths.output_dir)
+    output_dir.mkdir(parents=True, exist_ok=True)
+    ckpt_path = resolve_ckpt_path(cfg.get("ckpt_path"), output_dir, bool(cfg.get("resume")))
+    atomic_write_text(output_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
+    info = {**run_info(), "seed": cfg.seed, "resumed_from": ckpt_path}
+    atomic_write_text(output_dir / "run_info.json", json.dumps(info, indent=2) + "\n")
+    L.seed_everything(cfg.seed, workers=True)
+
+    datamodule: L.LightningDataModule = instantiate(cfg.dataset)
+    model = build_model(cfg)
+    callbacks = instantiate_list(cfg.get("callbacks"))
+    # LastCheckpoint saves after ModelCheckpoint has recorded a validation's score (stable sort).
+    callbacks.sort(key=lambda cb: isinstance(cb, LastCheckpoint))
+    finish_stale_logger_runs()
+    loggers = instantiate_list(cfg.get("logger"))
+    trainer = build_trainer(cfg, callbacks, loggers)
+    hparams = flat_hparams(cfg)
+    log_hyperparameters(loggers, hparams)
+
+    start = time.perf_counter()
+    with exit_on_sigterm(trainer):
+        trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=True)
+    train_seconds = time.perf_counter() - start
+    # The last validation's metrics; a run resumed after it has them from the checkpoint.
+    last = [cb.validation_metrics for cb in callbacks if isinstance(cb, LastCheckpoint)]
+    metrics = {**(last[0] if last else {})}
+    metrics.update({k: v for k, v in trainer.callback_metrics.items() if k.startswith("val/")})
+
+    if cfg.get("test"):
+        best = getattr(trainer.checkpoint_callback, "best_model_path", "") or None
+        if best is None:
+            log.warning("no best checkpoint (no validation ran?): testing the current weights")
+        with exit_on_sigterm(trainer):
+            trainer.test(model, datamodule=datamodule, ckpt_path=best, weights_only=True)
+        metrics.update({k: v for k, v in trainer.callback_metrics.items() if k.startswith("test/")})
+    log_final_metrics(loggers, hparams, metrics, trainer.global_step)
+    if cfg.get("test") and trainer.is_global_zero:
+        write_metrics(
+            output_dir / "metrics.json",
+            metrics,
+            {
+                "train_seconds": train_seconds,
+                "global_step": trainer.global_step,
+                "best_checkpoint": best,
+                **run_info(),
+            },
+        )
+    return {k: float(v) for k, v in metrics.items()}

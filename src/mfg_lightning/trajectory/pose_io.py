@@ -1,0 +1,367 @@
+"""Reading and writing trajectory files in the formats other tools read (KITTI, TUM).
+
+Formats, as distributed:
+
+* **KITTI** (``poses/XX.txt`` of the odometry benchmark; ``../shared/docs/formats.md``): one line
+  per frame, 12 numbers, the row-major 3×4 ``[R | t]`` of ``T_world_cam`` (camera-to-world, the
+  camera of frame 0 is the world), metres.
+* **TUM** (Sturm et al. 2012, the TUM RGB-D benchmark's ``groundtruth.txt``): one line per pose,
+  ``timestamp tx ty tz qx qy qz qw``: time in seconds, the camera's position and its orientation
+  as a unit quaternion with the scalar last, again camera-to-world.
+* KITTI ``sequences/XX/times.txt``: one timestamp in seconds per frame.
+
+Numbers are separated by whitespace. Blank lines and lines starting with ``#`` are skipped in
+every format (TUM files carry ``#`` headers; skipping them in KITTI files too costs nothing).
+Poses are returned as float64 numpy arrays ``(N, 4, 4)``; quaternions are converted with
+:class:`scipy.spatial.transform.Rotation` (whose ``(x, y, z, w)`` order is TUM's).
+
+Bad input raises :class:`PoseFileError`, a :class:`ValueError` whose message is one line
+``<file>:<line>: <reason>`` with a 1-based line number. Problems with the file as a whole (missing,
+unreadable, no poses) point at line 1, where reading stopped. Writes are atomic: the text goes to a
+temporary file in the target's directory, which then replaces the target, so a failed write leaves
+the previous file (or none) and never a half-written one.
+
+This module imports numpy and scipy only (no torch), so command-line tools stay quick to start.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from mfg_lightning.core.atomic import atomic_write_text
+
+__all__ = [
+    "PoseFile",
+    "PoseFileError",
+    "PoseFormat",
+    "detect_pose_format",
+    "read_kitti_poses",
+    "read_kitti_times",
+    "read_poses",
+    "read_tum_poses",
+    "write_kitti_poses",
+    "write_trajectory",
+    "write_tum_poses",
+]
+
+PoseFormat = Literal["kitti", "tum"]
+
+_COLUMNS: dict[str, int] = {"kitti": 12, "tum": 8}
+# Pose files are written with as few as 4–6 decimals; anything this far from a rotation (or a
+# unit quaternion) is not a rounded one but a wrong column, a wrong format or garbage.
+_UNIT_TOLERANCE = 1e-2
+_QUOTE_LIMIT = 60
+
+
+class PoseFileError(ValueError):
+    """A pose or times file that cannot be read as its format says.
+
+    Attributes:
+        path: the file.
+        line: 1-based line number of the problem (1 for problems with the file as a whole).
+        reason: what is wrong, one line.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], line: int, reason: str) -> None:
+        self.path = str(path)
+        self.line = line
+        self.reason = " ".join(reason.split())  # one line, whatever the reason quoted
+        super().__init__(f"{self.path}:{self.line}: {self.reason}")
+
+
+@dataclass(frozen=True)
+class PoseFile:
+    """The contents of a pose file.
+
+    Attributes:
+        path: the file read.
+        format: ``"kitti"`` or ``"tum"``.
+        poses: ``(N, 4, 4)`` float64 camera-to-world poses ``T_world_cam``, in file order.
+        timestamps: ``(N,)`` float64 seconds (TUM), or ``None`` (KITTI files have none).
+        lines: ``(N,)`` int, the 1-based line number of each pose, for error messages.
+    """
+
+    path: Path
+    format: PoseFormat
+    poses: np.ndarray
+    timestamps: np.ndarray | None
+    lines: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.poses.shape[0])
+
+
+# ------------------------------------------------------------------------------------------------
+# Reading
+# ------------------------------------------------------------------------------------------------
+
+
+def _quote(text: str) -> str:
+    text = text.strip()
+    if len(text) > _QUOTE_LIMIT:
+        text = text[: _QUOTE_LIMIT - 1] + "…"
+    return repr(text)
+
+
+def _data_lines(path: Path) -> list[tuple[int, list[str]]]:
+    """``(line number, whitespace-split fields)`` of every non-blank, non-comment line."""
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise PoseFileError(path, 1, f"cannot read file: {exc.strerror or exc}") from None
+    rows: list[tuple[int, list[str]]] = []
+    for number, chunk in enumerate(raw.split(b"\n"), start=1):
+        try:
+            text = chunk.decode("utf-8")
+        except UnicodeDecodeError:
+            raise PoseFileError(path, number, "not UTF-8 text") from None
+        fields = text.split()
+        if fields and not fields[0].startswith("#"):
+            rows.append((number, fields))
+    if not rows:
+        raise PoseFileError(path, 1, "empty file: no poses")
+    return rows
+
+
+def _numbers(path: Path, number: int, fields: list[str], columns: int, what: str) -> list[float]:
+    """Parse one line of ``columns`` finite floats."""
+    if len(fields) != columns:
+        raise PoseFileError(
+            path,
+            number,
+            f"expected {columns} number{'s' if columns > 1 else ''} ({what}), "
+            f"found {len(fields)}: {_quote(' '.join(fields))}",
+        )
+    try:
+        values = [float(f) for f in fields]
+    except ValueError:
+        bad = next(f for f in fields if not _is_float(f))
+        raise PoseFileError(path, number, f"not a number: {_quote(bad)}") from None
+    if not all(math.isfinite(v) for v in values):
+        bad = next(f for f, v in zip(fields, values, strict=True) if not math.isfinite(v))
+        raise PoseFileError(path, number, f"non-finite number: {_quote(bad)}")
+    return values
+
+
+def _is_float(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def detect_pose_format(path: str | os.PathLike[str]) -> PoseFormat:
+    """The format of a pose file from the column count of its first pose line (12 KITTI, 8 TUM).
+
+    Raises:
+        PoseFileError: unreadable or empty file, or a column count of neither format.
+    """
+    path = Path(path)
+    number, fields = _data_lines(path)[0]
+    return _format_of(path, number, fields)
+
+
+def _format_of(path: Path, number: int, fields: list[str]) -> PoseFormat:
+    if len(fields) == _COLUMNS["kitti"]:
+        return "kitti"
+    if len(fields) == _COLUMNS["tum"]:
+        return "tum"
+    raise PoseFileError(
+        path,
+        number,
+        f"cannot tell the format from {len(fields)} columns (KITTI has 12, TUM has 8)",
+    )
+
+
+def _check_rotations(path: Path, lines: Sequence[int], R: np.ndarray) -> None:
+    """Every ``(3, 3)`` block must be a rotation up to the rounding of a text file."""
+    gram = np.einsum("nji,njk->nik", R, R) - np.eye(3)
+    deviation = np.abs(gram).max(axis=(1, 2))
+    bad = np.flatnonzero((deviation > _UNIT_TOLERANCE) | (np.linalg.det(R) <= 0))
+    if bad.size:
+        i = int(bad[0])
+        raise PoseFileError(
+            path,
+            int(lines[i]),
+            f"the 3×3 block is not a rotation (max |RᵀR − I| = {deviation[i]:.3g}, "
+            f"det = {np.linalg.det(R[i]):.3g})",
+        )
+
+
+def _parse_kitti(path: Path, rows: list[tuple[int, list[str]]]) -> PoseFile:
+    values = [_numbers(path, n, f, 12, "a row-major 3×4 pose") for n, f in rows]
+    lines = np.array([n for n, _ in rows], dtype=np.int64)
+    poses = np.tile(np.eye(4), (len(values), 1, 1))
+    poses[:, :3, :] = np.asarray(values, dtype=np.float64).reshape(-1, 3, 4)
+    _check_rotations(path, lines, poses[:, :3, :3])
+    return PoseFile(path, "kitti", poses, None, lines)
+
+
+def _parse_tum(path: Path, rows: list[tuple[int, list[str]]]) -> PoseFile:
+    from scipy.spatial.transform import Rotation
+
+    values = np.asarray(
+        [_numbers(path, n, f, 8, "timestamp tx ty tz qx qy qz qw") for n, f in rows],
+        dtype=np.float64,
+    )
+    lines = np.array([n for n, _ in rows], dtype=np.int64)
+    quat = values[:, 4:8]
+    norm = np.linalg.norm(quat, axis=1)
+    bad = np.flatnonzero(np.abs(norm - 1.0) > _UNIT_TOLERANCE)
+    if bad.size:
+        i = int(bad[0])
+        raise PoseFileError(
+            path, int(lines[i]), f"quaternion (qx qy qz qw) has norm {norm[i]:.6g}, not 1"
+        )
+    poses = np.tile(np.eye(4), (len(values), 1, 1))
+    poses[:, :3, :3] = Rotation.from_quat(quat).as_matrix()
+    poses[:, :3, 3] = values[:, 1:4]
+    return PoseFile(path, "tum", poses, values[:, 0].copy(), lines)
+
+
+def read_poses(
+    path: str | os.PathLike[str], fmt: PoseFormat | Literal["auto"] = "auto"
+) -> PoseFile:
+    """Read a KITTI or TUM pose file.
+
+    Args:
+        path: the file.
+        fmt: ``"kitti"``, ``"tum"`` or ``"auto"`` (by the column count of the first pose line).
+
+    Returns:
+        :class:`PoseFile` with ``(N, 4, 4)`` float64 camera-to-world poses.
+
+    Raises:
+        PoseFileError: missing or unreadable file, no poses, a line with the wrong number of
+            columns, a field that is not a number, a non-finite number, a 3×3 block that is not a
+            rotation or a quaternion that is not a unit one.
+    """
+    path = Path(path)
+    rows = _data_lines(path)
+    if fmt == "auto":
+        fmt = _format_of(path, *rows[0])
+    if fmt == "kitti":
+        return _parse_kitti(path, rows)
+    if fmt == "tum":
+        return _parse_tum(path, rows)
+    raise ValueError(f"unknown pose format {fmt!r}: use 'kitti', 'tum' or 'auto'")
+
+
+def read_kitti_poses(path: str | os.PathLike[str]) -> np.ndarray:
+    """``(N, 4, 4)`` float64 camera-to-world poses of a KITTI ``poses/XX.txt`` file."""
+    return read_poses(path, "kitti").poses
+
+
+def read_tum_poses(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
+    """``(timestamps (N,) in s, poses (N, 4, 4))`` of a TUM trajectory file, float64."""
+    pose_file = read_poses(path, "tum")
+    return np.asarray(pose_file.timestamps), pose_file.poses
+
+
+def read_kitti_times(path: str | os.PathLike[str]) -> np.ndarray:
+    """``(N,)`` float64 timestamps in seconds of a KITTI ``sequences/XX/times.txt``."""
+    path = Path(path)
+    rows = _data_lines(path)
+    return np.array([_numbers(path, n, f, 1, "a time in seconds")[0] for n, f in rows])
+
+
+# ------------------------------------------------------------------------------------------------
+# Writing
+# ------------------------------------------------------------------------------------------------
+
+
+def _as_poses(poses: object) -> np.ndarray:
+    """``(N, 4, 4)`` or ``(N, 3, 4)`` finite float64 array with N >= 1 (anything array-like)."""
+    array = np.asarray(poses, dtype=np.float64)
+    if array.ndim != 3 or array.shape[1:] not in ((4, 4), (3, 4)) or array.shape[0] == 0:
+        raise ValueError(f"poses must be (N, 4, 4) or (N, 3, 4) with N >= 1, got {array.shape}")
+    if not np.isfinite(array).all():
+        raise ValueError(
+            "poses contain non-finite values; refusing to write a file no reader takes"
+        )
+    return array
+
+
+def _format_number(value: float) -> str:
+    # repr is the shortest text that reads back to the same float64: round trips are exact.
+    return repr(float(value))
+
+
+def write_kitti_poses(path: str | os.PathLike[str], poses: object) -> None:
+    """Write camera-to-world poses as a KITTI pose file (12 numbers per line, row-major 3×4).
+
+    Args:
+        path: the file (replaced atomically).
+        poses: ``(N, 4, 4)`` or ``(N, 3, 4)`` array-like (numpy, CPU tensor), finite, N >= 1.
+            Numbers are written with the shortest text that reads back exactly.
+    """
+    array = _as_poses(poses)[:, :3, :].reshape(-1, 12)
+    text = "".join(" ".join(map(_format_number, row)) + "\n" for row in array)
+    atomic_write_text(Path(path), text)
+
+
+def write_kitti_times(path: str | os.PathLike[str], timestamps: object) -> None:
+    """Write a KITTI ``times.txt``: one timestamp in seconds per line (the inverse of
+    :func:`read_kitti_times`; the shortest text that reads back exactly).
+
+    Args:
+        path: the file (replaced atomically).
+        timestamps: ``(N,)`` seconds, finite, N >= 1.
+    """
+    times = np.asarray(timestamps, dtype=np.float64).reshape(-1)
+    if times.size == 0 or not np.isfinite(times).all():
+        raise ValueError(f"{path}: timestamps must be N >= 1 finite seconds, got {times[:5]}")
+    atomic_write_text(Path(path), "".join(f"{_format_number(t)}\n" for t in times))
+
+
+def write_tum_poses(path: str | os.PathLike[str], timestamps: object, poses: object) -> None:
+    """Write a TUM trajectory file (``timestamp tx ty tz qx qy qz qw`` per line).
+
+    Args:
+        path: the file (replaced atomically).
+        timestamps: ``(N,)`` seconds, finite.
+        poses: ``(N, 4, 4)`` or ``(N, 3, 4)`` camera-to-world poses, finite, N >= 1. The rotation
+            blocks are converted to unit quaternions ``(qx, qy, qz, qw)`` by scipy.
+    """
+    from scipy.spatial.transform import Rotation
+
+    array = _as_poses(poses)
+    times = np.asarray(timestamps, dtype=np.float64).reshape(-1)
+    if times.shape[0] != array.shape[0]:
+        raise ValueError(f"{times.shape[0]} timestamps for {array.shape[0]} poses")
+    if not np.isfinite(times).all():
+        raise ValueError("timestamps contain non-finite values")
+    quat = Rotation.from_matrix(array[:, :3, :3]).as_quat()
+    table = np.concatenate([times[:, None], array[:, :3, 3], quat], axis=1)
+    text = "".join(" ".join(map(_format_number, row)) + "\n" for row in table)
+    atomic_write_text(Path(path), text)
+
+
+def write_trajectory(
+    directory: str | os.PathLike[str], name: str, timestamps: object, poses: object
+) -> tuple[Path, Path]:
+    """Write one trajectory in both distributed formats, the layout evo and the devkit read:
+    ``<directory>/poses/kitti/<name>.txt`` and ``<directory>/poses/tum/<name>.txt``.
+
+    Args:
+        directory: the run directory.
+        name: the file stem (a sequence, e.g. ``09``; ``09_gt`` for its ground truth).
+        timestamps: ``(N,)`` seconds for the TUM file.
+        poses: ``(N, 4, 4)`` or ``(N, 3, 4)`` camera-to-world poses (metres).
+
+    Returns:
+        The KITTI and the TUM path.
+    """
+    kitti = Path(directory) / "poses" / "kitti" / f"{name}.txt"
+    tum = Path(directory) / "poses" / "tum" / f"{name}.txt"
+    write_kitti_poses(kitti, poses)
+    write_tum_poses(tum, timestamps, poses)
+    return kitti, tum
