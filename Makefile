@@ -11,12 +11,18 @@ install:
 	$(PYTHON) -c "import torch" 2>/dev/null || $(PYTHON) -m pip install "$(TORCH_SPEC)"
 	$(PYTHON) -m pip install -e ".[dev]"
 
+# The architecture contract (pyproject.toml [tool.importlinter]): a wrong-way import fails here,
+# naming both modules.
+LINT_IMPORTS = $(PYTHON) -c "from importlinter.cli import lint_imports_command; lint_imports_command()"
+
 test:
 	$(PYTHON) -m ruff check src tests bench
+	$(LINT_IMPORTS)
 	$(PYTHON) -m pytest -n 2 $(PYTEST_ARGS)
 
 lint:
 	$(PYTHON) -m ruff check src tests bench
+	$(LINT_IMPORTS)
 	$(PYTHON) -m ruff format --check src tests bench
 
 format:
@@ -30,4 +36,4 @@ bench:
 	$(PYTHON) bench/run_all.py
 
 clean:
-	rm -rf build dist .pytest_cache .ruff_cache outputs multirun
+	rm -rf build dist .pytest_cache .ruff_cache .import_linter_cache outputs multirun

@@ -1,5 +1,5 @@
 """Regenerate every benchmark table (``make bench``): accuracy, throughput, scale-out,
-the KITTI flow cache.
+the KITTI flow cache, and on a machine with a CUDA GPU the GPU check.
 
 Runs the scripts one after the other (each needs the whole machine), each in its own process,
 and writes ``bench/results/<name>.md``. Extra arguments (``--tiny``, ``--out DIR``,
@@ -13,15 +13,21 @@ import sys
 import time
 from pathlib import Path
 
+import torch
+
 BENCH = Path(__file__).resolve().parent
 SCRIPTS = ("accuracy.py", "throughput.py", "scaleout.py", "flow_cache.py")
+#: Scripts that need a CUDA device: run only where one is (gpu_check.py's CPU form is a test,
+#: tests/test_precision.py).
+GPU_SCRIPTS = ("gpu_check.py",)
 
 
 def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else argv
     start = time.perf_counter()
     failed = []
-    for script in SCRIPTS:
+    scripts = SCRIPTS + (GPU_SCRIPTS if torch.cuda.is_available() else ())
+    for script in scripts:
         t0 = time.perf_counter()
         print(f"== {script} {' '.join(args)}", flush=True)
         code = subprocess.run([sys.executable, str(BENCH / script), *args], check=False).returncode

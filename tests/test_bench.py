@@ -137,7 +137,9 @@ def test_run_all_runs_every_script_and_fails_loudly(tmp_path: Path) -> None:
     assert spec and spec.loader
     run_all = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(run_all)
-    assert set(run_all.SCRIPTS) == {p.name for p in BENCH.glob("*.py")} - {
+    assert set(run_all.SCRIPTS) | set(run_all.GPU_SCRIPTS) == {
+        p.name for p in BENCH.glob("*.py")
+    } - {
         "run_all.py",
         "_common.py",
     }

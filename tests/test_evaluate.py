@@ -76,6 +76,42 @@ def test_top_k_sweep_writes_table_plot_and_pose_files(trained: Path, tmp_path: P
     assert 100 * abs(here - per_k["1"]) < abs(here - per_k["0.02"]), per_k
 
 
+def test_eval_align_aligns_figures_and_whole_trajectory_metrics(
+    trained: Path, tmp_path: Path
+) -> None:
+    out = tmp_path / "eval"
+    ckpt = f"ckpt_path={trained / 'checkpoints' / 'last.ckpt'}"
+    run_module("mfg_lightning.evaluate", ckpt, "eval.align=sim3", "logger=none",
+               f"hydra.run.dir={out}", cwd=tmp_path)  # fmt: skip
+    payload = json.loads((out / "metrics.json").read_text())
+    assert payload["eval_align"] == "sim3"
+    metrics = payload["metrics"]
+    # The whole-trajectory metrics are those of the written (unaligned) trajectory after Sim(3).
+    import torch
+
+    from mfg_lightning.metrics import aligned_trajectory_metrics
+    from mfg_lightning.trajectory.pose_io import read_kitti_poses
+
+    pred = torch.from_numpy(read_kitti_poses(out / "poses" / "kitti" / "test00.txt"))
+    gt = torch.from_numpy(read_kitti_poses(out / "poses" / "kitti" / "test00_gt.txt"))
+    expected = aligned_trajectory_metrics({"test00": (pred, gt)}, "sim3")
+    for key in ("ate_traj", "ate_traj_std", "rpe_trans", "rpe_rot", "test00/ate_traj",
+                "test00/ate_traj_scale", "test00/rpe_trans"):  # fmt: skip
+        assert metrics[f"test/{key}"] == pytest.approx(expected[key], rel=1e-6, abs=1e-9), key
+    unaligned = aligned_trajectory_metrics({"test00": (pred, gt)}, "none")
+    assert metrics["test/ate_traj"] != pytest.approx(unaligned["ate_traj"], rel=1e-6)
+    for kind in ("trajectory", "drift", "error"):
+        png = (out / "trajectories" / f"{kind}_test00.png").read_bytes()
+        assert png[:8] == b"\x89PNG\r\n\x1a\n"
+    # A mode that does not exist is one error line.
+    proc = run_module("mfg_lightning.evaluate", ckpt, "eval.align=7dof",
+                      f"hydra.run.dir={tmp_path / 'bad'}", cwd=tmp_path, check=False)  # fmt: skip
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines()[-1] == (
+        "error: eval.align='7dof': use one of none, se3, sim3, scale, scale_7dof"
+    )
+
+
 def test_object_motion_task_scores_ours_and_the_baseline(trained: Path, tmp_path: Path) -> None:
     out = tmp_path / "om"
     run_module("mfg_lightning.evaluate", "task=object_motion",

@@ -14,7 +14,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from conftest import SHARED
-from mfg_lightning.evaluate_poses import main
+from mfg_lightning.evaluate_poses import evaluate_trajectory, main
 from mfg_lightning.metrics import relative_pose_error, snippet_ate
 from mfg_lightning.trajectory.pose_io import read_kitti_poses, write_kitti_poses, write_tum_poses
 from mfg_lightning.trajectory.trajectories import snippets_from_poses
@@ -132,18 +132,28 @@ def test_tum_files_are_matched_by_timestamps(tmp_path: Path, capsys) -> None:
     assert result["num_segments"] == 0
     assert result["drift_t_err"] is None and result["drift_r_err"] is None
 
+    # Pose 8 of the estimate 20 ms late: left out at evo's default --t-max-diff (0.01 s), matched
+    # within 0.03 s.
     shifted = times.copy()
-    shifted[7] += 0.01
+    shifted[7] += 0.02
     write_tum_poses(tmp_path / "pred.tum", shifted, pred)
-    code, out, err = _run(
-        capsys, "--gt", str(tmp_path / "gt.tum"), "--pred", str(tmp_path / "pred.tum")
-    )
-    assert code == 2 and out == ""
+    argv = ["--gt", str(tmp_path / "gt.tum"), "--pred", str(tmp_path / "pred.tum"), "--json"]
+    code, out, err = _run(capsys, *argv)
+    assert code == 0 and err == ""
+    result = json.loads(out)
+    assert (result["num_poses"], result["poses_given"], result["gt_poses"]) == (59, 60, 60)
+    assert result["matched_by"] == "timestamp" and result["gt_times"] == str(tmp_path / "gt.tum")
+    assert result["num_pairs"] == 58 and result["num_snippets"] == 56 - 5
+    code, out, _ = _run(capsys, *argv, "--t-max-diff", "0.03")
+    result = json.loads(out)
+    assert result["num_poses"] == 60 and result["max_time_diff"] == pytest.approx(0.02)
+    # Shifted by a whole second, nothing matches: one error line that says how many did.
+    code, out, err = _run(capsys, *argv, "--t-offset", "100")
+    assert code == 2 and out == "" and err.count("\n") == 1
     assert err.startswith(
-        f"error: {tmp_path / 'pred.tum'}:8: timestamp 1305031102.71 differs from the ground "
-        f"truth's 1305031102.7 ({tmp_path / 'gt.tum'}:8)"
+        f"error: {tmp_path / 'pred.tum'}:1: only 0 of its 60 poses match the 60 of the ground "
+        f"truth {tmp_path / 'gt.tum'} (by timestamp within 0.01 s after an offset of 100 s"
     )
-    assert err.count("\n") == 1
 
 
 def _assert_one_line_error(capsys, argv: list[str], location: str, words: str) -> None:
@@ -154,15 +164,24 @@ def _assert_one_line_error(capsys, argv: list[str], location: str, words: str) -
     assert words in err and err.count("\n") == 1
 
 
-def test_files_of_different_lengths(files, capsys) -> None:
-    gt, pred, _, pred_poses = files
+def test_an_early_end_is_scored_on_its_frames_and_an_extra_frame_is_an_error(files, capsys) -> None:
+    gt, pred, gt_poses, pred_poses = files
     write_kitti_poses(pred, pred_poses[:150])
-    _assert_one_line_error(
-        capsys, ["--gt", str(gt), "--pred", str(pred)], f"{pred}:151", "ends after 150 poses"
+    code, out, err = _run(capsys, "--gt", str(gt), "--pred", str(pred), "--json")
+    assert code == 0 and err == ""
+    result = json.loads(out)
+    assert (result["num_poses"], result["poses_given"], result["gt_poses"]) == (150, 150, 160)
+    assert result["matched_by"] == "frame" and result["num_pairs"] == 149
+    expected = evaluate_trajectory(gt_poses[:150], pred_poses[:150])
+    assert {k: result[k] for k in METRIC_KEYS} == pytest.approx(
+        {k: expected[k] for k in METRIC_KEYS}, rel=1e-12
     )
-    # The shorter file is named, whichever it is.
+    # A frame the ground truth does not have names the estimate's line.
     _assert_one_line_error(
-        capsys, ["--gt", str(pred), "--pred", str(gt)], f"{pred}:151", f"{gt} has 160"
+        capsys,
+        ["--gt", str(pred), "--pred", str(gt)],
+        f"{gt}:151",
+        f"frame 150 is not in the ground truth {pred} (150 poses, frames 0–149)",
     )
 
 
@@ -200,7 +219,7 @@ def test_forced_format_and_bad_arguments(files, capsys) -> None:
 def test_runs_as_a_module(files) -> None:
     """``python -m mfg_lightning.evaluate_poses``: exit status and streams of an input error."""
     gt, pred, _, pred_poses = files
-    write_kitti_poses(pred, pred_poses[:10])
+    write_kitti_poses(gt, pred_poses[:10])
     proc = subprocess.run(
         [
             sys.executable,
@@ -217,7 +236,9 @@ def test_runs_as_a_module(files) -> None:
         check=False,
     )
     assert proc.returncode == 2 and proc.stdout == ""
-    assert proc.stderr == f"error: {pred}:11: file ends after 10 poses but {gt} has 160\n"
+    assert proc.stderr == (
+        f"error: {pred}:11: frame 10 is not in the ground truth {gt} (10 poses, frames 0–9)\n"
+    )
 
 
 # ------------------------------------------------------------------------------------------------
@@ -293,8 +314,6 @@ def test_many_methods_write_tables_json_and_figures(kitti_methods, tmp_path: Pat
     payload = json.loads((out / "results.json").read_text())
     assert payload["sequences"] == ["09", "10"] and payload["align"] == "sim3"
     # Every number is that of the metric functions on the same files, per sequence.
-    from mfg_lightning.evaluate_poses import evaluate_trajectory
-
     for name, directory in (("a", a), ("b", b)):
         for seq in ("09", "10"):
             from mfg_lightning.trajectory.pose_io import read_poses
@@ -348,9 +367,15 @@ def test_directory_inputs_name_the_file_and_line(tmp_path: Path, capsys) -> None
     gt_dir, gts = _gt_dir(tmp_path)
     m = tmp_path / "m"
     write_kitti_poses(m / "00.txt", _perturb(gts["00"], 1))
-    write_kitti_poses(m / "01.txt", _perturb(gts["01"], 2)[:80])
+    frames = np.r_[0:40, 45:85, 95]  # holes, and a frame 01 (90 poses) does not have
+    write_kitti_poses(m / "01.txt", _perturb(gts["01"], 2)[np.minimum(frames, 89)], frames)
     argv = ["--gt", str(gt_dir), "--pred", f"m={m}"]
-    _assert_one_line_error(capsys, argv, f"{m / '01.txt'}:81", f"{gt_dir / '01.txt'} has 90")
+    _assert_one_line_error(
+        capsys,
+        argv,
+        f"{m / '01.txt'}:81",
+        f"frame 95 is not in the ground truth {gt_dir / '01.txt'}",
+    )
     lines = (m / "00.txt").read_text().splitlines()
     lines[6] = " ".join([*lines[6].split()[:11], "inf"])
     (m / "00.txt").write_text("\n".join(lines) + "\n")
@@ -376,3 +401,28 @@ def test_arguments_that_do_not_fit_together(tmp_path: Path, capsys) -> None:
     assert not (gt_dir / "results").exists()
     assert _run(capsys, "--gt", str(one), "--pred", str(one), "--n-to-align", "0")[0] == 2
     assert _run(capsys, "--gt", str(one), "--pred", str(one), "--align", "7dof")[0] == 2
+
+
+def test_a_tum_estimate_takes_the_times_txt_of_kitti_s_layout(tmp_path: Path, capsys) -> None:
+    """A KITTI ground truth at <root>/poses/<seq>.txt has its clock in
+    <root>/sequences/<seq>/times.txt (KITTI's real times are ~10.36 Hz, not frame / 10)."""
+    from mfg_lightning.trajectory.pose_io import write_kitti_times
+
+    gt = _drive(120, 7)
+    times = 0.0965 * np.arange(120)
+    write_kitti_poses(tmp_path / "dataset" / "poses" / "00.txt", gt)
+    write_kitti_times(tmp_path / "dataset" / "sequences" / "00" / "times.txt", times)
+    keep = np.r_[0:50, 60:120]
+    write_tum_poses(tmp_path / "est" / "00.txt", times[keep], _perturb(gt, 8)[keep])
+    argv = ["--gt", str(tmp_path / "dataset" / "poses"), "--pred", f"m={tmp_path / 'est'}"]
+    payload = json.loads(_run(capsys, *argv, "--json")[1])
+    got = payload["methods"]["m"]["sequences"]["00"]
+    assert got["gt_times"] == str(tmp_path / "dataset" / "sequences" / "00" / "times.txt")
+    assert (got["num_poses"], got["poses_given"], got["gt_poses"]) == (110, 110, 120)
+    expected = evaluate_trajectory(gt, _perturb(gt, 8)[keep], frames=keep)
+    assert {k: got[k] for k in METRIC_KEYS} == pytest.approx(
+        {k: expected[k] for k in METRIC_KEYS}, rel=1e-12
+    )
+    # The matches table says how each method's poses were matched.
+    code, out, _ = _run(capsys, *argv)
+    assert code == 0 and "| m | 00 | timestamp | 110 | 110 | 120 |" in out

@@ -29,7 +29,7 @@ from conftest import quiet_trainer
 from mfg_lightning.core.data_errors import DataFileError
 from mfg_lightning.data.base import collate_samples
 from mfg_lightning.data.kitti import read_kitti_calib
-from mfg_lightning.data.kitti import read_kitti_poses as kitti_dataset_poses
+from mfg_lightning.data.kitti import read_kitti_poses_as_data_file as kitti_dataset_poses
 from mfg_lightning.data.sample import SampleError
 from mfg_lightning.data.synthetic import SyntheticDataModule
 from mfg_lightning.data.vkitti import read_vkitti_extrinsics, read_vkitti_intrinsics

@@ -252,3 +252,61 @@ def test_a_rotation_needs_three_poses() -> None:
         ate_traj(poses, poses, "sim3", n_to_align=2)
     # scale needs no rotation: the second pose alone (the first is the origin) fixes it.
     assert ate_traj(poses, poses, "scale", n_to_align=2)["ate_traj_scale"].item() == 1.0
+
+
+def test_scale_7dof_keeps_only_umeyama_s_scale(kitti_pair) -> None:
+    """kitti-odom-eval's ``scale_7dof``: both relative to their first frame, Umeyama's Sim(3)
+    fitted, only its scale applied to the estimated positions."""
+    gt, est = kitti_pair
+    est = _apply_similarity(_similarity(0.3, [0.2, 1.0, -0.1], [4.0, -2.0, 9.0]), est)
+    P, Q = torch.from_numpy(est), torch.from_numpy(gt)
+    g = np.stack([np.linalg.inv(gt[0]) @ x for x in gt])[:, :3, 3]
+    p = np.stack([np.linalg.inv(est[0]) @ x for x in est])[:, :3, 3]
+    _, _, s = umeyama(torch.from_numpy(p), torch.from_numpy(g))
+    aligned = align_trajectory(P, Q, "scale_7dof")
+    assert aligned.scale.item() == pytest.approx(s.item(), rel=1e-9)
+    assert aligned.scale.item() == pytest.approx(1 / (0.3 * 0.35), rel=0.05)  # kitti_pair: 0.35
+    errors = np.linalg.norm(g - s.item() * p, axis=1)
+    np.testing.assert_allclose(ate_traj_errors(aligned).numpy(), errors, rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(aligned.rotation, torch.eye(3, dtype=torch.float64))
+    # The rotation is not undone: sim3 aligns much better than the scale alone.
+    sim3 = ate_traj(P, Q, "sim3")["ate_traj"].item()
+    assert sim3 < 0.5 * ate_traj(P, Q, "scale_7dof")["ate_traj"].item()
+    with pytest.raises(ValueError, match="at least 3 poses"):
+        align_trajectory(P, Q, "scale_7dof", n_to_align=2)
+
+
+def test_align_origin_is_both_trajectories_relative_to_their_first_frame(kitti_pair) -> None:
+    """evo's ``--align_origin`` gives the position errors of kitti-odom-eval's first-frame
+    expression; it changes nothing for the modes that fit a rigid motion or re-express."""
+    gt, est = kitti_pair
+    late_gt, late_est = (
+        gt[30:],
+        _apply_similarity(_similarity(1.0, [0, 0.5, 0], [9, 0, 1]), est)[30:],
+    )
+    P, Q = torch.from_numpy(late_est), torch.from_numpy(late_gt)
+    aligned = align_trajectory(P, Q, "none", align_origin=True)
+    torch.testing.assert_close(aligned.pred[0], aligned.target[0])
+    g = np.stack([np.linalg.inv(late_gt[0]) @ x for x in late_gt])[:, :3, 3]
+    p = np.stack([np.linalg.inv(late_est[0]) @ x for x in late_est])[:, :3, 3]
+    np.testing.assert_allclose(
+        ate_traj_errors(aligned).numpy(), np.linalg.norm(g - p, axis=1), atol=1e-9
+    )
+    for mode in ("se3", "sim3", "scale", "scale_7dof"):
+        plain = ate_traj_errors(align_trajectory(P, Q, mode))
+        origin = ate_traj_errors(align_trajectory(P, Q, mode, align_origin=True))
+        torch.testing.assert_close(plain, origin, rtol=1e-9, atol=1e-9)
+
+
+def test_raw_rotations_differ_only_by_the_rounding_of_the_files(kitti_pair) -> None:
+    gt, est = kitti_pair
+    rounded = np.round(est, 6)  # a 6-digit file: rotations orthonormal to ~1e-6
+    P, Q = torch.from_numpy(rounded), torch.from_numpy(gt)
+    for mode in ("none", "sim3", "scale_7dof"):
+        projected = align_trajectory(P, Q, mode)
+        raw = align_trajectory(P, Q, mode, project=False)
+        torch.testing.assert_close(raw.pred, projected.pred, atol=1e-4, rtol=0)
+        assert not torch.equal(raw.pred, projected.pred)
+        # As written: the rotation blocks are the file's, not projected.
+        if mode == "none":
+            torch.testing.assert_close(raw.pred, P)

@@ -284,3 +284,44 @@ def test_published_names_and_the_earlier_ones() -> None:
     assert tuple(metric.compute()) == KittiDrift.names
     # The per-segment helper keeps the devkit's short names (mfg-eval-poses prefixes them).
     assert kitti_drift_from_segments(*kitti_segment_errors(P, Q)[:2]).keys() == {"t_err", "r_err"}
+
+
+def test_a_late_start_with_holes_is_scored_on_its_segments_as_kitti_odom_eval() -> None:
+    """kitti-odom-eval's ``calc_sequence_errors`` on a result that has some frames only: the
+    segments are those of the whole ground truth (first frames 0, 10, … of its path), kept when
+    the result has a pose at both ends."""
+    gt = _drive(700, 5)
+    est = _perturbed_estimate(gt, 6)
+    frames = np.r_[3:250, 262:600, 640:700]
+    dist = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1))])
+    have = set(frames.tolist())
+    t_loop, r_loop = [], []
+    for first in range(0, len(gt), 10):
+        for length in LENGTHS:
+            last = next((i for i in range(first, len(dist)) if dist[i] > dist[first] + length), -1)
+            if last == -1 or first not in have or last not in have:
+                continue
+            error = np.linalg.inv(np.linalg.inv(est[first]) @ est[last]) @ (
+                np.linalg.inv(gt[first]) @ gt[last]
+            )
+            cos = 0.5 * (np.trace(error[:3, :3]) - 1.0)
+            r_loop.append(math.acos(max(min(cos, 1.0), -1.0)) / length)
+            t_loop.append(float(np.linalg.norm(error[:3, 3])) / length)
+    F = torch.from_numpy(frames)
+    t_err, r_err, _ = kitti_segment_errors(
+        torch.from_numpy(est[frames]), torch.from_numpy(gt[frames]), frames=F,
+        reference=torch.from_numpy(gt), project=False,
+    )  # fmt: skip
+    assert len(t_loop) == t_err.numel() > 50
+    np.testing.assert_allclose(t_err.numpy(), t_loop, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(r_err.numpy(), r_loop, rtol=1e-6, atol=1e-10)
+    # Every frame matched is the plain computation.
+    everything = torch.arange(len(gt))
+    P, Q = torch.from_numpy(est), torch.from_numpy(gt)
+    for a, b in zip(
+        kitti_segment_errors(P, Q, frames=everything, reference=Q), kitti_segment_errors(P, Q),
+        strict=True,
+    ):  # fmt: skip
+        torch.testing.assert_close(a, b)
+    with pytest.raises(ValueError, match="whole ground truth"):
+        kitti_segment_errors(P, Q, frames=everything)

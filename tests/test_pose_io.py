@@ -88,6 +88,49 @@ def test_kitti_round_trip_is_exact(tmp_path: Path) -> None:
     assert all(len(line.split()) == 12 for line in path.read_text().splitlines())
 
 
+def test_reads_kitti_files_with_a_frame_index_first(tmp_path: Path) -> None:
+    """kitti-odom-eval's first layout: the frame index, then the pose; a late start, holes."""
+    rows = KITTI_LINES.splitlines()
+    path = _write(tmp_path / "09.txt", f"2 {rows[0]}\n7.0 {rows[1]}\n")
+    assert detect_pose_format(path) == "kitti"
+    pose_file = read_poses(path)
+    assert pose_file.format == "kitti" and pose_file.frames is not None
+    np.testing.assert_array_equal(pose_file.frames, [2, 7])
+    np.testing.assert_array_equal(pose_file.frame_indices(), [2, 7])
+    np.testing.assert_array_equal(
+        pose_file.poses, read_kitti_poses(_write(tmp_path / "p", KITTI_LINES))
+    )
+    plain = read_poses(tmp_path / "p", "kitti")
+    assert plain.frames is None
+    np.testing.assert_array_equal(plain.frame_indices(), [0, 1])
+    # Written back with its frames, exactly.
+    poses = _random_poses(4, 3)
+    write_kitti_poses(tmp_path / "w.txt", poses, [0, 5, 6, 40])
+    again = read_poses(tmp_path / "w.txt")
+    np.testing.assert_array_equal(again.frames, [0, 5, 6, 40])
+    np.testing.assert_array_equal(again.poses, poses)
+    with pytest.raises(ValueError, match="increasing"):
+        write_kitti_poses(tmp_path / "x.txt", poses, [0, 5, 5, 6])
+
+
+@pytest.mark.parametrize(
+    ("lines", "line", "words"),
+    [
+        (["2.5 {0}", "3 {1}"], 1, "frame index 2.5 is not a whole number >= 0"),
+        (["-1 {0}", "3 {1}"], 1, "frame index -1.0 is not a whole number >= 0"),
+        (["4 {0}", "4 {1}"], 2, "frame index 4 does not follow 4 (line 1): frame indices must"),
+        (["4 {0}", "{1}"], 2, "expected 13 numbers (a frame index and a row-major 3×4 pose)"),
+        (["{0}", "4 {1}"], 2, "expected 12 numbers (a row-major 3×4 pose), found 13"),
+    ],
+)
+def test_bad_frame_indices_name_the_line(tmp_path: Path, lines, line: int, words: str) -> None:
+    rows = KITTI_LINES.splitlines()
+    path = _write(tmp_path / "bad.txt", "\n".join(x.format(*rows) for x in lines) + "\n")
+    with pytest.raises(PoseFileError) as info:
+        read_poses(path)
+    assert str(info.value).startswith(f"{path}:{line}: {words}"), str(info.value)
+
+
 def test_reads_tum_with_comments_as_distributed(tmp_path: Path) -> None:
     path = _write(tmp_path / "groundtruth.txt", TUM_TEXT)
     assert detect_pose_format(path) == "tum"

@@ -132,6 +132,36 @@ def test_predict_with_depth_writes_object_masks(ckpt: Path, tmp_path: Path) -> N
 
 
 @pytest.mark.slow
+def test_predict_with_ground_truth_draws_and_scores_aligned_trajectories(
+    ckpt: Path, tmp_path: Path
+) -> None:
+    out = tmp_path / "pred"
+    common = ["dataset=synthetic", "dataset.test_sequences=1", "dataset.sequence_length=8",
+              f"dataset.height={H}", f"dataset.width={W}",
+              "predict.object_masks=false"]  # fmt: skip
+    run_module("mfg_lightning.predict", f"ckpt_path={ckpt}", *common, "predict.align=sim3",
+               f"hydra.run.dir={out}", cwd=tmp_path)  # fmt: skip
+    summary = json.loads((out / "predict.json").read_text())
+    assert summary["align"] == "sim3"
+    metrics = summary["metrics"]
+    for key in ("ate_traj", "rpe_trans", "rpe_rot", "test00/ate_traj", "test00/ate_traj_scale"):
+        assert metrics[key] is not None and metrics[key] >= 0, key
+    # One sequence: the pooled values are its own; the fitted scale is a similarity's.
+    assert metrics["ate_traj"] == pytest.approx(metrics["test00/ate_traj"], rel=1e-12)
+    assert metrics["test00/ate_traj_scale"] > 0
+    for kind in ("trajectory", "drift", "error"):
+        assert (out / "trajectories" / f"{kind}_test00.png").read_bytes()[:4] == b"\x89PNG"
+    # A mode that does not exist is one error line, before anything is predicted.
+    proc = run_module("mfg_lightning.predict", f"ckpt_path={ckpt}", *common, "predict.align=7dof",
+                      f"hydra.run.dir={tmp_path / 'bad'}", cwd=tmp_path, check=False)  # fmt: skip
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines()[-1] == (
+        "error: predict.align='7dof': use one of none, se3, sim3, scale, scale_7dof"
+    )
+    assert not (tmp_path / "bad" / "predict.json").exists()
+
+
+@pytest.mark.slow
 def test_an_input_size_other_than_the_networks_is_one_error_line(
     ckpt: Path, tmp_path: Path
 ) -> None:

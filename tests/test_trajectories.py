@@ -95,3 +95,22 @@ def test_evaluation_poses_are_float64_detached_rigid() -> None:
     torch.testing.assert_close(
         R.transpose(-1, -2) @ R, torch.eye(3, dtype=torch.float64).expand_as(R), atol=1e-12, rtol=0
     )
+
+
+def test_consecutive_windows_skip_holes_and_repeats() -> None:
+    frames = torch.tensor([0, 1, 2, 3, 4, 5, 7, 8, 9, 10, 11, 11, 12])
+    assert T.consecutive_windows(frames, 5).tolist() == [0, 1, 6]
+    assert T.consecutive_windows(frames, 2).tolist() == [0, 1, 2, 3, 4, 6, 7, 8, 9, 11]
+    assert T.consecutive_windows(frames[:3], 5).numel() == 0
+
+
+def test_relative_poses_with_general_inverses() -> None:
+    poses = T.sequence_trajectory(G.se3_exp(torch.randn(6, 6, dtype=torch.float64) * 0.3))
+    rigid = T.relative_poses(poses[:-1], poses[1:])
+    torch.testing.assert_close(T.relative_poses(poses[:-1], poses[1:], project=False), rigid)
+    # Off SO(3) (a rounded file) the general inverse is the matrix inverse, not the transpose.
+    rounded = torch.round(poses * 1e3) / 1e3
+    general = T.relative_poses(rounded[1:2], rounded, project=False)
+    torch.testing.assert_close(general[1], torch.eye(4, dtype=torch.float64))
+    assert not torch.allclose(T.relative_poses(rounded[1:2], rounded)[1], general[1], atol=1e-9)
+    assert torch.equal(T.evaluation_poses(rounded, project=False), rounded)

@@ -7,6 +7,12 @@ trajectories
 ``task=object_motion``
 scores the object masks of section 4 and draws Figure 1
 (:mod:`~mfg_lightning.pictures.object_motion`).
+``eval.align=<mode>`` (``none``, the default: as predicted; ``se3``, ``sim3``, ``scale``,
+``scale_7dof``: :mod:`~mfg_lightning.metrics.alignment`) aligns each sequence's predicted
+trajectory before the figures are drawn (their titles name it) and before the whole-trajectory
+metrics are computed: ``ate_traj*``, RPE and drift are then those of the aligned trajectory of each
+sequence (:func:`~mfg_lightning.metrics.aligned_trajectory_metrics`, as ``mfg-eval-poses
+--align``), the snippet ATE (which aligns each snippet itself) and the pose files are unchanged.
 The README's "Evaluation" lists the files. Trainer and loggers are configured as in training."""
 
 from __future__ import annotations
@@ -17,6 +23,7 @@ from typing import Any
 
 import hydra
 import lightning as L
+import numpy as np
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
@@ -25,6 +32,8 @@ from mfg_lightning.core.atomic import atomic_write_bytes
 from mfg_lightning.core.config import CONFIG_DIR
 from mfg_lightning.core.errors import exit_on_unknown_choice, exit_on_user_error
 from mfg_lightning.core.tables import Table
+from mfg_lightning.metrics.alignment import ALIGN_MODES
+from mfg_lightning.metrics.ate_traj import aligned_trajectory_metrics
 from mfg_lightning.metrics.evaluator import EvaluationResult
 from mfg_lightning.models.mfg import validate_top_k
 from mfg_lightning.models.mfg_module import MFGLitModule
@@ -45,12 +54,44 @@ def build(cfg: DictConfig) -> tuple[MFGLitModule, L.LightningDataModule, L.Train
     return model, datamodule, runs.build_trainer(cfg, [], runs.instantiate_list(cfg.get("logger")))
 
 
+def eval_align(cfg: DictConfig) -> str:
+    """``eval.align``, checked (``none`` when the config has none)."""
+    align = str(cfg.eval.get("align") or "none")
+    if align not in ALIGN_MODES:
+        raise ValueError(f"eval.align={align!r}: use one of {', '.join(ALIGN_MODES)}")
+    return align
+
+
+def aligned_metrics(evaluation: EvaluationResult | None, align: str) -> dict[str, float]:
+    """The ``test/`` whole-trajectory metrics of each sequence's trajectory after ``align``
+    (nothing for ``none``: the test loop's own, unaligned, stand)."""
+    if evaluation is None or align == "none":
+        return {}
+    sequences = {s: (sp.pred, sp.gt) for s, sp in sorted(evaluation.sequences.items())}
+    return {f"test/{k}": v for k, v in aligned_trajectory_metrics(sequences, align).items()}
+
+
+def frame_times(
+    datamodule: L.LightningDataModule, seq: str, frames: np.ndarray, frame_rate: float
+) -> np.ndarray:
+    """``(N,)`` TUM timestamps (s) of ``frames``: the test split's own clock where it has one
+    (KITTI's ``times.txt``, so ``mfg-eval-poses`` matches the files to KITTI's ground truth by
+    time), else ``frame / frame_rate``."""
+    dataset = datamodule.dataset("test") if hasattr(datamodule, "dataset") else None
+    clock = getattr(dataset, "timestamps", None)
+    times = clock(seq) if clock is not None else None
+    if times is not None and len(times) > int(frames.max()):
+        return np.asarray(times, np.float64)[frames]
+    return frames.astype(np.float64) / frame_rate
+
+
 def evaluate_egomotion(
     cfg: DictConfig, model: MFGLitModule, datamodule: L.LightningDataModule, trainer: L.Trainer
 ) -> tuple[dict[str, Any], Table, dict[str, Any]]:
     """Test every k of the sweep; write poses, figures, tables. Returns the metrics and extra
     keys for ``metrics.json`` and the table to print (the sweep's, else the sequences')."""
-    out, extra = Path(cfg.paths.output_dir), {}
+    align = eval_align(cfg)
+    out, extra = Path(cfg.paths.output_dir), {"eval_align": align}
     sweep = list(cfg.eval.top_k_sweep) if cfg.eval.get("top_k_sweep") else [model.net.top_k]
     results: dict[float, dict[str, Any]] = {}  # k → test metrics
     evaluations: dict[float, EvaluationResult | None] = {}  # k → per-sequence trajectories
@@ -60,6 +101,7 @@ def evaluate_egomotion(
         key = 1.0 if k is None else float(k)
         results[key] = runs.test_metrics(trainer)
         evaluations[key] = model.last_evaluation.get("test")
+        results[key].update(aligned_metrics(evaluations[key], align))
         log.info("top_k=%s: ATE %s m", k, results[key].get("test/ate"))
     # Everything is computed; only now are files written (each atomically). metrics.json, the
     # sequence table and the pose files all describe the full model (k = 1) when the sweep has
@@ -67,12 +109,12 @@ def evaluate_egomotion(
     final, evaluation = results[k := 1.0 if 1.0 in results else max(results)], evaluations[k]
     per_sequence = dict(sorted(evaluation.sequences.items())) if evaluation else {}
     for s, sp in per_sequence.items() if cfg.eval.write_poses else ():
-        times = sp.frames.double().numpy() / cfg.eval.frame_rate
+        times = frame_times(datamodule, s, sp.frames.numpy(), float(cfg.eval.frame_rate))
         write_trajectory(out, s, times, sp.pred.numpy())
         write_trajectory(out, f"{s}_gt", times, sp.gt.numpy())
     trajectories = {s: (sp.pred, sp.gt) for s, sp in per_sequence.items()}
     plots.write_trajectory_figures(
-        trajectories, out / "trajectories", runs.tensorboard_writer(trainer)
+        trajectories, out / "trajectories", runs.tensorboard_writer(trainer), align=align
     )
     (table := sequence_table(final, seqs := list(per_sequence))).write(out / "sequences")
     if len(results) > 1:

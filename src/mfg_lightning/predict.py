@@ -30,6 +30,13 @@ Written into the run directory (``hydra.run.dir``):
   in camera ``k`` (x right, y down, z forward);
 * ``masks/<seq>/<frame:06d>.png`` when the dataset delivers depth (synthetic, Virtual KITTI):
   the object mask of the paper's section 4 filters at the input size (255 = moving);
+* ``trajectories/{trajectory,drift,error}_<seq>.png`` when the split has ground-truth poses
+  (KITTI 00–10, synthetic, Virtual KITTI): the predicted trajectory over the true one, drift per
+  segment length and position error, after ``predict.align`` (``none``, the default, as
+  predicted; ``se3``, ``sim3``, ``scale``, ``scale_7dof``), which their titles name; and in
+  ``predict.json`` the whole-trajectory metrics of the aligned trajectories (``ate_traj``, RPE,
+  drift: :func:`mfg_lightning.metrics.aligned_trajectory_metrics`). The pose files are never
+  aligned;
 * ``predict.json``: what was written, per sequence.
 """
 
@@ -56,10 +63,14 @@ from mfg_lightning.core import geometry
 from mfg_lightning.core.atomic import atomic_write_bytes, atomic_write_text
 from mfg_lightning.core.config import CONFIG_DIR
 from mfg_lightning.core.errors import UserError, exit_on_unknown_choice, exit_on_user_error
+from mfg_lightning.core.tables import finite_or_none
 from mfg_lightning.data.sample import sanitize_flow
+from mfg_lightning.metrics.alignment import ALIGN_MODES
+from mfg_lightning.metrics.ate_traj import aligned_trajectory_metrics
 from mfg_lightning.models.mfg import validate_top_k
 from mfg_lightning.models.mfg_module import MFGLitModule
 from mfg_lightning.motion.object_motion import ObjectMotionConfig, extract_object_motion
+from mfg_lightning.pictures import plots
 from mfg_lightning.run.checkpoints import module_from_checkpoint
 from mfg_lightning.run.runs import run_info
 from mfg_lightning.trajectory import trajectories
@@ -90,7 +101,8 @@ class MotionPredictor(L.LightningModule):
 
     def predict_step(self, batch: dict[str, Any] | None, batch_idx: int) -> dict[str, Any] | None:
         """Returns ``sequence`` (B names), ``frame``, ``target`` ``(B,)``, ``t``, ``omega``
-        ``(B, 3)`` float64 on the CPU, and ``mask`` ``(B, H, W)`` bool with depth."""
+        ``(B, 3)`` float64 on the CPU, ``mask`` ``(B, H, W)`` bool with depth and ``pose``
+        ``(B, 4, 4)`` float64, the true ``T_src,tgt``, where the split has ground truth."""
         if batch is None:  # every sample of the batch was skipped as unreadable
             return None
         flow, valid, _ = sanitize_flow(batch["flow"], batch["flow_valid"])
@@ -102,6 +114,8 @@ class MotionPredictor(L.LightningModule):
             "t": t.double().cpu(),
             "omega": w.double().cpu(),
         }
+        if "pose" in batch:  # the split's ground truth: figures and metrics, never the poses
+            result["pose"] = batch["pose"].double().cpu()
         if self.object_motion is not None and "depth" in batch:
             res = extract_object_motion(
                 flow, out.v_t, out.v_omega, batch["depth"], self.object_motion, valid=valid
@@ -111,7 +125,7 @@ class MotionPredictor(L.LightningModule):
 
 
 @dataclass
-class SequencePrediction:
+class PredictedSequence:
     """The predictions of one sequence, in frame order.
 
     Attributes:
@@ -130,7 +144,7 @@ class SequencePrediction:
         return trajectories.sequence_trajectory(geometry.motion_to_pose(self.t, self.omega))
 
 
-def gather(outputs: list[dict[str, Any] | None]) -> dict[str, SequencePrediction]:
+def gather(outputs: list[dict[str, Any] | None]) -> dict[str, PredictedSequence]:
     """The batch outputs of :class:`MotionPredictor` grouped by sequence, sorted by frame.
 
     Raises:
@@ -146,7 +160,7 @@ def gather(outputs: list[dict[str, Any] | None]) -> dict[str, SequencePrediction
     t, w = torch.cat([o["t"] for o in kept]), torch.cat([o["omega"] for o in kept])
     has_masks = all("mask" in o for o in kept)
     masks = torch.cat([o["mask"] for o in kept]) if has_masks else None
-    result: dict[str, SequencePrediction] = {}
+    result: dict[str, PredictedSequence] = {}
     for seq in dict.fromkeys(names):
         rows = np.array([i for i, s in enumerate(names) if s == seq])
         rows = rows[np.argsort(frame[rows], kind="stable")]
@@ -166,10 +180,38 @@ def gather(outputs: list[dict[str, Any] | None]) -> dict[str, SequencePrediction
                 "or unreadable image?); a trajectory needs every pair k → k + 1"
             )
         index = torch.from_numpy(rows)
-        result[seq] = SequencePrediction(
+        result[seq] = PredictedSequence(
             f, t[index], w[index], None if masks is None else masks[index]
         )
     return result
+
+
+def true_trajectories(
+    outputs: list[dict[str, Any] | None], frames: dict[str, np.ndarray]
+) -> dict[str, Tensor]:
+    """The ground-truth trajectory of every predicted sequence, where every sample had a pose.
+
+    Args:
+        outputs: the batch outputs of :class:`MotionPredictor`.
+        frames: sequence → its ``(N − 1,)`` consecutive source frames (as :func:`gather` sorted
+            them).
+
+    Returns:
+        Sequence → ``(N, 4, 4)`` float64 poses composed from the true motions ``k → k + 1``
+        (frame ``frames[0]`` at the identity, as the prediction); empty without ground truth.
+    """
+    kept = [o for o in outputs if o is not None]
+    if not kept or not all("pose" in o for o in kept):
+        return {}
+    motion = {
+        (seq, int(f)): pose
+        for o in kept
+        for seq, f, pose in zip(o["sequence"], o["frame"], o["pose"], strict=True)
+    }
+    return {
+        seq: trajectories.sequence_trajectory(torch.stack([motion[(seq, int(f))] for f in fs]))
+        for seq, fs in frames.items()
+    }
 
 
 def _timestamps(dataset: Any, seq: str, frames: np.ndarray, frame_rate: float) -> np.ndarray:
@@ -190,7 +232,7 @@ def _mask_png(mask: np.ndarray) -> bytes:
 
 
 def write_sequence(
-    out: Path, seq: str, pred: SequencePrediction, times: np.ndarray
+    out: Path, seq: str, pred: PredictedSequence, times: np.ndarray
 ) -> dict[str, Any]:
     """Write one sequence's trajectory (KITTI, TUM), motions CSV and masks; what was written.
 
@@ -225,6 +267,31 @@ def write_sequence(
     return written
 
 
+def predict_align(cfg: DictConfig) -> str:
+    """``predict.align``, checked (``none`` when the config has none)."""
+    align = str(cfg.predict.get("align") or "none")
+    if align not in ALIGN_MODES:
+        raise ValueError(f"predict.align={align!r}: use one of {', '.join(ALIGN_MODES)}")
+    return align
+
+
+def score_against_ground_truth(
+    cfg: DictConfig, outputs: list[dict[str, Any] | None], sequences: dict[str, Any]
+) -> dict[str, Any]:
+    """Where the split has ground truth: draw each sequence's figures after ``predict.align``
+    and return the whole-trajectory metrics of the aligned trajectories (``predict.json``'s
+    ``align`` and ``metrics``); nothing without ground truth."""
+    align = predict_align(cfg)
+    truth = true_trajectories(outputs, {seq: p.frames for seq, p in sequences.items()})
+    if not truth:
+        return {}
+    pairs = {seq: (p.trajectory(), truth[seq]) for seq, p in sequences.items()}
+    out = Path(cfg.paths.output_dir) / "trajectories"
+    plots.write_trajectory_figures(pairs, out, align=align)
+    metrics = aligned_trajectory_metrics(pairs, align)
+    return {"align": align, "metrics": {k: finite_or_none(v) for k, v in metrics.items()}}
+
+
 def predict(cfg: DictConfig) -> dict[str, dict[str, Any]]:
     """Predict every sequence of the configured dataset and write the files (module docstring).
 
@@ -232,6 +299,7 @@ def predict(cfg: DictConfig) -> dict[str, dict[str, Any]]:
         Per sequence, what was written (``predict.json``).
     """
     out = Path(cfg.paths.output_dir)
+    predict_align(cfg)  # a wrong value is an error before anything is predicted
     module = module_from_checkpoint(cfg.ckpt_path, top_k=validate_top_k(cfg.model.get("top_k")))
     datamodule = instantiate(cfg.dataset)
     net_hw = (module.net.height, module.net.width)
@@ -263,6 +331,7 @@ def predict(cfg: DictConfig) -> dict[str, dict[str, Any]]:
         "dataset": cfg.dataset.get("_target_"),
         "split": split,
         "sequences": written,
+        **score_against_ground_truth(cfg, outputs, sequences),
         **run_info(),
     }
     atomic_write_text(out / "predict.json", json.dumps(summary, indent=2) + "\n")

@@ -27,7 +27,7 @@ from typing import Any
 
 import yaml
 
-from mfg_lightning.core.tables import finite_or_none as _finite
+from mfg_lightning.core.tables import finite_or_none
 
 #: the main metrics: report column → key in ``metrics.json["metrics"]``
 MAIN_METRICS: dict[str, str] = {
@@ -99,14 +99,14 @@ class JobRecord:
 
     def metric(self, column: str) -> float | None:
         """A main metric by report column name (see :data:`MAIN_METRICS`), or a raw key."""
-        return _finite(self.metrics.get(MAIN_METRICS.get(column, column)))
+        return finite_or_none(self.metrics.get(MAIN_METRICS.get(column, column)))
 
     def top_k_percent(self) -> float | None:
         """Hidden units kept at evaluation in % (``model.top_k`` null means all: 100)."""
         k = self.config_value(TOP_K_KEY)
         if k is None:
             return 100.0 if self.config else None
-        return _finite(k) * 100.0 if _finite(k) is not None else None
+        return finite_or_none(k) * 100.0 if finite_or_none(k) is not None else None
 
 
 def _natural_key(name: str) -> list[Any]:
@@ -208,7 +208,7 @@ def read_job(job_dir: Path, multirun_dir: Path) -> JobRecord:
             payload = json.loads(metrics_path.read_text())
             if not isinstance(payload, dict) or not isinstance(payload.get("metrics"), dict):
                 raise ValueError("no 'metrics' mapping")
-            job.metrics = {str(k): _finite(v) for k, v in payload["metrics"].items()}
+            job.metrics = {str(k): finite_or_none(v) for k, v in payload["metrics"].items()}
             job.extra = {k: v for k, v in payload.items() if k != "metrics"}
         except (OSError, ValueError) as err:
             job.status, job.reason = "failed", f"unreadable metrics.json ({err})"
@@ -332,7 +332,7 @@ class SeedGroup:
         finished seeds that have it: the sample standard deviation (ddof = 1), None below two
         values, and ``n`` the number of values."""
         if key == "train_seconds":
-            found = [_finite(j.extra.get(key)) for j in self.finished]
+            found = [finite_or_none(j.extra.get(key)) for j in self.finished]
         else:
             found = [j.metric(key) for j in self.finished]
         values = [v for v in found if v is not None]

@@ -202,7 +202,7 @@ class VkittiTree:
     layout = "vkitti"
 
     def __init__(self, root: Path, height: int, width: int, version: int) -> None:
-        from mfg_lightning.data.vkitti import VKITTI1_INTRINSICS, _Layout
+        from mfg_lightning.data.vkitti import VKITTI1_INTRINSICS, VkittiLayout
 
         self.root, self.height, self.width = Path(root), int(height), int(width)
         self.version = int(version)
@@ -212,7 +212,7 @@ class VkittiTree:
                 f"{VKITTI_SIZE[1]} × {VKITTI_SIZE[0]} with fx = 725, and ships no intrinsics; "
                 "use version=2 (2.0.3, with its intrinsic.txt) for other sizes"
             )
-        self.paths = _Layout(self.root, self.version)
+        self.paths = VkittiLayout(self.root, self.version)
         self.intrinsics = geometry.scale_intrinsics(
             torch.tensor(VKITTI1_INTRINSICS, dtype=torch.float64),
             self.width / VKITTI_SIZE[1],

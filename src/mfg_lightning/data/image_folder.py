@@ -13,9 +13,9 @@ seconds per frame, as KITTI's ``times.txt``).
 
 The only split is ``predict`` (every pair ``k → k + 1``, no ground truth): training and
 evaluation need poses and refuse this dataset with a clear error. Flow is computed exactly as
-for KITTI (:class:`~mfg_lightning.data.kitti.KittiOdometryDataset`: OpenCV's DIS on the grey
-images, cached under ``<cache_dir>/kitti_flow/``, the RGB frame cached beside it), of which this
-dataset is the layout only.
+for KITTI (:class:`~mfg_lightning.data.sequences.ImageSequenceDataset`, the engine both build on:
+OpenCV's DIS on the grey images, cached under ``<cache_dir>/kitti_flow/``, the RGB frame cached
+beside it), of which this dataset is the layout only.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from torch.utils.data import DataLoader
 
 from mfg_lightning.core.data_errors import DataFileError
 from mfg_lightning.data.base import MFGDataModule, check_data_root, normalize_sequence
-from mfg_lightning.data.kitti import KittiOdometryDataset, _Sequence, kitti_flow_source
+from mfg_lightning.data.sequences import ImageSequence, ImageSequenceDataset, image_flow_source
 from mfg_lightning.flow import io as flow_io
 from mfg_lightning.trajectory import pose_io
 
@@ -69,7 +69,7 @@ def check_intrinsics(fx: Any, fy: Any, cx: Any, cy: Any) -> np.ndarray:
     return np.array(out)
 
 
-class ImageFolderDataset(KittiOdometryDataset):
+class ImageFolderDataset(ImageSequenceDataset):
     """The frames of one folder as one sequence without ground truth (see the module docstring).
 
     Args:
@@ -81,11 +81,12 @@ class ImageFolderDataset(KittiOdometryDataset):
         frame_rate: frames per second, for timestamps when ``times`` is not given.
         times: a text file of one timestamp (seconds) per frame, or None.
         kwargs: the flow and input-size arguments of
-            :class:`~mfg_lightning.data.kitti.KittiOdometryDataset` (``height``, ``width``,
+            :class:`~mfg_lightning.data.sequences.ImageSequenceDataset` (``height``, ``width``,
             ``flow``, ``cache_dir``, ``load_rgb``).
     """
 
     name = "image_folder"
+    title = "image folder"
 
     def __init__(
         self,
@@ -122,7 +123,7 @@ class ImageFolderDataset(KittiOdometryDataset):
         # Frame k is the k-th match of the pattern: another pattern, other frames.
         return {"pattern": self.pattern}
 
-    def _load_sequence(self, seq: str) -> tuple[_Sequence, list[int], list[str]]:
+    def _load_sequence(self, seq: str) -> tuple[ImageSequence, list[int], list[str]]:
         self._files = sorted(
             (p for p in self.root.glob(self.pattern) if p.is_file()), key=_natural_key
         )
@@ -133,7 +134,7 @@ class ImageFolderDataset(KittiOdometryDataset):
             )
         native_hw = flow_io.image_size(self._files[0])
         n = len(self._files)
-        info = _Sequence(seq, self.root, self.native_intrinsics, native_hw, None, n)
+        info = ImageSequence(seq, self.root, self.native_intrinsics, native_hw, None, n)
         return info, list(range(n)), []
 
     def image_path(self, seq: str, frame: int) -> Path:
@@ -165,7 +166,7 @@ class ImageFolderDataModule(MFGDataModule):
         pattern, sequence, frame_rate, times: see :class:`ImageFolderDataset`.
         flow, cache_dir, load_rgb: the flow source (the ``flow`` config group: ``flow=dis`` by
             default, or ``flow=files``) and its cache, as for KITTI
-            (:class:`~mfg_lightning.data.kitti.KittiOdometryDataset`).
+            (:class:`~mfg_lightning.data.sequences.ImageSequenceDataset`).
         kwargs: ``height``, ``width``, ``eval_batch_size``, ``num_workers``, … of
             :class:`~mfg_lightning.data.base.MFGDataModule` (batches of ``eval_batch_size``).
     """
@@ -196,7 +197,7 @@ class ImageFolderDataModule(MFGDataModule):
             "times": times,
             "height": self.height,
             "width": self.width,
-            "flow": kitti_flow_source(flow),
+            "flow": image_flow_source(flow),
             "cache_dir": cache_dir,
             "load_rgb": load_rgb,
         }

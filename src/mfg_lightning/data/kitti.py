@@ -49,6 +49,10 @@ Sequences without ground truth (KITTI ships ``poses/`` for 00–10 only): the ``
 (:mod:`mfg_lightning.predict`) holds the test sequences, every pair ``t → t + 1``, and reads
 ``poses/XX.txt`` only if it is there; its samples have no ``pose`` when it is not. Training,
 validation and test need the pose files and name the missing ones.
+
+This module is the KITTI layout (``calib.txt``, ``poses/XX.txt``, ``times.txt``, the split); the
+sample index, flow, its caches, poses and intrinsics at the input size are the engine shared
+with a folder of images, :class:`~mfg_lightning.data.sequences.ImageSequenceDataset`.
 """
 
 from __future__ import annotations
@@ -56,23 +60,16 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 
-from mfg_lightning.core import geometry
 from mfg_lightning.core.data_errors import DataFileError, DataRootError
-from mfg_lightning.data import transforms
 from mfg_lightning.data.base import (
-    FileMotionDataset,
     MFGDataModule,
     check_data_root,
-    check_offsets,
     check_split,
     list_numbered,
     normalize_sequence,
@@ -80,18 +77,11 @@ from mfg_lightning.data.base import (
     some_of,
     split_sequences,
 )
-from mfg_lightning.data.sample import sanitize_flow
+from mfg_lightning.data.sequences import ImageSequence, ImageSequenceDataset, image_flow_source
 from mfg_lightning.flow import io as flow_io
-from mfg_lightning.flow.cache import default_cache_dir
-from mfg_lightning.flow.estimators import (
-    DIS_PRESETS,
-    DISFlowEstimator,
-    EstimatedFlow,
-    FlowCache,
-    FlowFiles,
-    FlowSource,
-    parse_flow,
-)
+
+# Re-exported: the flow estimator, presets and cache that KITTI's flow uses, imported from here.
+from mfg_lightning.flow.estimators import DIS_PRESETS, DISFlowEstimator, FlowCache, FlowFiles
 from mfg_lightning.trajectory import pose_io
 
 log = logging.getLogger(__name__)
@@ -105,14 +95,12 @@ __all__ = [
     "KittiOdometryDataset",
     "normalize_sequence",
     "read_kitti_calib",
-    "read_kitti_poses",
+    "read_kitti_poses_as_data_file",
     "write_kitti_calib",
 ]
 
 TRAIN_SEQUENCES = ("00", "01", "02", "03", "04", "05", "06", "07", "08")
 TEST_SEQUENCES = ("09", "10")
-FLOW_EXTENSIONS = ("flo", "png", "npy", "npz")
-
 KITTI_LAYOUT = """\
 <data_root>/                      (the unpacked KITTI odometry download)
 ├── sequences/
@@ -126,26 +114,6 @@ KITTI_LAYOUT = """\
     ├── 00.txt                    one line per frame: 12 floats, T_world_cam
     ├── …
     └── 10.txt"""
-
-# Bump when the cached array layout changes, so old caches are not misread.
-_CACHE_FORMAT = 1
-
-
-def kitti_flow_source(flow: FlowSource | dict[str, Any] | None) -> EstimatedFlow | FlowFiles:
-    """The ``flow`` config of ``dataset=kitti`` parsed (default DIS ``medium``); ``flow=exact``
-    and ``flow=ground_truth`` are refused: real images have no exact flow, and KITTI odometry
-    ships no flow."""
-    source = parse_flow(flow, default="dis")
-    if not isinstance(source, (EstimatedFlow, FlowFiles)):
-        missing = "exact flow (it needs a synthetic scene)"
-        if source.source == "ground_truth":
-            missing = "ground-truth flow (KITTI odometry ships none)"
-        raise ValueError(
-            f"flow.source={source.source}: dataset=kitti has no {missing}; use flow=dis (the "
-            "default for KITTI) or flow=files flow.dir=<your flow>"
-        )
-    return source
-
 
 # --------------------------------------------------------------------------------------------
 # Files
@@ -216,8 +184,11 @@ def _sci(value: float) -> str:
     return text if float(text) == value else f"{value:.16e}"
 
 
-def read_kitti_poses(path: str | os.PathLike) -> np.ndarray:
-    """Read a KITTI pose file (``poses/XX.txt``) with :mod:`mfg_lightning.trajectory.pose_io`.
+def read_kitti_poses_as_data_file(path: str | os.PathLike) -> np.ndarray:
+    """Read a KITTI pose file (``poses/XX.txt``) with
+    :func:`mfg_lightning.trajectory.pose_io.read_kitti_poses`, its errors raised as a bad data
+    file (:class:`~mfg_lightning.core.data_errors.DataFileError`, not
+    :class:`~mfg_lightning.trajectory.pose_io.PoseFileError`).
 
     Returns:
         ``(N, 4, 4)`` float64 ``T_world_cam`` (camera-to-world, metres).
@@ -235,16 +206,6 @@ def read_kitti_poses(path: str | os.PathLike) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 # Dataset
 # --------------------------------------------------------------------------------------------
-
-
-@dataclass
-class _Sequence:
-    name: str
-    image_dir: Path
-    intrinsics: np.ndarray  # (4,) native pixels
-    native_hw: tuple[int, int]
-    poses: np.ndarray | None  # (N, 4, 4) T_world_cam; None: a sequence without ground truth
-    n_frames: int  # frames 0 … n_frames − 1 (those with a pose, when there are poses)
 
 
 def check_kitti_root(
@@ -287,114 +248,29 @@ def check_kitti_root(
     return root.resolve()
 
 
-class KittiOdometryDataset(FileMotionDataset):
-    """Samples ``t → t + o`` of KITTI odometry sequences (see the module docstring).
+class KittiOdometryDataset(ImageSequenceDataset):
+    """Samples ``t → t + o`` of KITTI odometry sequences (see the module docstring): the KITTI
+    layout of :class:`~mfg_lightning.data.sequences.ImageSequenceDataset`, which indexes the
+    samples and delivers flow, RGB, poses and intrinsics.
 
     Args:
         data_root: the KITTI odometry root (holding ``sequences/`` and ``poses/``).
         sequences: sequence names (``"00"`` … ``"10"``).
-        offsets: target offsets, ``target = frame + offset`` (non-zero integers).
-        val_fraction: fraction of each sequence held out as its validation tail.
-        flow: the flow source, a ``conf/flow`` config or its parsed form
-            (:func:`~mfg_lightning.flow.estimators.parse_flow`): ``{"source": "dis",
-            "preset": …, "params": …, "height": …, "width": …}`` (the default: DIS ``medium``
-            at the native size; ``height × width`` is the size the images are resized to before
-            estimation) or ``{"source": "files", "dir": <flow_dir>}`` (user-supplied flow,
-            ``<flow_dir>/<seq>/<src:06d>_<tgt:06d>.<ext>``).
-        cache_dir: the user cache dir (``paths.cache_dir``); flow is cached under ``kitti_flow/``.
-        load_rgb: deliver the source image as ``rgb`` (decoded once, then read from the cache).
-        require_poses: False: a sequence without ``poses/XX.txt`` is read without ground truth
-            (its samples have no ``pose``; :meth:`relative_poses` refuses).
-        kwargs: ``height``, ``width`` (the input size flow, RGB and intrinsics are delivered
-            at), ``split``, ``portion`` (``"all"`` frames of each sequence, or its ``"train"``
-            head / ``"val"`` tail with ``val_fraction``) and ``skip_bad_samples`` of
-            :class:`~mfg_lightning.data.base.FileMotionDataset`.
+        require_poses: False: a sequence without ``poses/XX.txt`` is read without ground truth.
+        The other arguments are those of
+        :class:`~mfg_lightning.data.sequences.ImageSequenceDataset`.
     """
 
     name = "kitti"
     title = "KITTI"
 
-    def __init__(
-        self,
-        data_root: str | os.PathLike,
-        sequences: Sequence[str],
-        offsets: Sequence[int] = (1,),
-        val_fraction: float = 0.05,
-        flow: FlowSource | dict[str, Any] | None = None,
-        cache_dir: str | os.PathLike | None = None,
-        load_rgb: bool = True,
-        require_poses: bool = True,
-        **kwargs: Any,
-    ) -> None:
-        super().__init__(**kwargs)
-        self.require_poses = bool(require_poses)
-        source = kitti_flow_source(flow)
-        offsets = check_offsets(offsets)
-        self.sequence_names = [normalize_sequence(s) for s in sequences]
-        self.root = self._check_root(data_root)
-        self.offsets = offsets
-        self.load_rgb = load_rgb
-        self.flow_dir = Path(source.dir).expanduser() if isinstance(source, FlowFiles) else None
-        self.compute_hw: tuple[int, int] | None = None
-        self.estimator: Any = None
-        # pixels of estimated flow that were not finite (masked), at the estimation size
-        self.nonfinite_pixels = 0
-        if isinstance(source, EstimatedFlow):
-            self.estimator = source.estimator
-            if source.height is not None and source.width is not None:
-                self.compute_hw = (int(source.height), int(source.width))
-        if self.flow_dir is None:
-            flow_key: dict[str, Any] = {
-                **self.estimator.key(),
-                "compute_hw": list(self.compute_hw) if self.compute_hw else "native",
-            }
-        else:
-            flow_key = {"flow_dir": str(self.flow_dir.resolve())}  # only RGB is cached then
-        key = {
-            **flow_key,
-            "output_hw": [self.height, self.width],
-            "data_root": str(self.root),
-            "format": _CACHE_FORMAT,
-            **self._layout_key(),
-        }
-        self.cache = FlowCache.create(cache_dir or default_cache_dir(), key)
-        if self.flow_dir is not None and not self.flow_dir.is_dir():
-            raise DataRootError(
-                f"flow.dir={self.flow_dir} is not a directory; expected "
-                "<flow_dir>/<seq>/<src:06d>_<tgt:06d>.<flo|png|npy|npz>"
-            )
-
-        self._sequences: dict[str, _Sequence] = {}
-        problems: list[str] = []
-        span = max(abs(o) for o in offsets)
-        for seq in self.sequence_names:
-            info, frames, seq_problems = self._load_sequence(seq)
-            problems += seq_problems
-            self._sequences[seq] = info
-            allowed = self.portion_frames(info.n_frames, val_fraction, span)
-            present = set(frames)
-            for src in allowed:
-                for o in offsets:
-                    tgt = src + o
-                    if tgt in allowed and src in present and tgt in present:
-                        self.samples.append((seq, src, tgt))
-        self._flow_paths: dict[tuple[str, int, int], Path] = {}
-        if self.flow_dir is not None:
-            problems += self._index_flow_files()
-        self.report_problems(problems)
-
-    # -- index -------------------------------------------------------------------------------
-
     def _check_root(self, data_root: str | os.PathLike | None) -> Path:
-        """The resolved ``data_root`` after checking the layout (a hook for other layouts)."""
         return check_kitti_root(data_root, self.sequence_names, poses=self.require_poses)
 
-    def _layout_key(self) -> dict[str, Any]:
-        """What else decides which file a frame number means (for the cache key): nothing
-        here, the KITTI names are fixed."""
-        return {}
-
-    def _load_sequence(self, seq: str) -> tuple[_Sequence, list[int], list[str]]:
+    def _load_sequence(self, seq: str) -> tuple[ImageSequence, list[int], list[str]]:
+        """``sequences/<seq>/``: ``image_2/`` frames, ``P2`` of ``calib.txt``, and the poses of
+        ``poses/<seq>.txt`` (optional without ``require_poses``); frames beyond the poses are
+        dropped and reported."""
         seq_dir = self.root / "sequences" / seq
         image_dir = seq_dir / "image_2"
         pose_file = self.root / "poses" / f"{seq}.txt"
@@ -404,9 +280,9 @@ class KittiOdometryDataset(FileMotionDataset):
             raise DataFileError(f"{image_dir}: no frames (expected 000000.png, 000001.png, …)")
         native_hw = flow_io.image_size(image_dir / f"{frames[0]:06d}.png")
         if not self.require_poses and not pose_file.exists():
-            info = _Sequence(seq, image_dir, intrinsics, native_hw, None, frames[-1] + 1)
+            info = ImageSequence(seq, image_dir, intrinsics, native_hw, None, frames[-1] + 1)
             return info, frames, []
-        poses = read_kitti_poses(pose_file)
+        poses = read_kitti_poses_as_data_file(pose_file)
         problems = []
         if len(poses) < len(frames) or frames[-1] >= len(poses):
             problems.append(
@@ -420,60 +296,11 @@ class KittiOdometryDataset(FileMotionDataset):
                 f"{image_dir}: {len(missing)} frame(s) listed in {pose_file} are missing: {shown}"
             )
         frames = [f for f in frames if f < len(poses)]
-        info = _Sequence(seq, image_dir, intrinsics, native_hw, poses, len(poses))
+        info = ImageSequence(seq, image_dir, intrinsics, native_hw, poses, len(poses))
         return info, frames, problems
 
-    def _index_flow_files(self) -> list[str]:
-        assert self.flow_dir is not None
-        listing: dict[str, dict[str, Path]] = {}
-        for seq in self.sequence_names:
-            d = self.flow_dir / seq
-            entries: dict[str, Path] = {}
-            if d.is_dir():
-                for p in d.iterdir():
-                    if p.suffix.lower().lstrip(".") in FLOW_EXTENSIONS:
-                        entries.setdefault(p.stem, p)
-            listing[seq] = entries
-        kept, missing = [], []
-        for seq, src, tgt in self.samples:
-            p = listing[seq].get(f"{src:06d}_{tgt:06d}")
-            if p is None:
-                missing.append(self.flow_dir / seq / f"{src:06d}_{tgt:06d}.<flo|png|npy|npz>")
-            else:
-                self._flow_paths[(seq, src, tgt)] = p
-                kept.append((seq, src, tgt))
-        self.samples = kept
-        if not missing:
-            return []
-        return [
-            f"flow.dir: {len(missing)} flow file(s) missing for the {self.split} split "
-            f"(naming: <flow_dir>/<seq>/<src:06d>_<tgt:06d>.<ext>):\n{some_of(missing, 10)}"
-        ]
-
-    # -- MotionDataset -----------------------------------------------------------------------
-
-    def relative_poses(self) -> torch.Tensor:
-        """``(N, 4, 4)`` float32 ``T_src,tgt`` of every sample, from the pose files only."""
-        if not self.samples:
-            return torch.zeros(0, 4, 4)
-        self._check_poses()
-        src = np.stack([self._sequences[s].poses[a] for s, a, _ in self.samples])
-        tgt = np.stack([self._sequences[s].poses[b] for s, _, b in self.samples])
-        rel = geometry.relative_pose(torch.from_numpy(src), torch.from_numpy(tgt))
-        return rel.float()
-
-    def has_poses(self) -> bool:
-        """Whether every sequence has ground-truth poses."""
-        return all(info.poses is not None for info in self._sequences.values())
-
-    def _check_poses(self) -> None:
-        without = sorted(seq for seq, info in self._sequences.items() if info.poses is None)
-        if without:
-            raise DataRootError(
-                f"the {self.split} split has no ground-truth poses for sequence(s) "
-                f"{', '.join(without)} (no {self.root / 'poses'}/<seq>.txt); training and "
-                "evaluation need them"
-            )
+    def image_path(self, seq: str, frame: int) -> Path:
+        return self._sequences[seq].image_dir / f"{frame:06d}.png"
 
     def timestamps(self, seq: str) -> np.ndarray | None:
         """``(n_frames,)`` seconds of frames 0 … n_frames − 1 from ``sequences/XX/times.txt``,
@@ -488,175 +315,8 @@ class KittiOdometryDataset(FileMotionDataset):
         n = self._sequences[seq].n_frames
         return times[:n] if len(times) >= n else None
 
-    def intrinsics(self, seq: str) -> torch.Tensor:
-        """``(4,)`` ``(fx, fy, cx, cy)`` of ``seq`` at the input size."""
-        info = self._sequences[seq]
-        return transforms.resize_intrinsics(
-            info.intrinsics, info.native_hw, (self.height, self.width)
-        )
-
-    def files(self, index: int) -> list[Path]:
-        """The files sample ``index`` reads (for checks): both images, and its flow file."""
-        seq, src, tgt = self.samples[index]
-        out = [self.image_path(seq, src), self.image_path(seq, tgt)]
-        if self.flow_dir is not None:
-            out.append(self._flow_paths[(seq, src, tgt)])
-        return out
-
-    def describe(self) -> dict[str, dict[str, Any]]:
-        """Per sequence: frames, native image size, intrinsics (native and at the input size)."""
-        return {
-            seq: {
-                "frames": info.n_frames,
-                "native_size": list(info.native_hw),
-                "intrinsics_native": [round(float(v), 4) for v in info.intrinsics],
-                "intrinsics_input": [round(float(v), 4) for v in self.intrinsics(seq)],
-            }
-            for seq, info in self._sequences.items()
-        }
-
-    def image_path(self, seq: str, frame: int) -> Path:
-        return self._sequences[seq].image_dir / f"{frame:06d}.png"
-
-    def _load(self, index: int) -> dict[str, Any]:
-        seq, src, tgt = self.samples[index]
-        info = self._sequences[seq]
-        flow, valid = self.flow(index)
-        flow_t, valid_t, _ = sanitize_flow(
-            transforms.flow_to_tensor(flow), torch.from_numpy(np.ascontiguousarray(valid))
-        )
-        sample: dict[str, Any] = {
-            "flow": flow_t,
-            "flow_valid": valid_t,
-            "intrinsics": self.intrinsics(seq),
-            **self.sample_identity(index),
-        }
-        if info.poses is not None:
-            sample["pose"] = geometry.relative_pose(
-                torch.from_numpy(info.poses[src]), torch.from_numpy(info.poses[tgt])
-            ).float()
-        if self.load_rgb:
-            rgb = self.cache.load(
-                self.cache.rgb_path(seq, src), (self.height, self.width, 3), np.uint8
-            )
-            if rgb is None:
-                rgb = self._decode(seq, src)[0]
-            sample["rgb"] = torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1)))
-        return sample
-
-    # -- flow --------------------------------------------------------------------------------
-
-    def _compute_hw(self, seq: str) -> tuple[int, int]:
-        return self.compute_hw or self._sequences[seq].native_hw
-
-    def cache_path(self, index: int) -> Path | None:
-        """Where the computed flow of sample ``index`` is cached (None with ``flow_dir``)."""
-        if self.flow_dir is not None:
-            return None
-        seq, src, tgt = self.samples[index]
-        return self.cache.path(seq, self._compute_hw(seq), src, tgt)
-
-    def flow(self, index: int) -> tuple[np.ndarray, np.ndarray]:
-        """Flow of sample ``index`` at the input size: ``(h, w, 2)`` float32, ``(h, w)`` bool.
-
-        From ``flow_dir`` if set, else from the cache, computing (and caching) it on a miss.
-        """
-        seq, src, tgt = self.samples[index]
-        hw = (self.height, self.width)
-        if self.flow_dir is not None:
-            flow, valid = flow_io.read_flow(self._flow_paths[(seq, src, tgt)], png_format="kitti")
-            return transforms.resize_flow(flow, valid, *hw)
-        path = self.cache.path(seq, self._compute_hw(seq), src, tgt)
-        flow = self.cache.load(path, (*hw, 2), np.float32)
-        if flow is None:
-            flow = self._estimate(
-                seq, src, tgt, self._decode(seq, src)[1], self._decode(seq, tgt)[1]
-            )
-            self.cache.store(path, flow)
-        return flow, np.isfinite(flow).all(axis=2)
-
-    def _decode(self, seq: str, frame: int) -> tuple[np.ndarray, np.ndarray | None]:
-        """Decode one frame: ``(rgb, image)``, the ``(h, w, 3)`` uint8 image at the input size
-        (also cached, with ``load_rgb``) and the estimator's input (DIS: the uint8 grey image) at
-        the flow computation size (None with ``flow=files``)."""
-        rgb = flow_io.read_rgb(self.image_path(seq, frame))
-        small = transforms.resize_rgb(rgb, self.height, self.width)
-        if self.load_rgb:
-            path = self.cache.rgb_path(seq, frame)
-            if not path.exists():
-                self.cache.store(path, small)
-        if self.estimator is None:  # flow=files: the image is for the pictures only
-            return small, None
-        image = self.estimator.prepare(rgb)
-        hw = self._compute_hw(seq)
-        if image.shape[:2] != hw:
-            image = cv2.resize(image, (hw[1], hw[0]), interpolation=cv2.INTER_AREA)
-        return small, image
-
-    def _estimate(
-        self, seq: str, src: int, tgt: int, gray0: np.ndarray, gray1: np.ndarray
-    ) -> np.ndarray:
-        """The estimator's flow resized to the input size, ``(h, w, 2)`` float32; pixels where it
-        was not finite are NaN (masked when read, and counted in ``nonfinite_pixels``)."""
-        flow = self.estimator(gray0, gray1)
-        finite = np.isfinite(flow).all(axis=2)
-        if finite.all():
-            resized, _ = transforms.resize_flow(flow, finite, self.height, self.width)
-            return resized
-        self.nonfinite_pixels += int((~finite).sum())
-        resized, valid = transforms.resize_flow(
-            np.where(finite[..., None], flow, 0.0).astype(np.float32),
-            finite,
-            self.height,
-            self.width,
-        )
-        return np.where(valid[..., None], resized, np.nan).astype(np.float32)
-
-    def missing_flow(self) -> list[int]:
-        """Indices of the samples whose computed flow is not cached yet (stat calls only)."""
-        if self.flow_dir is not None:
-            return []
-        return [i for i in range(len(self.samples)) if not self.cache_path(i).exists()]
-
-    def precompute_flow(self, progress: bool = True) -> int:
-        """Compute and cache the flow of every sample not cached yet; return how many.
-
-        Pairs are processed in sequence and frame order so each image is decoded once even when
-        it is the target of one pair and the source of the next (or of backward pairs).
-        """
-        todo = self.missing_flow()
-        if not todo:
-            return 0
-        span = max(abs(o) for o in self.offsets)
-        images: dict[tuple[str, int], np.ndarray] = {}
-        done = 0
-        bar = tqdm(
-            total=len(todo),
-            desc=f"{self.estimator.name} flow ({self.split})",
-            unit="pair",
-            disable=not progress,
-        )
-        try:
-            for i in sorted(todo, key=lambda k: self.samples[k][:2]):
-                seq, src, tgt = self.samples[i]
-                # Keep only the images that later pairs of this sequence can still use.
-                for key in [k for k in images if k[0] != seq or k[1] < src - span]:
-                    del images[key]
-                try:
-                    for f in (src, tgt):
-                        if (seq, f) not in images:
-                            images[(seq, f)] = self._decode(seq, f)[1]
-                except DataFileError as err:
-                    self.bad_sample(i, err, "cannot compute flow for")
-                    bar.update(1)
-                    continue
-                flow = self._estimate(seq, src, tgt, images[(seq, src)], images[(seq, tgt)])
-                self.cache.store(self.cache_path(i), flow)
-                done += 1
-                bar.update(1)
-        finally:
-            bar.close()
-        return done
+    def _missing_poses_note(self) -> str:
+        return f"no {self.root / 'poses'}/<seq>.txt"
 
 
 # --------------------------------------------------------------------------------------------
@@ -708,7 +368,7 @@ class KittiDataModule(MFGDataModule):
         self.backward_flow = bool(backward_flow)
         self.precompute = bool(precompute_flow)
         # Parsed once here so that a bad flow config fails before anything is built or written.
-        self.flow = kitti_flow_source(flow)
+        self.flow = image_flow_source(flow)
         self.dataset_kwargs: dict[str, Any] = {
             "height": self.height,
             "width": self.width,

@@ -4,10 +4,13 @@ the ground truth kept beside the estimate, and the estimate's quality per image 
 
 from __future__ import annotations
 
+import ast
 import hashlib
+import importlib.util
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -126,18 +129,57 @@ def summarize_quality(stats: np.ndarray) -> dict[str, dict[str, float | None]]:
 _DIGESTS: dict[tuple[str, ...], str] = {}
 
 
-def _source_digest(*modules: Any) -> str:
-    """A digest of the source files of ``modules``: any change to the renderer changes it.
+def _source_digest(*modules: ModuleType) -> str:
+    """A digest of the source files of ``modules`` and of every :mod:`mfg_lightning.scene`
+    module they import, directly or not (:func:`_scene_imports`): any change to the renderer,
+    whichever of its stage modules it is in, changes it.
 
     Read once per process, so that one process keeps one cache key even if the files are
     edited while it runs (it runs the code it imported)."""
-    names = tuple(m.__file__ for m in modules)
-    if names not in _DIGESTS:
+    key = tuple(m.__name__ for m in modules)
+    if key not in _DIGESTS:
         h = hashlib.sha256()
-        for name in names:
-            h.update(Path(name).read_bytes())
-        _DIGESTS[names] = h.hexdigest()[:16]
-    return _DIGESTS[names]
+        for module in _scene_imports(modules):
+            h.update(Path(module.__file__).read_bytes())
+        _DIGESTS[key] = h.hexdigest()[:16]
+    return _DIGESTS[key]
+
+
+def _scene_imports(modules: Sequence[ModuleType]) -> list[ModuleType]:
+    """``modules`` and every ``mfg_lightning.scene`` module their source imports (at module
+    level or in a function), directly or through one another, sorted by name (so the digest
+    is a function of the sources alone, whatever else a process has imported)."""
+    found: dict[str, ModuleType] = {}
+    todo = list(modules)
+    while todo:
+        module = todo.pop()
+        if module.__name__ in found:
+            continue
+        found[module.__name__] = module
+        for node in ast.walk(ast.parse(Path(module.__file__).read_bytes())):
+            if isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = "." * node.level + (node.module or "")
+                base = importlib.util.resolve_name(base, module.__package__)
+                # ``from package import module`` names modules too.
+                names = [base, *(f"{base}.{alias.name}" for alias in node.names)]
+            else:
+                continue
+            todo += [
+                importlib.import_module(name)
+                for name in names
+                if name.startswith("mfg_lightning.scene.") and _is_module(name)
+            ]
+    return [found[name] for name in sorted(found)]
+
+
+def _is_module(name: str) -> bool:
+    """Whether ``name`` (dotted) is an importable module rather than a name inside one."""
+    try:
+        return importlib.util.find_spec(name) is not None
+    except ModuleNotFoundError:  # a name inside a module: its parent is no package
+        return False
 
 
 @dataclass

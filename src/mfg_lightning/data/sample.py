@@ -56,8 +56,11 @@ class SampleError(ValueError):
 
 def sanitize_flow(
     flow: torch.Tensor, valid: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor, int]:
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Mask non-finite flow pixels.
+
+    Tensor operations only: nothing is read back from the device, so the training step that
+    calls this on every batch never waits for it (the count is read when it is logged).
 
     Args:
         flow: ``(..., 2, H, W)`` flow in pixels.
@@ -65,13 +68,14 @@ def sanitize_flow(
 
     Returns:
         ``(flow, valid, n_bad)``: flow with non-finite pixels set to 0, the mask with them
-        cleared, and how many pixels were non-finite.
+        cleared, and how many pixels were non-finite (a 0-dim int64 tensor on the flow's
+        device; ``int(n_bad)`` reads it).
     """
     finite = torch.isfinite(flow).all(dim=-3)
-    n_bad = int((~finite).sum())
-    if n_bad:
-        flow = torch.where(finite.unsqueeze(-3), flow, torch.zeros_like(flow))
-        valid = valid & finite
+    n_bad = (~finite).sum()
+    # Always masked: the same values where every pixel is finite, and no test of n_bad.
+    flow = torch.where(finite.unsqueeze(-3), flow, torch.zeros_like(flow))
+    valid = valid & finite
     return flow, valid, n_bad
 
 
@@ -126,6 +130,10 @@ def check_batch(
     The batch form of :func:`check_sample`, cheap enough for every step (shape comparisons and a
     finiteness test of the ``B × 16`` pose and ``B × 4`` intrinsics numbers, and of depth and
     object flow when present). Non-finite *flow* is not an error: :func:`sanitize_flow` masks it.
+    It is :func:`check_batch_layout` (no tensor value is read) followed by
+    :func:`raise_on_bad_values` of :func:`batch_value_flags` (one read of ``5 × B`` flags), the
+    two halves a caller on an accelerator runs apart (:class:`mfg_lightning.run.callbacks.
+    BatchChecks`).
 
     Args:
         batch: ``default_collate`` of samples (``flow`` ``(B, 2, H, W)``, ``flow_valid``
@@ -140,6 +148,15 @@ def check_batch(
         SampleError: naming the samples (all of the batch for a shape error, the offending ones
             for non-finite values) and the key.
     """
+    check_batch_layout(batch, height, width, dtype)
+    raise_on_bad_values(batch, batch_value_flags(batch))
+
+
+def check_batch_layout(
+    batch: dict[str, Any], height: int, width: int, dtype: torch.dtype | None = None
+) -> None:
+    """The shape and dtype half of :func:`check_batch`: reads no tensor's values, so it never
+    waits for a device. Arguments and errors as there."""
     if not isinstance(batch, dict):
         raise SampleError(f"a batch must be a dict of tensors, got {type(batch).__name__}")
     for key in ("flow", "flow_valid", "pose", "intrinsics"):
@@ -175,16 +192,46 @@ def check_batch(
         value = batch.get(key)
         if value is not None and not value.dtype.is_floating_point:
             raise SampleError(f"{_batch_ids(batch)}: '{key}' is {value.dtype}, expected float")
-    for key in ("pose", "intrinsics", "depth", "object_flow"):
+
+
+#: The value checks of :func:`batch_value_flags`, one row each: non-finite values of the first
+#: four keys, and a focal length that is not positive.
+VALUE_CHECKS = ("pose", "intrinsics", "depth", "object_flow", "focal")
+
+
+def batch_value_flags(batch: dict[str, Any]) -> torch.Tensor:
+    """The value half of :func:`check_batch`, as tensor operations only (no synchronisation).
+
+    Args:
+        batch: a batch that passed :func:`check_batch_layout`.
+
+    Returns:
+        ``(len(VALUE_CHECKS), B)`` bool on the batch's device: row ``k`` marks the samples that
+        fail check ``VALUE_CHECKS[k]`` (rows of absent keys are all False).
+    """
+    b = batch["flow"].shape[0]
+    rows = []
+    for key in VALUE_CHECKS[:-1]:
         value = batch.get(key)
         if value is None:
+            rows.append(torch.zeros(b, dtype=torch.bool, device=batch["flow"].device))
+        else:
+            rows.append(~torch.isfinite(value.reshape(b, -1)).all(dim=1))
+    rows.append((batch["intrinsics"][:, :2] <= 0).any(dim=1))
+    return torch.stack([r.to(batch["flow"].device) for r in rows])
+
+
+def raise_on_bad_values(batch: dict[str, Any], flags: torch.Tensor) -> None:
+    """Raise :class:`SampleError` for the first failed check of :func:`batch_value_flags`'
+    ``flags``, naming the failing samples (read from ``batch["sample_id"]``) and the key.
+    Reads ``flags``: pass them on the host to avoid waiting for a device."""
+    flags = flags.cpu()
+    if not flags.any():
+        return
+    for check, bad in zip(VALUE_CHECKS, flags, strict=True):
+        if not bad.any():
             continue
-        bad = ~torch.isfinite(value.reshape(b, -1)).all(dim=1)
-        if bad.any():
-            rows = bad.nonzero().flatten()
-            raise SampleError(f"{_batch_ids(batch, rows)}: '{key}' has non-finite values")
-    focal = batch["intrinsics"][:, :2]
-    bad = (focal <= 0).any(dim=1)
-    if bad.any():
-        rows = bad.nonzero().flatten()
-        raise SampleError(f"{_batch_ids(batch, rows)}: focal lengths must be positive")
+        ids = _batch_ids(batch, bad.nonzero().flatten())
+        if check == "focal":
+            raise SampleError(f"{ids}: focal lengths must be positive")
+        raise SampleError(f"{ids}: '{check}' has non-finite values")

@@ -83,6 +83,7 @@ __all__ = [
     "VKITTI1_INTRINSICS",
     "VirtualKittiDataModule",
     "VirtualKittiDataset",
+    "VkittiLayout",
     "normalize_version",
     "normalize_world",
     "read_vkitti_extrinsics",
@@ -254,8 +255,9 @@ def write_vkitti_intrinsics(path: str | os.PathLike, intrinsics: Any) -> None:
 
 
 @dataclass(frozen=True)
-class _Layout:
-    """Paths of one Virtual KITTI version under ``root``."""
+class VkittiLayout:
+    """Paths of one Virtual KITTI version under ``root`` (the reader's, and the writer's in
+    :mod:`mfg_lightning.data.export`)."""
 
     root: Path
     version: int
@@ -326,13 +328,13 @@ class _Layout:
 
 def check_vkitti_root(
     data_root: str | os.PathLike | None, version: int, worlds: Sequence[str], variation: str
-) -> _Layout:
+) -> VkittiLayout:
     """Return the layout, or raise ONE :class:`DataRootError` listing what is missing and showing
     the expected tree."""
     tree = VKITTI1_LAYOUT if version == 1 else VKITTI2_LAYOUT
     name = "Virtual KITTI 1.3.1" if version == 1 else "Virtual KITTI 2.0.3"
     root = check_data_root(data_root, f"the directory holding the unpacked {name} tarballs", tree)
-    layout = _Layout(root.resolve(), version)
+    layout = VkittiLayout(root.resolve(), version)
     missing = [d for d in layout.top_dirs() if not d.is_dir()]
     if not missing:
         for world in worlds:
@@ -345,7 +347,7 @@ def check_vkitti_root(
             intr = layout.intrinsics_file(world, variation)
             missing += [p for p in [*needed, intr] if p is not None and not p.exists()]
     if missing:
-        other = _Layout(layout.root, 3 - version)
+        other = VkittiLayout(layout.root, 3 - version)
         hint = ""
         if all(d.is_dir() for d in other.top_dirs()):
             hint = f"\n(this looks like the other version: set dataset.version={3 - version})"

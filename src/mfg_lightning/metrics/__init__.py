@@ -7,8 +7,9 @@ Trajectory metrics (``../shared/docs/protocols.md``):
 * :mod:`.rpe`: relative pose error (Sturm et al. 2012; the paper's Table 2);
 * :mod:`.drift`: KITTI odometry drift (Geiger et al. 2012), optionally after an alignment.
 
-Shared parts: :mod:`.alignment` (none / SE(3) / Sim(3) Umeyama / kitti-odom-eval scale) and
-:mod:`.stats` (mean, std and RMSE, computed once for every metric; the published names).
+Shared parts: :mod:`.alignment` (none / SE(3) / Sim(3) Umeyama / kitti-odom-eval's scale and
+scale_7dof) and :mod:`.stats` (mean, std and RMSE, computed once for every metric; the published
+names).
 
 :mod:`.evaluator`: :class:`TrajectoryEvaluator`, which turns the per-sample motion predictions of
 a validation or test epoch into whole sequences and feeds these metrics (training, evaluation).
@@ -21,10 +22,17 @@ logged by training and evaluation.
 """
 
 from mfg_lightning.metrics.alignment import ALIGN_MODES, Alignment, align_trajectory, umeyama
-from mfg_lightning.metrics.ate import ATE_NAMES, SnippetATE, snippet_ate, snippet_ate_errors
+from mfg_lightning.metrics.ate import (
+    ATE_NAMES,
+    SnippetATE,
+    snippet_ate,
+    snippet_ate_errors,
+    snippet_ate_from_errors,
+)
 from mfg_lightning.metrics.ate_traj import (
     ATE_TRAJ_NAMES,
     TrajectoryATE,
+    aligned_trajectory_metrics,
     ate_traj,
     ate_traj_errors,
 )
@@ -65,6 +73,7 @@ __all__ = [
     "TrajectoryATE",
     "TrajectoryEvaluator",
     "align_trajectory",
+    "aligned_trajectory_metrics",
     "ate_traj",
     "ate_traj_errors",
     "kitti_drift",
@@ -75,6 +84,7 @@ __all__ = [
     "relative_pose_errors",
     "snippet_ate",
     "snippet_ate_errors",
+    "snippet_ate_from_errors",
     "summary",
     "umeyama",
 ]

@@ -14,10 +14,22 @@ estimated and ``g_k`` the ground-truth positions (translation columns of camera-
 * ``scale``: kitti-odom-eval's ``--align scale``: both trajectories are first expressed relative
   to their first frame (``P_0^-1 · P_k`` and ``Q_0^-1 · Q_k``), then the estimated positions are
   multiplied by the least-squares scale ``s = Σ_k g_k · p_k / Σ_k p_k · p_k``; no rotation.
+* ``scale_7dof``: kitti-odom-eval's ``--align scale_7dof``: both relative to their first frame as
+  for ``scale``, then Umeyama's similarity is fitted but only its scale ``s`` is applied to the
+  estimated positions (no rotation, no translation).
 
 ``n_to_align`` fits the alignment on the first ``n`` poses only and applies it to all (evo's
-``--n_to_align``; the first ``min(n, N)`` poses, as evo slices); ``se3`` and ``sim3`` need at
-least 3 of them. The fitted scale is reported (1 for ``none`` and ``se3``).
+``--n_to_align``; the first ``min(n, N)`` poses, as evo slices); ``se3``, ``sim3`` and
+``scale_7dof`` need at least 3 of them. The fitted scale is reported (1 for ``none`` and ``se3``).
+
+``align_origin`` (evo's ``--align_origin``) first moves the estimate so that its first pose is the
+ground truth's, ``P_k ← Q_0 · P_0^-1 · P_k``. Position errors are then those of both trajectories
+expressed relative to their first frame, which is what kitti-odom-eval always does first: its
+results without ``--align`` are ``none`` with ``align_origin``. Every other mode is unchanged by it
+(``scale`` and ``scale_7dof`` re-express both anyway; ``se3`` and ``sim3`` fit any rigid motion).
+
+``project=False`` keeps the rotation blocks as written and inverts with general matrix inverses
+(kitti-odom-eval's arithmetic: :func:`mfg_lightning.trajectory.trajectories.relative_poses`).
 
 Umeyama's closed form (IEEE TPAMI 13(4), 1991, eqs. 38–42): with the centred point sets
 ``x̃ = p − μ_p``, ``ỹ = g − μ_g``, the cross-covariance ``Σ = (1/n) Σ_k ỹ_k x̃_kᵀ = U D Vᵀ`` and
@@ -39,11 +51,15 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from mfg_lightning.core import geometry
-from mfg_lightning.trajectory.trajectories import check_sequence_pair, evaluation_poses
+from mfg_lightning.trajectory.trajectories import (
+    check_sequence_pair,
+    evaluation_poses,
+    relative_poses,
+)
 
 __all__ = [
     "ALIGN_MODES",
+    "KITTI_ODOM_EVAL_NAMES",
     "AlignMode",
     "Alignment",
     "align_trajectory",
@@ -51,9 +67,17 @@ __all__ = [
     "umeyama",
 ]
 
-AlignMode = Literal["none", "se3", "sim3", "scale"]
+AlignMode = Literal["none", "se3", "sim3", "scale", "scale_7dof"]
 #: The alignment modes, in the order the command line lists them.
-ALIGN_MODES: tuple[str, ...] = ("none", "se3", "sim3", "scale")
+ALIGN_MODES: tuple[str, ...] = ("none", "se3", "sim3", "scale", "scale_7dof")
+#: kitti-odom-eval's ``--align`` name of each mode (its default, no ``--align``, is ``none`` with
+#: ``align_origin``).
+KITTI_ODOM_EVAL_NAMES: dict[str, str] = {
+    "se3": "6dof",
+    "sim3": "7dof",
+    "scale": "scale",
+    "scale_7dof": "scale_7dof",
+}
 
 
 def umeyama(
@@ -111,8 +135,9 @@ class Alignment:
         pred: ``(N, 4, 4)`` float64 aligned estimated poses (camera-to-world; the rotation blocks
             stay rotations, the positions carry the scale).
         target: ``(N, 4, 4)`` float64 ground truth to compare with: as given, or relative to its
-            first frame for ``scale``.
-        rotation: ``(3, 3)`` the fitted rotation (identity for ``none`` and ``scale``).
+            first frame for ``scale`` and ``scale_7dof``.
+        rotation: ``(3, 3)`` the fitted rotation (identity for ``none``, ``scale`` and
+            ``scale_7dof``).
         translation: ``(3,)`` the fitted translation (ground-truth units).
         scale: ``()`` the fitted scale (1 for ``none`` and ``se3``).
         mode: the alignment mode.
@@ -137,35 +162,48 @@ def check_align_options(mode: str, n_to_align: int | None) -> None:
 
 
 def align_trajectory(
-    pred: Tensor, target: Tensor, mode: str = "none", n_to_align: int | None = None
+    pred: Tensor,
+    target: Tensor,
+    mode: str = "none",
+    n_to_align: int | None = None,
+    *,
+    align_origin: bool = False,
+    project: bool = True,
 ) -> Alignment:
     """Align an estimated trajectory to the ground truth (module docstring for the modes).
 
     Args:
         pred: ``(N, 4, 4)`` estimated camera-to-world poses, in frame order, any world frame.
         target: ``(N, 4, 4)`` ground-truth camera-to-world poses of the same frames (metres).
-        mode: ``"none"``, ``"se3"``, ``"sim3"`` or ``"scale"``.
+        mode: ``"none"``, ``"se3"``, ``"sim3"``, ``"scale"`` or ``"scale_7dof"``.
         n_to_align: fit on the first ``min(n_to_align, N)`` poses; ``None``: all of them.
+        align_origin: first put the estimate's first pose on the ground truth's (evo's
+            ``--align_origin``; kitti-odom-eval's expression relative to the first frame).
+        project: project the rotation blocks onto SO(3) first, as every trajectory metric does
+            (:func:`mfg_lightning.trajectory.trajectories.evaluation_poses`); ``False``: as
+            written, with general inverses (kitti-odom-eval).
 
     Returns:
-        :class:`Alignment` (float64, rotation blocks projected onto SO(3) first, as every
-        trajectory metric does: :func:`mfg_lightning.trajectory.trajectories.evaluation_poses`).
+        :class:`Alignment` (float64).
     """
     check_align_options(mode, n_to_align)
     check_sequence_pair(pred, target)
     if pred.shape[0] == 0:
         raise ValueError("cannot align an empty trajectory")
-    P = evaluation_poses(pred)
-    Q = evaluation_poses(target).to(P.device)
+    P = evaluation_poses(pred, project)
+    Q = evaluation_poses(target, project).to(P.device)
     n = pred.shape[0] if n_to_align is None else min(n_to_align, pred.shape[0])
     eye = torch.eye(3, dtype=P.dtype, device=P.device)
     zero = torch.zeros(3, dtype=P.dtype, device=P.device)
     one = torch.ones((), dtype=P.dtype, device=P.device)
+    if align_origin:
+        P = Q[:1] @ relative_poses(P[:1], P, project)
     if mode == "none":
         return Alignment(P, Q, eye, zero, one, mode, n)
+    if mode in ("scale", "scale_7dof"):
+        P = relative_poses(P[:1], P, project)
+        Q = relative_poses(Q[:1], Q, project)
     if mode == "scale":
-        P = geometry.relative_pose(P[:1], P)
-        Q = geometry.relative_pose(Q[:1], Q)
         p, g = P[:n, :3, 3], Q[:n, :3, 3]
         num, den = (g * p).sum(), (p * p).sum()
         s = torch.where(den > 0, num / torch.where(den > 0, den, one), 0.0)
@@ -175,8 +213,12 @@ def align_trajectory(
     if n < 3:
         # Fewer points leave the rotation about the line through them undetermined.
         raise ValueError(f"{mode} alignment needs at least 3 poses to fit a rotation, got {n}")
-    R, t, s = umeyama(P[:n, :3, 3], Q[:n, :3, 3], with_scale=mode == "sim3")
+    R, t, s = umeyama(P[:n, :3, 3], Q[:n, :3, 3], with_scale=mode != "se3")
     aligned = P.clone()
+    if mode == "scale_7dof":
+        # kitti-odom-eval fits the similarity but keeps only its scale.
+        aligned[:, :3, 3] = s * P[:, :3, 3]
+        return Alignment(aligned, Q, eye, zero, s, mode, n)
     aligned[:, :3, :3] = R @ P[:, :3, :3]
     aligned[:, :3, 3] = s * (P[:, :3, 3] @ R.T) + t
     return Alignment(aligned, Q, R, t, s, mode, n)

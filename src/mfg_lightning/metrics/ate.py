@@ -32,7 +32,13 @@ from mfg_lightning.core import geometry
 from mfg_lightning.metrics.stats import cat_state, summary
 from mfg_lightning.trajectory.trajectories import evaluation_poses
 
-__all__ = ["ATE_NAMES", "SnippetATE", "snippet_ate", "snippet_ate_errors"]
+__all__ = [
+    "ATE_NAMES",
+    "SnippetATE",
+    "snippet_ate",
+    "snippet_ate_errors",
+    "snippet_ate_from_errors",
+]
 
 #: The published names of :func:`snippet_ate` and :class:`SnippetATE`.
 ATE_NAMES: tuple[str, ...] = ("ate", "ate_std", "ate_rmse")
@@ -80,6 +86,18 @@ def _summary(ate: Tensor, ate_rmse: Tensor) -> dict[str, Tensor]:
     stats = summary(ate)
     # ate_rmse is the mean of the per-snippet RMSEs (not the RMSE of ate): Table 1's layout.
     return {"ate": stats["mean"], "ate_std": stats["std"], "ate_rmse": summary(ate_rmse)["mean"]}
+
+
+def snippet_ate_from_errors(ate: Tensor, ate_rmse: Tensor) -> dict[str, Tensor]:
+    """ATE over a set of snippets from their per-snippet errors (of one sequence or several).
+
+    Args:
+        ate, ate_rmse: ``(B,)`` as :func:`snippet_ate_errors` returns them.
+
+    Returns:
+        The dict of :func:`snippet_ate` (NaN when ``B == 0``).
+    """
+    return _summary(ate, ate_rmse)
 
 
 def snippet_ate(pred: Tensor, target: Tensor) -> dict[str, Tensor]:

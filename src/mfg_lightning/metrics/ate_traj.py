@@ -19,19 +19,33 @@ writes). Units: those of the ground-truth positions (metres for KITTI). Over sev
 :class:`TrajectoryATE` metric), each sequence is aligned on its own and the statistics pool the
 errors of every pose of every sequence. This is not the ATE of the paper's Table 1, which is taken
 over 5-frame snippets (:mod:`mfg_lightning.metrics.ate`).
+
+:func:`aligned_trajectory_metrics` scores whole trajectories after an alignment as
+``mfg-eval-poses --align`` does: this ATE, the RPE and the KITTI drift of the aligned estimates
+(``evaluate eval.align=…``, ``predict predict.align=…``).
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
+import torch
 from torch import Tensor
 from torchmetrics import Metric
 
 from mfg_lightning.metrics.alignment import Alignment, align_trajectory, check_align_options
+from mfg_lightning.metrics.drift import kitti_drift_from_segments, kitti_segment_errors
+from mfg_lightning.metrics.rpe import relative_pose_errors
 from mfg_lightning.metrics.stats import cat_state, summary
 
-__all__ = ["ATE_TRAJ_NAMES", "TrajectoryATE", "ate_traj", "ate_traj_errors"]
+__all__ = [
+    "ATE_TRAJ_NAMES",
+    "TrajectoryATE",
+    "aligned_trajectory_metrics",
+    "ate_traj",
+    "ate_traj_errors",
+]
 
 #: The published names of :class:`TrajectoryATE` (:func:`ate_traj` adds ``ate_traj_scale``).
 ATE_TRAJ_NAMES: tuple[str, ...] = ("ate_traj", "ate_traj_mean", "ate_traj_std")
@@ -114,3 +128,61 @@ class TrajectoryATE(Metric):
     def compute(self) -> dict[str, Tensor]:
         """``{"ate_traj", "ate_traj_mean", "ate_traj_std"}`` over every pose seen."""
         return _named(cat_state(self.errors))
+
+
+def aligned_trajectory_metrics(
+    sequences: Mapping[str, tuple[Tensor, Tensor]],
+    align: str,
+    delta: int = 1,
+    n_to_align: int | None = None,
+) -> dict[str, float]:
+    """Whole-trajectory metrics of aligned estimates, per sequence and pooled.
+
+    Each sequence's estimate is aligned on its own (:func:`align_trajectory`), then scored: this
+    module's ATE, the RPE (:mod:`mfg_lightning.metrics.rpe`) and the KITTI drift
+    (:mod:`mfg_lightning.metrics.drift`) of the aligned poses, the way ``mfg-eval-poses --align``
+    scores files.
+
+    Args:
+        sequences: sequence → ``(pred, gt)``, ``(N, 4, 4)`` camera-to-world poses each (metres).
+        align: ``"none"``, ``"se3"``, ``"sim3"``, ``"scale"`` or ``"scale_7dof"``.
+        delta: the RPE frame gap.
+        n_to_align: fit each alignment on the first N poses (``None``: all).
+
+    Returns:
+        Floats (NaN where undefined): pooled ``ate_traj``, ``ate_traj_mean``, ``ate_traj_std``,
+        ``rpe_trans``, ``rpe_rot`` (+ ``_std``, ``_rmse``), ``drift_t_err``, ``drift_r_err``, and
+        per sequence ``<seq>/ate_traj``, ``<seq>/ate_traj_scale``, ``<seq>/rpe_trans``,
+        ``<seq>/rpe_rot``, ``<seq>/drift_t_err``, ``<seq>/drift_r_err`` (metres, radians, %,
+        deg/100 m).
+    """
+    check_align_options(align, n_to_align)
+    parts: dict[str, list[Tensor]] = {"traj": [], "trans": [], "rot": [], "t": [], "r": []}
+    out: dict[str, float] = {}
+    for seq, (pred, gt) in sequences.items():
+        aligned = align_trajectory(pred, gt, align, n_to_align)
+        errors = {"traj": ate_traj_errors(aligned)}
+        errors["trans"], errors["rot"] = relative_pose_errors(aligned.pred, aligned.target, delta)
+        errors["t"], errors["r"], _ = kitti_segment_errors(aligned.pred, aligned.target)
+        for key, value in errors.items():
+            parts[key].append(value.cpu())
+        drift = kitti_drift_from_segments(errors["t"], errors["r"])
+        out.update({
+            f"{seq}/ate_traj": float(_named(errors["traj"])["ate_traj"]),
+            f"{seq}/ate_traj_scale": float(aligned.scale),
+            f"{seq}/rpe_trans": float(summary(errors["trans"])["mean"]),
+            f"{seq}/rpe_rot": float(summary(errors["rot"])["mean"]),
+            f"{seq}/drift_t_err": float(drift["t_err"]),
+            f"{seq}/drift_r_err": float(drift["r_err"]),
+        })  # fmt: skip
+    pooled = {
+        k: torch.cat(v) if v else torch.zeros(0, dtype=torch.float64) for k, v in parts.items()
+    }
+    out.update({k: float(v) for k, v in _named(pooled["traj"]).items()})
+    for part in ("trans", "rot"):
+        stats = summary(pooled[part])
+        out.update({f"rpe_{part}": float(stats["mean"]), f"rpe_{part}_std": float(stats["std"]),
+                    f"rpe_{part}_rmse": float(stats["rmse"])})  # fmt: skip
+    drift = kitti_drift_from_segments(pooled["t"], pooled["r"])
+    out.update({"drift_t_err": float(drift["t_err"]), "drift_r_err": float(drift["r_err"])})
+    return out

@@ -28,6 +28,13 @@ fitted on the first ``n_to_align`` poses), then the segments are scored as above
 compare relative poses, so a rigid alignment leaves them unchanged (``se3`` equals ``none``);
 the scale of ``sim3`` and ``scale`` multiplies every estimated relative translation.
 :func:`kitti_drift_by_length` gives the devkit's per-length averages (its ``tl``/``rl`` plots).
+
+An estimate with poses for some frames only (``frames``: a late start, an early end, holes; or the
+poses matched by timestamp) is scored as kitti-odom-eval's ``calc_sequence_errors`` scores it: the
+path length ``dist`` and the segments' first frames ``0, 10, 20, …`` are those of the whole ground
+truth (``reference``), and a segment counts when the estimate has a pose at both its first and
+its last frame. ``project=False`` keeps the rotation blocks as written and inverts with general
+matrix inverses (kitti-odom-eval's arithmetic).
 """
 
 from __future__ import annotations
@@ -43,7 +50,11 @@ from torchmetrics import Metric
 from mfg_lightning.core import geometry
 from mfg_lightning.metrics.alignment import align_trajectory, check_align_options
 from mfg_lightning.metrics.stats import MetricValues, cat_state, summary
-from mfg_lightning.trajectory.trajectories import check_sequence_pair, evaluation_poses
+from mfg_lightning.trajectory.trajectories import (
+    check_sequence_pair,
+    evaluation_poses,
+    relative_poses,
+)
 
 __all__ = [
     "DRIFT_NAMES",
@@ -71,17 +82,27 @@ def kitti_segment_errors(
     step: int = KITTI_STEP,
     align: str = "none",
     n_to_align: int | None = None,
+    *,
+    frames: Tensor | None = None,
+    reference: Tensor | None = None,
+    project: bool = True,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Per-segment errors of one sequence, as the devkit's ``calcSequenceErrors``.
 
     Args:
-        pred: ``(N, 4, 4)`` estimated camera-to-world poses (metres), in frame order.
-        target: ``(N, 4, 4)`` ground-truth camera-to-world poses (metres), in frame order.
+        pred: ``(M, 4, 4)`` estimated camera-to-world poses (metres), in frame order.
+        target: ``(M, 4, 4)`` ground-truth camera-to-world poses of the same frames (metres).
         lengths: segment lengths of ground-truth path in metres.
         step: frames between two segment starts.
         align: alignment of the estimate first (module docstring): ``"none"`` (the devkit),
-            ``"se3"``, ``"sim3"`` or ``"scale"``.
+            ``"se3"``, ``"sim3"``, ``"scale"`` or ``"scale_7dof"``.
         n_to_align: fit the alignment on the first N poses (``None``: all).
+        frames: ``(M,)`` non-decreasing indices of the rows' frames in ``reference`` (``None``: the
+            rows are the frames ``0 … M − 1`` and ``reference`` is ``target``).
+        reference: ``(N, 4, 4)`` the whole ground truth, whose path length places the segments
+            (needed with ``frames``).
+        project: rotation blocks onto SO(3) first (default); ``False``: kitti-odom-eval's
+            arithmetic.
 
     Returns:
         ``(t_err, r_err, length)``, ``(S,)`` float64 each, for the S complete segments ordered by
@@ -93,29 +114,74 @@ def kitti_segment_errors(
         raise ValueError(f"step must be >= 1, got {step}")
     check_align_options(align, n_to_align)
     if align == "none":
-        P = evaluation_poses(pred)
-        Q = evaluation_poses(target).to(P.device)
+        P = evaluation_poses(pred, project)
+        Q = evaluation_poses(target, project).to(P.device)
     else:
-        aligned = align_trajectory(pred, target, align, n_to_align)
+        aligned = align_trajectory(pred, target, align, n_to_align, project=project)
         P, Q = aligned.pred, aligned.target
-    n = Q.shape[0]
-    seg = torch.as_tensor(lengths, dtype=torch.float64, device=Q.device)
-    steps = (Q[1:, :3, 3] - Q[:-1, :3, 3]).norm(dim=-1)
+    path, rows = Q, None
+    if frames is not None:
+        if reference is None or tuple(frames.shape) != (pred.shape[0],):
+            raise ValueError("frames must be (M,) for M poses, with the whole ground truth")
+        path = reference.detach().to(Q.device, torch.float64)
+        rows = _rows_of_frames(frames.to(Q.device), path.shape[0])
+    first, last, seg = _segments(path[:, :3, 3], lengths, step)
+    if rows is not None:
+        # A segment needs an estimated pose at its first and at its last frame.
+        keep = (rows[first] >= 0) & (rows[last] >= 0)
+        first, last, seg = rows[first[keep]], rows[last[keep]], seg[keep]
+    delta_est = relative_poses(P[first], P[last], project)
+    delta_gt = relative_poses(Q[first], Q[last], project)
+    error = relative_poses(delta_est, delta_gt, project)
+    t_err = error[:, :3, 3].norm(dim=-1) / seg
+    r_err = geometry.rotation_angle(error[:, :3, :3]) / seg
+    return t_err, r_err, seg
+
+
+def _segments(
+    positions: Tensor, lengths: Sequence[float], step: int
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The devkit's complete segments of a ground-truth path.
+
+    Args:
+        positions: ``(N, 3)`` ground-truth positions (metres), every frame in order.
+        lengths, step: segment lengths (m) and frames between segment starts.
+
+    Returns:
+        ``(first, last, length)``, ``(S,)`` each: the first and last frame of every complete
+        segment (ordered by first frame, then length) and its nominal length (float64, m).
+    """
+    n = positions.shape[0]
+    seg = torch.as_tensor(lengths, dtype=torch.float64, device=positions.device)
+    steps = (positions[1:] - positions[:-1]).norm(dim=-1)
     dist = torch.cat([steps.new_zeros(1), steps.cumsum(0)])
-    first = torch.arange(0, n, step, device=Q.device)
+    first = torch.arange(0, n, step, device=positions.device)
     # dist is non-decreasing, so the first frame with dist > dist[f] + len is a sorted search;
     # frames before f have dist <= dist[f] and are never returned.
     last = torch.searchsorted(dist, dist[first][:, None] + seg[None, :], right=True)
     complete = last < n
     first = first[:, None].expand_as(last)[complete]
-    last = last[complete]
-    seg = seg[None, :].expand(complete.shape)[complete]
-    delta_est = geometry.relative_pose(P[first], P[last])
-    delta_gt = geometry.relative_pose(Q[first], Q[last])
-    error = geometry.relative_pose(delta_est, delta_gt)
-    t_err = error[:, :3, 3].norm(dim=-1) / seg
-    r_err = geometry.rotation_angle(error[:, :3, :3]) / seg
-    return t_err, r_err, seg
+    return first, last[complete], seg[None, :].expand(complete.shape)[complete]
+
+
+def _rows_of_frames(frames: Tensor, n: int) -> Tensor:
+    """``(n,)`` long: ``rows[f]`` the first row whose frame is ``f``, −1 where no row is.
+
+    Args:
+        frames: ``(M,)`` non-decreasing frame indices in ``[0, n)`` (timestamp association may
+            match one frame twice; its first row is kept).
+        n: the frames of the reference.
+    """
+    frames = frames.long()
+    if frames.numel() and (int(frames.min()) < 0 or int(frames.max()) >= n):
+        raise ValueError(f"frames must index the {n} poses of the reference")
+    if bool((torch.diff(frames) < 0).any()):
+        raise ValueError("frames must be in increasing order")
+    first = torch.ones_like(frames, dtype=torch.bool)
+    first[1:] = frames[1:] != frames[:-1]
+    rows = torch.full((n,), -1, dtype=torch.long, device=frames.device)
+    rows[frames[first]] = torch.arange(frames.shape[0], device=frames.device)[first]
+    return rows
 
 
 def _drift(t_err: Tensor, r_err: Tensor) -> MetricValues:

@@ -26,12 +26,14 @@ scored run by run: no snippet, pair or segment spans the gap.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 import torch.distributed as dist
 from torch import Tensor
 from torchmetrics import Metric
 
+from mfg_lightning.core.geometry import float32_math
 from mfg_lightning.metrics.ate import SnippetATE
 from mfg_lightning.metrics.ate_traj import TrajectoryATE
 from mfg_lightning.metrics.drift import KittiDrift
@@ -140,10 +142,12 @@ class TrajectoryEvaluator:
 
     def reset(self) -> None:
         self._records: dict[_Key, tuple[Tensor, Tensor]] = {}
+        # Batches as they came, on their device: read into _records at once (one transfer).
+        self._pending: list[tuple[list[str], Any, Any, Tensor, Tensor]] = []
 
     def __len__(self) -> int:
         """The number of distinct samples collected by this process."""
-        return len(self._records)
+        return len(self._flushed())
 
     def update(
         self,
@@ -155,17 +159,34 @@ class TrajectoryEvaluator:
     ) -> None:
         """Add a batch.
 
+        Nothing is read back from the device here: the batch is kept as it is (float64, on its
+        device) and moved to the host when the records are first needed (:meth:`compute`,
+        ``len``), so an evaluation on a GPU never waits for it batch by batch.
+
         Args:
             sequences: ``B`` sequence names.
             frames, targets: ``(B,)`` source and target frame indices.
             pred: ``(B, 4, 4)`` predicted relative poses ``T_src,tgt``.
             gt: ``(B, 4, 4)`` ground-truth relative poses.
         """
-        pred = pred.detach().to("cpu", torch.float64)
-        gt = gt.detach().to("cpu", torch.float64)
-        for i, seq in enumerate(sequences):
-            # A key seen twice (DistributedSampler pads with repeats) is stored once.
-            self._records[(str(seq), int(frames[i]), int(targets[i]))] = (pred[i], gt[i])
+        pred = pred.detach().to(torch.float64)
+        gt = gt.detach().to(torch.float64)
+        frames = frames.detach() if isinstance(frames, Tensor) else list(frames)
+        targets = targets.detach() if isinstance(targets, Tensor) else list(targets)
+        self._pending.append((list(sequences), frames, targets, pred, gt))
+
+    def _flushed(self) -> dict[_Key, tuple[Tensor, Tensor]]:
+        """The records, after moving the pending batches to the host (in arrival order: a key
+        seen twice, which DistributedSampler pads with, keeps its last prediction)."""
+        for sequences, frames, targets, pred, gt in self._pending:
+            pred = pred.to("cpu")
+            gt = gt.to("cpu")
+            frames = frames.tolist() if isinstance(frames, Tensor) else frames
+            targets = targets.tolist() if isinstance(targets, Tensor) else targets
+            for i, seq in enumerate(sequences):
+                self._records[(str(seq), int(frames[i]), int(targets[i]))] = (pred[i], gt[i])
+        self._pending.clear()
+        return self._records
 
     def gathered(self) -> dict[_Key, tuple[Tensor, Tensor]]:
         """Every process's records under DDP (this process's otherwise); a collective call.
@@ -181,10 +202,11 @@ class TrajectoryEvaluator:
         records as objects expresses "every sample on exactly one process" exactly; the metrics
         then run on every process on the same whole sequences, with ``sync_on_compute=False``.
         """
+        records = self._flushed()
         if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
-            return self._records
+            return records
         parts: list[dict | None] = [None] * dist.get_world_size()
-        dist.all_gather_object(parts, self._records)
+        dist.all_gather_object(parts, records)
         merged: dict[_Key, tuple[Tensor, Tensor]] = {}
         for part in parts:
             merged.update(part or {})
@@ -192,7 +214,12 @@ class TrajectoryEvaluator:
 
     def compute(self) -> EvaluationResult:
         """Score everything collected since the last :meth:`reset` (by every process under DDP:
-        a collective call, made by every process, which all get the same result)."""
+        a collective call, made by every process, which all get the same result). The metrics run
+        in float64 on the host, outside any autocast."""
+        with float32_math():
+            return self._compute()
+
+    def _compute(self) -> EvaluationResult:
         records = self.gathered()
         by_sequence: dict[str, dict[tuple[int, int], tuple[Tensor, Tensor]]] = {}
         for (seq, src, tgt), value in records.items():

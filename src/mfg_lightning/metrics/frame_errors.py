@@ -1,12 +1,18 @@
-"""Per-frame egomotion errors: the distance between a predicted and a true relative motion."""
+"""Per-frame egomotion errors: the distance between a predicted and a true relative motion, and
+the per-batch mean the LightningModule keeps of them without a device synchronisation."""
 
 from __future__ import annotations
 
+from typing import Any
+
+import torch
 from torch import Tensor
+from torchmetrics import MeanMetric
 
 from mfg_lightning.core import geometry
 
 
+@geometry.full_precision
 def frame_errors(t_pred: Tensor, omega_pred: Tensor, pose_gt: Tensor) -> tuple[Tensor, Tensor]:
     """Translation and rotation error of each frame's predicted motion.
 
@@ -40,4 +46,34 @@ def constant_motion_errors(
     )
 
 
-__all__ = ["constant_motion_errors", "frame_errors"]
+class FiniteMean(MeanMetric):
+    """A weighted mean that leaves NaN values out, with tensor ops only.
+
+    ``torchmetrics.MeanMetric`` leaves NaN values out too, but finds them with ``nans.any()`` in
+    every ``update``: a device synchronisation in every evaluation batch on a GPU. Here the NaN
+    values (or NaN weights) get weight 0 and are counted in the state ``nan_count``, which the
+    caller reads once, after ``compute``. Without NaN the sums are MeanMetric's, bit for bit.
+    """
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(nan_strategy="disable", **kwargs)
+        self.add_state("nan_count", default=torch.tensor(0, dtype=torch.long), dist_reduce_fx="sum")
+
+    def update(self, value: float | Tensor, weight: float | Tensor | None = None) -> None:
+        """Add ``value`` (any shape) with ``weight`` (broadcast to it; default 1)."""
+        value = torch.as_tensor(value, device=self.device)
+        weight = (
+            torch.ones_like(value)
+            if weight is None
+            else torch.as_tensor(weight, dtype=value.dtype, device=self.device)
+        )
+        weight = torch.broadcast_to(weight, value.shape)
+        nan = torch.isnan(value) | torch.isnan(weight)
+        value = value.to(self.dtype)
+        weight = weight.to(self.dtype)
+        self.mean_value += torch.where(nan, 0.0, value * weight).sum()
+        self.weight += torch.where(nan, 0.0, weight).sum()
+        self.nan_count += nan.sum()
+
+
+__all__ = ["FiniteMean", "constant_motion_errors", "frame_errors"]

@@ -12,7 +12,8 @@ Every score is **pooled over all pixels of all frames** seen since the last rese
 positive and false negative counts and the end-point-error sums are accumulated, and the ratios are
 formed once in :meth:`ObjectMotionScores.compute`. Large objects therefore weigh more than small
 ones and frames with many object pixels more than frames with few; a per-frame mean would differ.
-The states are sums declared with ``dist_reduce_fx="sum"``, so the scores reduce exactly under DDP.
+The states are sums declared with ``dist_reduce_fx="sum"``, so the scores reduce exactly under DDP;
+``update`` uses tensor operations only (no device synchronisation per batch).
 
 Near / far split
 ----------------
@@ -40,6 +41,7 @@ import torch
 from torch import Tensor
 from torchmetrics import Metric
 
+from mfg_lightning.core.geometry import float32_math
 from mfg_lightning.motion.object_motion import depth_validity
 
 __all__ = ["ObjectMotionScores"]
@@ -117,7 +119,8 @@ class ObjectMotionScores(Metric):
         epe = None
         if gt_object_flow is not None:
             # Non-finite ground truth (should not happen) must not poison the pooled sum.
-            err = (pred_object_flow.float() - gt_object_flow.float()).norm(dim=1)
+            with float32_math():  # the norms in float32 under any autocast
+                err = (pred_object_flow.float() - gt_object_flow.float()).norm(dim=1)
             epe_ok = torch.isfinite(err)
             epe = torch.where(epe_ok, err, torch.zeros_like(err))
         for region, sel in regions.items():
@@ -129,7 +132,8 @@ class ObjectMotionScores(Metric):
             if epe is not None:
                 scored = gt_here & epe_ok
                 self._add(f"{region}_epe_count", scored.sum())
-                self._add(f"{region}_epe_sum", epe[scored].sum())
+                # where, not epe[scored]: boolean indexing waits for the device (nonzero).
+                self._add(f"{region}_epe_sum", torch.where(scored, epe, 0.0).sum())
 
     def _add(self, name: str, value: Tensor) -> None:
         state = getattr(self, name)

@@ -1,4 +1,10 @@
-"""The MFG training losses (paper section 4): L_t, L_ω, their balancing weights, and L_s."""
+"""The MFG training losses (paper section 4): L_t, L_ω, their balancing weights, and L_s.
+
+Every function here runs in float32 whatever the autocast around it
+(:func:`mfg_lightning.core.geometry.full_precision`): under ``bf16-mixed`` the sums over 6144
+pixels, the balancing ratios and the sparsity count (42.42 comes out 42.5 in bfloat16) would
+otherwise round to 8 significant bits.
+"""
 
 from __future__ import annotations
 
@@ -6,6 +12,8 @@ from typing import NamedTuple
 
 import torch
 from torch import Tensor, nn
+
+from mfg_lightning.core.geometry import full_precision
 
 
 class LossTerms(NamedTuple):
@@ -25,6 +33,7 @@ class LossTerms(NamedTuple):
     w_omega: Tensor
 
 
+@full_precision
 def sparsity_count(hidden: Tensor, q: float = 25.0, b: float = 10.0) -> Tensor:
     """Differentiable count of active units, ``L_s = Σ_i 1 / (1 + Q e^(−B h_i))`` per sample.
 
@@ -39,6 +48,7 @@ def sparsity_count(hidden: Tensor, q: float = 25.0, b: float = 10.0) -> Tensor:
     return torch.sigmoid(b * hidden - torch.log(torch.tensor(q, dtype=hidden.dtype))).sum(dim=1)
 
 
+@full_precision
 def balancing_weights(
     v_t: Tensor, v_omega: Tensor, max_weight: float | None = 100.0, squared: bool = False
 ) -> tuple[Tensor, Tensor]:
@@ -104,10 +114,12 @@ class MFGLoss(nn.Module):
         self.q, self.b = sparsity_q, sparsity_b
         self.reduction = reduction
 
+    @full_precision
     def forward(
         self, pred_t: Tensor, pred_omega: Tensor, gt_t: Tensor, gt_omega: Tensor, hidden: Tensor
     ) -> LossTerms:
-        """All tensors batched: fields ``(B, 2, H, W)`` in pixels, hidden ``(B, M)``."""
+        """All tensors batched: fields ``(B, 2, H, W)`` in pixels, hidden ``(B, M)``; every term
+        in float32 (float64 inputs: float64)."""
         reduce = torch.sum if self.reduction == "sum" else torch.mean
         l_t = reduce((pred_t - gt_t).abs().flatten(1), dim=1)
         l_w = reduce((pred_omega - gt_omega).abs().flatten(1), dim=1)

@@ -4,6 +4,10 @@ An asymmetric autoencoder: a fully convolutional encoder (conv + ReLU) ends in a
 to M non-negative hidden units; two bias-free linear decoders map the hidden units to the
 translational (unit inverse depth) and rotational motion fields at half the input resolution,
 upsampled bilinearly to the input resolution. Each decoder column is one unit's basis field.
+
+Precision: under autocast (``trainer.precision=bf16-mixed`` / ``16-mixed``) the encoder runs in
+the low precision; the decoders and the upsampling always run in float32, so the fields come out
+in float32 (a recovery from bf16-rounded fields errs by up to 5e-4 m, issue 22).
 """
 
 from __future__ import annotations
@@ -15,6 +19,8 @@ from typing import NamedTuple
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+
+from mfg_lightning.core.geometry import float32_math, to_float32
 
 
 class MFGOutput(NamedTuple):
@@ -61,6 +67,50 @@ def keep_top_k(hidden: Tensor, top_k: float | None) -> Tensor:
     idx = hidden.topk(k, dim=1).indices
     mask = torch.zeros_like(hidden).scatter_(1, idx, 1.0)
     return hidden * mask
+
+
+def bilinear_matrix(
+    n_in: int, n_out: int, align_corners: bool, device: torch.device | None = None
+) -> Tensor:
+    """The ``(n_out, n_in)`` float32 matrix of 1-D linear interpolation as ``F.interpolate``
+    computes it (``mode="bilinear"`` is this along each axis; its default scale ``n_in / n_out``).
+
+    Pixel ``i`` of the output samples the input at ``i · (n_in − 1) / (n_out − 1)``
+    (``align_corners=True``) or ``(i + 0.5) · n_in / n_out − 0.5`` clamped at 0 (``False``).
+    """
+    # In float32, as PyTorch's own kernels compute the source positions and weights.
+    i = torch.arange(n_out, dtype=torch.float32, device=device)
+    if align_corners:
+        scale = torch.tensor((n_in - 1) / (n_out - 1) if n_out > 1 else 0.0, device=device)
+        src = i * scale
+    else:
+        src = ((i + 0.5) * torch.tensor(n_in / n_out, device=device) - 0.5).clamp_min(0.0)
+    lo = src.floor().long().clamp_max(n_in - 1)
+    hi = (lo + 1).clamp_max(n_in - 1)
+    frac = src - lo
+    M = torch.zeros(n_out, n_in, device=device)
+    rows = torch.arange(n_out, device=device)
+    M.index_put_((rows, lo), 1 - frac, accumulate=True)
+    M.index_put_((rows, hi), frac, accumulate=True)
+    return M
+
+
+def upsample_bilinear(field: Tensor, size: tuple[int, int], align_corners: bool) -> Tensor:
+    """Bilinear upsampling of ``(B, C, h, w)`` to ``(B, C, *size)``.
+
+    ``F.interpolate``, except on CUDA with deterministic algorithms on
+    (``trainer.deterministic=true``): its backward there accumulates with atomic adds, has no
+    deterministic kernel and raises. Bilinear upsampling is separable, ``M_h · f · M_wᵀ`` with the
+    interpolation matrices of :func:`bilinear_matrix`, and two matrix products have a
+    deterministic backward (cuBLAS with ``CUBLAS_WORKSPACE_CONFIG``, which Lightning sets). The
+    two agree to float32 rounding (tests/test_precision.py); the CPU keeps ``F.interpolate``,
+    whose backward is deterministic there.
+    """
+    if not (field.is_cuda and torch.are_deterministic_algorithms_enabled()):
+        return F.interpolate(field, size=size, mode="bilinear", align_corners=align_corners)
+    M_h = bilinear_matrix(field.shape[-2], size[0], align_corners, field.device).to(field)
+    M_w = bilinear_matrix(field.shape[-1], size[1], align_corners, field.device).to(field)
+    return M_h @ field @ M_w.T
 
 
 #: ``model.net.init`` values (see :class:`MFG`).
@@ -158,18 +208,17 @@ class MFG(nn.Module):
         return hidden_map.amax(dim=(2, 3)), hidden_map
 
     def decode(self, hidden: Tensor) -> tuple[Tensor, Tensor]:
-        """Hidden ``(B, M)`` → ``(v_t, v_ω)``, each ``(B, 2, H, W)`` pixels."""
+        """Hidden ``(B, M)`` → ``(v_t, v_ω)``, each ``(B, 2, H, W)`` pixels, in float32 (float64
+        hidden units: float64) whatever the autocast around the call."""
         fields = []
-        for decoder in (self.decoder_t, self.decoder_omega):
-            f = decoder(hidden).view(-1, 2, self.out_height, self.out_width)
-            if (self.out_height, self.out_width) != (self.height, self.width):
-                f = F.interpolate(
-                    f,
-                    size=(self.height, self.width),
-                    mode="bilinear",
-                    align_corners=self.align_corners,
-                )
-            fields.append(f)
+        size = (self.height, self.width)
+        with float32_math():
+            hidden = to_float32(hidden)
+            for decoder in (self.decoder_t, self.decoder_omega):
+                f = decoder(hidden).view(-1, 2, self.out_height, self.out_width)
+                if (self.out_height, self.out_width) != size:
+                    f = upsample_bilinear(f, size, self.align_corners)
+                fields.append(f)
         return fields[0], fields[1]
 
     def basis_fields(self) -> tuple[Tensor, Tensor]:

@@ -4,6 +4,18 @@ Training: ground-truth translational (ρ = 1) and rotational fields are built fr
 relative pose with :mod:`mfg_lightning.core.geometry`, and the network is fit with
 ``w_t L_t + w_ω L_ω + w_s L_s`` (:class:`mfg_lightning.models.losses.MFGLoss`). Validation and test:
 the predicted fields are turned into ``(t̃, ω̃)`` in closed form and scored per frame.
+
+Precision (``trainer.precision``, :func:`check_precision`): ``32-true``, ``bf16-mixed`` or
+``16-mixed``. Under the mixed ones the encoder runs in the low precision and everything else
+(fields, geometry, losses, object motion, metrics) in float32. ``16-mixed`` starts its GradScaler
+at ``fp16_init_scale`` (:func:`fit_grad_scaler`) instead of torch's 65 536, which overflows fp16
+in the first steps.
+
+No host synchronisation in a training step outside the logging steps: counts (masked flow pixels,
+skipped steps) stay tensors on the device and are read when they are logged; a non-finite loss is
+skipped inside the fused optimiser's kernel (``found_inf``, as GradScaler does) instead of being
+tested on the host. Evaluation batches have none either (the SVD of the per-frame errors may
+wait for cuSOLVER's error check).
 """
 
 from __future__ import annotations
@@ -15,13 +27,14 @@ from typing import Any
 import lightning as L
 import torch
 from lightning.pytorch.loggers import TensorBoardLogger
+from lightning.pytorch.plugins.precision import MixedPrecision, Precision
 from torch import Tensor, nn
-from torchmetrics import MeanMetric, SumMetric
+from torchmetrics import SumMetric
 
 from mfg_lightning.core import geometry
 from mfg_lightning.data.sample import sanitize_flow
 from mfg_lightning.metrics.evaluator import EvaluationResult, TrajectoryEvaluator
-from mfg_lightning.metrics.frame_errors import constant_motion_errors, frame_errors
+from mfg_lightning.metrics.frame_errors import FiniteMean, constant_motion_errors, frame_errors
 from mfg_lightning.metrics.object_motion import ObjectMotionScores
 from mfg_lightning.models.losses import LossTerms, MFGLoss
 from mfg_lightning.models.mfg import MFG, MFGOutput, validate_top_k
@@ -39,6 +52,93 @@ class NonFiniteLossError(RuntimeError):
     """Training produced non-finite losses too many times in a row."""
 
 
+#: ``trainer.precision`` values the module trains and evaluates under (Lightning's aliases
+#: ``32``, ``bf16`` and ``16`` name the same).
+PRECISIONS = ("32-true", "bf16-mixed", "16-mixed")
+_PRECISION_ALIASES = {"32": "32-true", "bf16": "bf16-mixed", "16": "16-mixed"}
+
+#: The batch key under which :meth:`MFGLitModule.transfer_batch_to_device` keeps the batch's
+#: intrinsics on the host, so that the closed-form recovery groups samples by intrinsics without
+#: reading them back from the device.
+HOST_INTRINSICS = "intrinsics_host"
+
+#: The initial GradScaler scale under ``16-mixed``. Measured at the first step (fp16 autocast,
+#: default network, 48 × 128, scale 1): the largest gradient of an fp16 tensor is 76–94 at batch
+#: 16 (quick start, 3 seeds) and 332–1260 at batch 1 (the paper's, 6 samples), always on the
+#: hidden units. torch's default 65 536 overflows fp16 (max 65 504) there, so the first 7
+#: (batch 16) or 11 (batch 1) steps would be skipped while the scaler halves; 16 leaves 2.5×
+#: headroom at batch 1 and 40× at batch 16, and the scaler grows from there.
+FP16_INIT_SCALE = 16.0
+_TORCH_DEFAULT_INIT_SCALE = 2.0**16
+
+
+def check_precision(precision: Any) -> str:
+    """``trainer.precision`` in Lightning's spelling if the module supports it.
+
+    Raises:
+        ValueError: naming ``trainer.precision`` for anything else, in particular ``bf16-true``
+            and ``16-true``, which cast the weights and, with them, every batch's poses,
+            intrinsics and depth and the whole geometry to the low precision.
+    """
+    name = str(precision)
+    name = _PRECISION_ALIASES.get(name, name)
+    if name in PRECISIONS:
+        return name
+    if name.endswith("-true"):
+        reason = (
+            f"it casts the weights, every batch's poses, intrinsics and depth and the geometry "
+            f"to {name.removesuffix('-true')} bits (recovering (t, ω) in bfloat16 errs by up to "
+            "2e-3 m, a tenth of the measured ATE); use a -mixed precision, which runs the encoder "
+            "in the low precision and the fields, geometry, losses and metrics in float32"
+        )
+    else:
+        reason = "not a precision this model supports"
+    raise ValueError(
+        f"trainer.precision={precision} is refused: {reason}; choose one of {', '.join(PRECISIONS)}"
+    )
+
+
+def fit_grad_scaler(plugin: Precision, init_scale: float = FP16_INIT_SCALE) -> bool:
+    """Start a ``16-mixed`` plugin's GradScaler at ``init_scale`` (:data:`FP16_INIT_SCALE`).
+
+    Only a scaler that still has torch's default initial scale (the one Lightning creates) and
+    has not run yet is replaced; one given explicitly is kept. Returns whether it was replaced.
+    """
+    scaler = getattr(plugin, "scaler", None)
+    if not isinstance(plugin, MixedPrecision) or scaler is None:
+        return False
+    if not scaler.is_enabled() or scaler.get_scale() != _TORCH_DEFAULT_INIT_SCALE:
+        return False
+    plugin.scaler = torch.amp.GradScaler(plugin.device, init_scale=init_scale)
+    return True
+
+
+class _DeferredCounts:
+    """Per-batch counts kept as device tensors beside their batch's sample ids, read back in
+    one transfer when they are reported (a logging step, the end of an epoch)."""
+
+    #: report anyway after this many batches, so that the list stays short
+    LIMIT = 512
+
+    def __init__(self) -> None:
+        self._pending: list[tuple[Tensor, list]] = []
+
+    def add(self, count: Tensor, batch: dict[str, Any]) -> bool:
+        """Keep ``count`` (a 0-dim tensor); True when the list is full and should be read."""
+        self._pending.append((count.detach(), list(batch.get("sample_id", []))))
+        return len(self._pending) >= self.LIMIT
+
+    def read(self) -> list[tuple[int, list]]:
+        """``(count, sample ids)`` of every kept batch with a non-zero count; empties the list
+        (one host synchronisation)."""
+        if not self._pending:
+            return []
+        counts = torch.stack([c for c, _ in self._pending]).tolist()
+        out = [(int(n), ids) for n, (_, ids) in zip(counts, self._pending, strict=True) if n]
+        self._pending.clear()
+        return out
+
+
 class MFGLitModule(L.LightningModule):
     """MFG with its losses, optimiser and evaluation.
 
@@ -50,11 +150,14 @@ class MFGLitModule(L.LightningModule):
         scheduler: optional partial LR-scheduler constructor taking the optimiser.
         top_k: fraction of hidden units kept at evaluation (None: all); overrides ``net.top_k``.
         image_log_every_n_steps: how often fields are drawn to TensorBoard (0: never).
-        max_consecutive_nonfinite: stop after this many non-finite losses in a row.
+        max_consecutive_nonfinite: stop after this many non-finite losses in a row (checked at
+            the logging steps and at the end of training).
         object_motion: object-motion filter parameters; when set, validation and test on
             batches that carry depth and a ground-truth object mask also score the extracted
             object motion (``<stage>/object/*``) and the plain-threshold baseline
             (``<stage>/object_baseline/*``). None disables it.
+        fp16_init_scale: the initial GradScaler scale under ``trainer.precision=16-mixed``
+            (:data:`FP16_INIT_SCALE`, measured).
     """
 
     def __init__(
@@ -67,6 +170,7 @@ class MFGLitModule(L.LightningModule):
         image_log_every_n_steps: int = 200,
         max_consecutive_nonfinite: int = 20,
         object_motion: ObjectMotionConfig | None = None,
+        fp16_init_scale: float = FP16_INIT_SCALE,
     ) -> None:
         super().__init__()
         # Plain values only: the optimiser and scheduler partials would make every checkpoint
@@ -87,7 +191,18 @@ class MFGLitModule(L.LightningModule):
         self.scheduler_factory = _checked_scheduler(scheduler)
         self.image_log_every_n_steps = image_log_every_n_steps
         self.max_consecutive_nonfinite = max_consecutive_nonfinite
+        if not (fp16_init_scale > 0):
+            raise ValueError(f"model.fp16_init_scale must be positive, got {fp16_init_scale}")
+        self.fp16_init_scale = float(fp16_init_scale)
         self._consecutive_nonfinite = 0
+        # The in-optimiser skip of a non-finite loss (see training_step): device tensors.
+        self._nonfinite_run: Tensor | int = 0
+        self._skipped_steps: Tensor | int = 0
+        self._skipped_reported = 0
+        self._window_finite: Tensor | None = None
+        self._found_inf: Tensor | None = None
+        self._flow_warnings = {s: _DeferredCounts() for s in ("train", "val", "test")}
+        self._score_baseline: bool | None = None
         #: the model's config, set by the entry point and stored in checkpoints so that
         #: :mod:`mfg_lightning.run.checkpoints` can rebuild the network without the run directory.
         self.model_config: dict | None = None
@@ -102,7 +217,7 @@ class MFGLitModule(L.LightningModule):
                 stage: nn.ModuleDict(
                     {
                         **{
-                            name: MeanMetric()
+                            name: FiniteMean()
                             for name in (
                                 "trans_err",
                                 "rot_err",
@@ -112,14 +227,16 @@ class MFGLitModule(L.LightningModule):
                                 "baseline_rot_err",
                             )
                         },
-                        "nonfinite_flow_pixels": SumMetric(),
+                        # counts, never NaN: no NaN check (a device synchronisation per batch)
+                        "nonfinite_flow_pixels": SumMetric(nan_strategy="disable"),
                     }
                 )
                 for stage in ("val", "test")
             }
         )
-        #: non-finite input-flow pixels masked during training so far (this process)
-        self.nonfinite_flow_pixels = 0
+        #: non-finite input-flow pixels masked during training so far (this process): a tensor on
+        #: the model's device once training has started
+        self.nonfinite_flow_pixels: Tensor | int = 0
         self.object_motion = object_motion
         # Trajectory metrics (ATE over snippets, RPE, drift, whole-trajectory ATE) need whole
         # sequences: collected over an epoch, scored at its end by the metrics they feed.
@@ -150,12 +267,10 @@ class MFGLitModule(L.LightningModule):
 
     # -- shared step -------------------------------------------------------------------------
 
-    def _prepare(self, batch: dict[str, Any]) -> tuple[Tensor, Tensor, Tensor, Tensor, int]:
+    def _prepare(self, batch: dict[str, Any]) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         """Masked input flow, ground-truth fields and intrinsics of a batch, and the number of
-        non-finite flow pixels that were masked."""
+        non-finite flow pixels that were masked (a 0-dim tensor: nothing is read back)."""
         flow, _, n_bad = sanitize_flow(batch["flow"], batch["flow_valid"])
-        if n_bad:
-            log.warning("masked %d non-finite flow pixels in %s", n_bad, _ids(batch))
         K = batch["intrinsics"]
         height, width = flow.shape[-2:]
         t, w = geometry.pose_to_motion(batch["pose"].to(flow))
@@ -166,15 +281,40 @@ class MFGLitModule(L.LightningModule):
     def _loss(self, out: MFGOutput, v_t: Tensor, v_w: Tensor) -> LossTerms:
         return self.loss_fn(out.v_t, out.v_omega, v_t, v_w, out.hidden)
 
+    def _warn_masked_flow(self, stage: str) -> None:
+        """Warn about the batches whose non-finite flow pixels were masked since the last report
+        (one read-back of their counts)."""
+        for n, ids in self._flow_warnings[stage].read():
+            log.warning("masked %d non-finite flow pixels in %s", n, _ids({"sample_id": ids}))
+
     def transfer_batch_to_device(
         self, batch: Any, device: torch.device, dataloader_idx: int
     ) -> Any:
         """Lightning's batch transfer, skipped on a CPU: the batches are built on the CPU, so
         the transfer is a no-op whose recursive walk of the batch dict still costs ~0.35 ms per
-        step, ~1.5 % of a batch-1 step (bench/results/throughput.md)."""
+        step, ~1.5 % of a batch-1 step (bench/results/throughput.md). On another device the
+        batch's CPU intrinsics stay beside it under :data:`HOST_INTRINSICS`: the closed-form
+        recovery groups samples by their intrinsics' values, which would otherwise be read back
+        from the device in every evaluation batch."""
         if device.type == "cpu":
             return batch
-        return super().transfer_batch_to_device(batch, device, dataloader_idx)
+        host = batch.get("intrinsics") if isinstance(batch, dict) else None
+        moved = super().transfer_batch_to_device(batch, device, dataloader_idx)
+        if isinstance(host, Tensor) and host.device.type == "cpu" and isinstance(moved, dict):
+            moved[HOST_INTRINSICS] = host
+        return moved
+
+    def setup(self, stage: str) -> None:
+        """Refuse a precision the module does not support and fit ``16-mixed``'s GradScaler
+        (before a resumed run restores the scaler's state)."""
+        trainer = self._trainer
+        if trainer is None:
+            return
+        check_precision(trainer.precision)
+        if fit_grad_scaler(trainer.precision_plugin, self.fp16_init_scale):
+            log.info(
+                "16-mixed: GradScaler starts at %g (model.fp16_init_scale)", self.fp16_init_scale
+            )
 
     # -- training ----------------------------------------------------------------------------
 
@@ -182,7 +322,8 @@ class MFGLitModule(L.LightningModule):
         """Whether the loggers write this training step's values (every
         ``trainer.log_every_n_steps``): the step-only diagnostics are logged just then, since
         each ``self.log`` costs Python time that shows at batch 1 (bench/results/throughput.md)
-        and the values of the other steps would never be written."""
+        and the values of the other steps would never be written. The deferred counts are read
+        back from the device then too."""
         connector = getattr(self._trainer, "_logger_connector", None)
         return bool(getattr(connector, "should_update_logs", True))
 
@@ -193,15 +334,41 @@ class MFGLitModule(L.LightningModule):
             return float("nan")
         return float(trainer.optimizers[0].param_groups[0]["lr"])
 
+    def _skips_in_the_optimiser(self) -> bool:
+        """Whether a non-finite loss can be skipped inside the optimiser's step: one fused
+        optimiser (Adam, AdamW, SGD with ``fused=True``, the default config's), whose kernel
+        leaves weights and state untouched when told ``found_inf``."""
+        trainer = self._trainer
+        if trainer is None or not self.automatic_optimization or len(trainer.optimizers) != 1:
+            return False
+        return bool(trainer.optimizers[0].defaults.get("fused"))
+
     def training_step(self, batch: dict[str, Any] | None, batch_idx: int) -> Tensor | None:
         if batch is None:  # every sample of the batch was skipped as unreadable
             return None
         flow, v_t, v_w, _, n_bad = self._prepare(batch)
-        self.nonfinite_flow_pixels += n_bad
+        self.nonfinite_flow_pixels = self.nonfinite_flow_pixels + n_bad
+        full = self._flow_warnings["train"].add(n_bad, batch)
         out = self(flow)
         terms = self._loss(out, v_t, v_w)
-        if not torch.isfinite(terms.total):
-            # Returning None skips backward and the optimiser step: a NaN never reaches weights.
+        if self._skips_in_the_optimiser():
+            # No host check: the step's finiteness goes to the fused optimiser as found_inf
+            # (on_before_optimizer_step), which skips the update on the device; the counts are
+            # read at the logging steps (_report_nonfinite).
+            finite = torch.isfinite(terms.total.detach())
+            if self._trainer.world_size > 1:
+                # One verdict for every process: their gradients are averaged, so one process's
+                # NaN reaches all of them, and all must skip (and count) the step together.
+                bad = self._trainer.strategy.reduce((~finite).float(), reduce_op="max")
+                finite = bad == 0
+            self._window_finite = (
+                finite if self._window_finite is None else self._window_finite & finite
+            )
+            self._nonfinite_run = torch.where(finite, 0, self._nonfinite_run + 1)
+            self._skipped_steps = self._skipped_steps + (~finite).long()
+        elif not torch.isfinite(terms.total):
+            # Any other optimiser: tested on the host (one synchronisation per step). Returning
+            # None skips backward and the optimiser step: a NaN never reaches the weights.
             self._consecutive_nonfinite += 1
             log.warning("non-finite loss (%s) on %s: step skipped", terms.total.item(), _ids(batch))
             self.log("train/skipped_steps", float(self._consecutive_nonfinite), on_step=True)
@@ -211,28 +378,74 @@ class MFGLitModule(L.LightningModule):
                     f"{_ids(batch)}"
                 )
             return None
-        self._consecutive_nonfinite = 0
+        else:
+            self._consecutive_nonfinite = 0
         bs = flow.shape[0]
+        if full:
+            self._warn_masked_flow("train")
         if self._writes_logs_this_step():
             # Only on the steps the loggers write (the progress bar's loss refreshes then too):
             # a logged value costs ~0.7 ms, 2-3 % of a batch-1 step on a CPU (bench/throughput.py).
+            self._warn_masked_flow("train")
+            self._report_nonfinite(batch)
             self.log("train/loss", terms.total, prog_bar=True, batch_size=bs)
-            self.log_dict(
-                {
-                    "train/l_t": terms.l_t.mean(),
-                    "train/l_omega": terms.l_omega.mean(),
-                    "train/l_s": terms.l_s.mean(),
-                    "train/w_t": terms.w_t.mean(),
-                    "train/w_omega": terms.w_omega.mean(),
-                    "train/active_fraction": _active_fraction(out.hidden),
-                    "train/nonfinite_flow_pixels": float(self.nonfinite_flow_pixels),
-                    "train/lr": self._learning_rate(),
-                },
-                batch_size=bs,
-            )
+            values = {
+                "train/l_t": terms.l_t.mean(),
+                "train/l_omega": terms.l_omega.mean(),
+                "train/l_s": terms.l_s.mean(),
+                "train/w_t": terms.w_t.mean(),
+                "train/w_omega": terms.w_omega.mean(),
+                "train/active_fraction": _active_fraction(out.hidden),
+                "train/nonfinite_flow_pixels": _as_float(self.nonfinite_flow_pixels),
+                "train/lr": self._learning_rate(),
+            }
+            if isinstance(self._skipped_steps, Tensor):  # the in-optimiser skips so far
+                values["train/skipped_steps"] = self._skipped_steps.float()
+            self.log_dict(values, batch_size=bs)
         if self.image_log_every_n_steps and self.global_step % self.image_log_every_n_steps == 0:
             self._log_images("train", flow, v_t, v_w, out)
         return terms.total
+
+    def _report_nonfinite(self, batch: dict[str, Any] | None) -> None:
+        """Read the in-optimiser skip counts (a host synchronisation: logging steps and the end
+        of training only), warn about new skips and stop a run that keeps producing them."""
+        if not isinstance(self._skipped_steps, Tensor):
+            return
+        run, skipped = torch.stack([self._nonfinite_run, self._skipped_steps]).tolist()
+        ids = _ids(batch) if batch is not None else "<end of training>"
+        if skipped > self._skipped_reported:
+            log.warning(
+                "non-finite loss in %d step(s) since the last report: skipped in the optimiser "
+                "(latest samples: %s)",
+                skipped - self._skipped_reported,
+                ids,
+            )
+        self._skipped_reported = skipped
+        if run >= self.max_consecutive_nonfinite:
+            raise NonFiniteLossError(f"{run} consecutive non-finite losses; last samples: {ids}")
+
+    def on_before_optimizer_step(self, optimizer: torch.optim.Optimizer) -> None:
+        """Hand the step's finiteness to the fused optimiser (``found_inf``: 1 skips the update
+        of weights and state on the device). Under ``16-mixed`` the GradScaler sets its own
+        ``found_inf``, which a non-finite loss trips as well (its gradients are non-finite)."""
+        if self._window_finite is None:
+            return
+        if optimizer.defaults.get("fused"):
+            self._found_inf = (~self._window_finite).to(torch.float32)
+            optimizer.found_inf = self._found_inf
+        self._window_finite = None
+
+    def on_train_batch_end(self, outputs: Any, batch: Any, batch_idx: int) -> None:
+        # found_inf is read by this step only; a stale one would skip later steps.
+        if self._found_inf is not None:
+            for optimizer in self.trainer.optimizers:
+                if getattr(optimizer, "found_inf", None) is self._found_inf:
+                    del optimizer.found_inf
+            self._found_inf = None
+
+    def on_train_end(self) -> None:
+        self._warn_masked_flow("train")
+        self._report_nonfinite(None)
 
     # -- evaluation --------------------------------------------------------------------------
 
@@ -240,9 +453,11 @@ class MFGLitModule(L.LightningModule):
         if batch is None:
             return None
         flow, v_t, v_w, K, n_bad = self._prepare(batch)
+        if self._flow_warnings[stage].add(n_bad, batch):
+            self._warn_masked_flow(stage)
         out = self(flow)
         terms = self._loss(out, v_t, v_w)
-        t, w = geometry.recover_motion(out.v_t, out.v_omega, K)
+        t, w = geometry.recover_motion(out.v_t, out.v_omega, batch.get(HOST_INTRINSICS, K))
         trans_err, rot_err = frame_errors(t, w, batch["pose"])
         m = self.eval_metrics[stage]
         m["trans_err"].update(trans_err)
@@ -252,7 +467,9 @@ class MFGLitModule(L.LightningModule):
         m["loss"].update(terms.total, weight=bs)
         m["active_fraction"].update(_active_fraction(out.hidden), weight=bs)
         m["nonfinite_flow_pixels"].update(n_bad)
-        if bool(self.has_mean_motion):
+        if self._score_baseline is None:  # outside an epoch (a direct call): read it now
+            self._score_baseline = bool(self.has_mean_motion)
+        if self._score_baseline:
             b_t, b_r = constant_motion_errors(self.mean_t, self.mean_omega, batch["pose"])
             m["baseline_trans_err"].update(b_t)
             m["baseline_rot_err"].update(b_r)
@@ -285,11 +502,16 @@ class MFGLitModule(L.LightningModule):
         )
 
     def _log_eval(self, stage: str) -> None:
+        self._warn_masked_flow(stage)
+        self._score_baseline = None
         for name, metric in self.eval_metrics[stage].items():
             if metric.update_count:
                 self.log(
                     f"{stage}/{name}", metric.compute(), prog_bar=name in ("trans_err", "rot_err")
                 )
+                nan = int(getattr(metric, "nan_count", 0))
+                if nan:
+                    log.warning("%d NaN values left out of %s/%s", nan, stage, name)
             metric.reset()
         evaluator = self.trajectory_evaluators[stage]
         # Every process computes (the evaluator gathers all processes' samples, a collective
@@ -325,6 +547,16 @@ class MFGLitModule(L.LightningModule):
         self.mean_t.copy_(t)
         self.mean_omega.copy_(w)
         self.has_mean_motion.fill_(True)
+
+    def _start_eval_epoch(self) -> None:
+        # Whether the mean-motion baseline is scored, read once per epoch, not once per batch.
+        self._score_baseline = bool(self.has_mean_motion)
+
+    def on_validation_epoch_start(self) -> None:
+        self._start_eval_epoch()
+
+    def on_test_epoch_start(self) -> None:
+        self._start_eval_epoch()
 
     def validation_step(self, batch: dict[str, Any] | None, batch_idx: int) -> None:
         res = self._evaluate(batch, "val")
@@ -397,6 +629,11 @@ def _checked_scheduler(scheduler: Callable[..., Any] | None) -> Callable[..., An
             "a constant learning rate"
         )
     return scheduler
+
+
+def _as_float(value: Tensor | float) -> Tensor | float:
+    """A count to log: a float tensor (read back by the logger, at a logging step) or float."""
+    return value.float() if isinstance(value, Tensor) else float(value)
 
 
 def _active_fraction(hidden: Tensor) -> Tensor:

@@ -25,6 +25,9 @@ Conventions
   never enter a mask, a mean or a max.
 * "mean" and "max" in the filters are taken per sample over the valid pixels (flow valid and depth
   valid), so the whole batch is processed at once and one frame never influences another.
+* Every function runs in float32 whatever the autocast around it
+  (:func:`mfg_lightning.core.geometry.full_precision`): residuals and the thresholds they are
+  compared with are never rounded to bfloat16 under ``trainer.precision=bf16-mixed``.
 
 Depth normalisation (Filter 2)
 ------------------------------
@@ -48,6 +51,8 @@ from typing import Any, Literal
 
 import torch
 from torch import Tensor
+
+from mfg_lightning.core.geometry import full_precision
 
 __all__ = [
     "DATASETS_WITH_DEPTH",
@@ -190,6 +195,7 @@ def _safe_divide(x: Tensor, denom: Tensor) -> Tensor:
 # --------------------------------------------------------------------------------------------
 
 
+@full_precision
 def depth_validity(depth: Tensor) -> Tensor:
     """Pixels whose depth can be inverted: finite and strictly positive.
 
@@ -202,11 +208,13 @@ def depth_validity(depth: Tensor) -> Tensor:
     return torch.isfinite(depth) & (depth > 0)
 
 
+@full_precision
 def squared_norm(field: Tensor) -> Tensor:
     """``(B, 2, H, W)`` field → ``(B, H, W)`` ``‖·‖²`` per pixel (px²)."""
     return (field * field).sum(dim=1)
 
 
+@full_precision
 def egomotion_field(v_t_pred: Tensor, v_w_pred: Tensor, depth: Tensor | None) -> Tensor:
     """The predicted egomotion field scaled by depth, ``ṽ = ρ ṽ_t + ṽ_ω`` (paper §4).
 
@@ -237,6 +245,7 @@ def egomotion_field(v_t_pred: Tensor, v_w_pred: Tensor, depth: Tensor | None) ->
     return torch.where(valid[:, None], field, torch.zeros_like(field))
 
 
+@full_precision
 def residual(flow: Tensor, ego_field: Tensor) -> Tensor:
     """Residual image velocity ``r = v̂ − ṽ`` (paper §4).
 
@@ -250,6 +259,7 @@ def residual(flow: Tensor, ego_field: Tensor) -> Tensor:
     return flow - ego_field
 
 
+@full_precision
 def normalise_depth(
     depth: Tensor,
     valid: Tensor | None = None,
@@ -285,6 +295,7 @@ def normalise_depth(
 # --------------------------------------------------------------------------------------------
 
 
+@full_precision
 def filter_average_threshold(r: Tensor, theta_d: float, valid: Tensor | None = None) -> Tensor:
     """Filter 1, average thresholding: ``‖r‖² > θ_d · mean(tanh(‖r‖²))`` (paper §4).
 
@@ -308,6 +319,7 @@ def filter_average_threshold(r: Tensor, theta_d: float, valid: Tensor | None = N
     return (r2 > threshold) & valid
 
 
+@full_precision
 def filter_divisive_normalisation(
     r: Tensor,
     depth_norm: Tensor,
@@ -350,6 +362,7 @@ def filter_divisive_normalisation(
     return keep & (depth_norm < threshold_d) & valid
 
 
+@full_precision
 def threshold_baseline(r: Tensor, threshold: float, valid: Tensor | None = None) -> Tensor:
     """The plain thresholding baseline: ``‖r‖ > threshold`` (px/frame).
 
@@ -373,6 +386,7 @@ def threshold_baseline(r: Tensor, threshold: float, valid: Tensor | None = None)
 # --------------------------------------------------------------------------------------------
 
 
+@full_precision
 def extract_object_motion(
     flow: Tensor,
     v_t_pred: Tensor,

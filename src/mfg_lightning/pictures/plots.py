@@ -82,10 +82,11 @@ class TrajectoryCurves:
     """What the figures show of one method on one sequence (numpy, float64, metres).
 
     Attributes:
-        gt_xyz: ``(N, 3)`` ground-truth positions (in the frame the method was aligned in).
-        pred_xyz: ``(N, 3)`` aligned estimated positions.
-        distance: ``(N,)`` ground-truth path length from the first frame.
-        error: ``(N,)`` per-pose position error after alignment (the whole-trajectory ATE's).
+        gt_xyz: ``(M, 3)`` ground-truth positions of the estimated (matched) frames, in the frame
+            the method was aligned in.
+        pred_xyz: ``(M, 3)`` aligned estimated positions.
+        distance: ``(M,)`` ground-truth path length from the ground truth's first frame.
+        error: ``(M,)`` per-pose position error after alignment (the whole-trajectory ATE's).
         drift: ``{segment length (m): (t_err %, r_err deg/100 m)}`` for the lengths with at
             least one complete segment (empty on a path shorter than 100 m).
         scale: the fitted scale of the alignment.
@@ -114,14 +115,36 @@ def trajectory_curves(
     return curves_from_alignment(align_trajectory(pred, target, align, n_to_align))
 
 
-def curves_from_alignment(aligned: Alignment) -> TrajectoryCurves:
-    """The curves of :class:`TrajectoryCurves` of an already aligned estimate."""
+def curves_from_alignment(
+    aligned: Alignment,
+    frames: Tensor | None = None,
+    reference: Tensor | None = None,
+    segments: tuple[Tensor, Tensor, Tensor] | None = None,
+) -> TrajectoryCurves:
+    """The curves of :class:`TrajectoryCurves` of an already aligned estimate.
+
+    Args:
+        aligned: the alignment of the (matched) estimate.
+        frames: ``(M,)`` the ground-truth frame of each aligned pose (poses matched to a
+            ground truth with more frames); None: the poses are every frame.
+        reference: ``(N, 4, 4)`` the whole ground truth (with ``frames``): the distance
+            travelled is measured along it.
+        segments: the KITTI segment errors ``(t_err, r_err, length)`` already computed
+            (:func:`mfg_lightning.metrics.kitti_segment_errors`); None: computed here.
+    """
     from mfg_lightning.metrics import ate_traj_errors, kitti_drift_by_length, kitti_segment_errors
 
     gt = aligned.target[:, :3, 3]
-    steps = (gt[1:] - gt[:-1]).norm(dim=-1)
+    path = gt if frames is None or reference is None else reference[:, :3, 3].to(gt)
+    steps = (path[1:] - path[:-1]).norm(dim=-1)
     distance = np.concatenate([[0.0], steps.cumsum(0).cpu().numpy()])
-    by_length = kitti_drift_by_length(*kitti_segment_errors(aligned.pred, aligned.target))
+    if frames is not None and reference is not None:
+        distance = distance[frames.cpu().numpy()]
+    if segments is None:
+        segments = kitti_segment_errors(
+            aligned.pred, aligned.target, frames=frames, reference=reference
+        )
+    by_length = kitti_drift_by_length(*segments)
     return TrajectoryCurves(
         gt_xyz=gt.cpu().numpy(),
         pred_xyz=aligned.pred[:, :3, 3].cpu().numpy(),
@@ -236,7 +259,7 @@ def sequence_figures(
     Args:
         sequence: its name, for the titles.
         curves: method name → its :class:`TrajectoryCurves` on this sequence (colour order).
-        align: the alignment used, for the titles.
+        align: the alignment used, for the titles (``origin``: the first poses made equal).
     """
     if not curves:
         raise ValueError(f"no method to draw for sequence {sequence}")
@@ -292,6 +315,7 @@ def write_trajectory_figures(
     experiment: object | None = None,
     method: str = "MFG",
     tag: str = "test",
+    align: str = "none",
 ) -> list[Path]:
     """The figures of :func:`sequence_figures` for one method's predicted trajectories, as PNG
     files and (given a TensorBoard ``SummaryWriter``) images ``<tag>/<seq>/<kind>``.
@@ -299,18 +323,20 @@ def write_trajectory_figures(
     Every figure is drawn before the first file is written.
 
     Args:
-        sequences: sequence → ``(pred, gt)``, ``(N, 4, 4)`` camera-to-world poses each (metres),
-            compared as they are (no alignment, as the evaluation's metrics).
+        sequences: sequence → ``(pred, gt)``, ``(N, 4, 4)`` camera-to-world poses each (metres).
         directory: where the PNGs go (``<kind>_<seq>.png``).
         experiment: a ``SummaryWriter`` (e.g. ``TensorBoardLogger.experiment``), or None.
         method: the legend's name for the predictions.
         tag: TensorBoard tag prefix.
+        align: the alignment of the predictions before they are drawn
+            (:func:`mfg_lightning.metrics.align_trajectory`; ``none``: as they are), named in
+            the titles.
 
     Returns:
         The PNG paths written.
     """
     figures = {
-        seq: sequence_figures(seq, {method: trajectory_curves(pred, gt)})
+        seq: sequence_figures(seq, {method: trajectory_curves(pred, gt, align)}, align)
         for seq, (pred, gt) in sequences.items()
     }
     paths = []

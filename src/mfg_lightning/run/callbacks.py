@@ -326,17 +326,84 @@ class BatchChecks(L.Callback):
     depth; non-finite flow pixels are masked by the module itself), so that a dataset bug is one
     :class:`~mfg_lightning.data.sample.SampleError` naming the samples instead of an error deep
     inside torch or a silently skipped step.
+
+    Shapes and dtypes are checked at once everywhere (they read no values). The values are
+    checked at once on a CPU; on an accelerator (``deferred``, the default there) reading them
+    would make the host wait for the device in every step, so their per-sample flags
+    (:func:`~mfg_lightning.data.sample.batch_value_flags`) are copied back without waiting and
+    read when the copy has landed: at a later batch, and at the latest every ``check_every``
+    batches and at the end of each epoch. A bad batch is then refused a few steps late, still
+    naming its samples; meanwhile a non-finite pose or intrinsics gives a non-finite loss, which
+    the module skips in the optimiser (:class:`~mfg_lightning.models.mfg_module.MFGLitModule`).
+
+    Args:
+        deferred: read the value flags later (True), at once (False), or at once on a CPU and
+            later elsewhere (None, the default).
+        check_every: the most batches a deferred check waits before it waits for the device.
     """
 
+    def __init__(self, deferred: bool | None = None, check_every: int = 20) -> None:
+        if check_every < 1:
+            raise ValueError(f"callbacks.batch_checks.check_every must be >= 1, got {check_every}")
+        self.deferred = deferred
+        self.check_every = int(check_every)
+        # (flags on the host or landing there, CUDA event or None, the batch's sample ids)
+        self._pending: list[tuple[torch.Tensor, Any, dict[str, Any]]] = []
+        self._batches = 0
+
     def _check(self, pl_module: L.LightningModule, batch: Any) -> None:
-        from mfg_lightning.data.sample import check_batch
+        from mfg_lightning.data.sample import (
+            batch_value_flags,
+            check_batch_layout,
+            raise_on_bad_values,
+        )
 
         net = getattr(pl_module, "net", None)
         height, width = getattr(net, "height", None), getattr(net, "width", None)
         if batch is None or height is None or width is None:  # None: every sample was skipped
+            self._read_pending(wait=False)
             return
         param = next(pl_module.parameters(), None)
-        check_batch(batch, height, width, dtype=None if param is None else param.dtype)
+        check_batch_layout(batch, height, width, dtype=None if param is None else param.dtype)
+        flags = batch_value_flags(batch)
+        deferred = self.deferred if self.deferred is not None else flags.device.type != "cpu"
+        if not deferred:
+            raise_on_bad_values(batch, flags)
+            return
+        self._read_pending(wait=False)  # the earlier batches whose flags have landed
+        event = None
+        if flags.is_cuda:
+            host = flags.to("cpu", non_blocking=True)  # into pinned memory, without waiting
+            event = torch.cuda.Event()
+            event.record()
+        else:
+            host = flags.cpu()
+        self._pending.append((host, event, {"sample_id": batch.get("sample_id")}))
+        self._batches += 1
+        if self._batches % self.check_every == 0:
+            self._read_pending(wait=True)
+
+    def _read_pending(self, wait: bool) -> None:
+        """Raise for the first pending batch with a failed value check; ``wait``: wait for the
+        copies still in flight (a host synchronisation), else leave those for later."""
+        from mfg_lightning.data.sample import raise_on_bad_values
+
+        while self._pending:
+            host, event, ids = self._pending[0]
+            if event is not None and not event.query():
+                if not wait:
+                    return
+                event.synchronize()
+            self._pending.pop(0)
+            raise_on_bad_values(ids, host)
+
+    def _read_all(self, *args: Any, **kwargs: Any) -> None:
+        self._read_pending(wait=True)
+
+    on_train_epoch_end = _read_all
+    on_validation_epoch_end = _read_all
+    on_test_epoch_end = _read_all
+    on_train_end = _read_all
 
     def on_train_batch_start(
         self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any, batch_idx: int
@@ -353,5 +420,4 @@ class BatchChecks(L.Callback):
     ) -> None:
         self._check(pl_module, batch)
 
-    # Test batches are checked like validation batches (the same hook signature).
     on_test_batch_start = on_validation_batch_start

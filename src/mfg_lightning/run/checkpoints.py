@@ -42,6 +42,7 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "LEGACY_MODEL_SETTINGS",
+    "MOVED_MODULES",
     "CheckpointError",
     "CheckpointSizeError",
     "ModelSize",
@@ -56,6 +57,7 @@ __all__ = [
     "safe_unpickling",
     "with_legacy_dataset_settings",
     "with_legacy_settings",
+    "with_moved_targets",
 ]
 
 
@@ -187,6 +189,73 @@ PROJECT_TARGETS = (
 )
 
 
+#: Modules that moved when the package was laid out in folders (0.1 → 0.2), old → new. A config
+#: written by 0.1 (a checkpoint's ``mfg_model_config`` / ``mfg_dataset_config``, a run
+#: directory's ``config.yaml``) names its ``_target_`` classes by their old modules; they are read
+#: as the new ones (:func:`with_moved_targets`) before the allow-list is checked.
+MOVED_MODULES: dict[str, str] = {
+    "mfg_lightning.geometry": "mfg_lightning.core.geometry",
+    "mfg_lightning.atomic": "mfg_lightning.core.atomic",
+    "mfg_lightning.errors": "mfg_lightning.core.errors",
+    "mfg_lightning.config": "mfg_lightning.core.config",
+    "mfg_lightning.tables": "mfg_lightning.core.tables",
+    "mfg_lightning.data.errors": "mfg_lightning.core.data_errors",
+    "mfg_lightning.data.worlds": "mfg_lightning.scene.worlds",
+    "mfg_lightning.data.render": "mfg_lightning.scene.render",
+    "mfg_lightning.data.flow_estimation": "mfg_lightning.flow.estimators",
+    "mfg_lightning.data.flow_io": "mfg_lightning.flow.io",
+    "mfg_lightning.losses": "mfg_lightning.models.losses",
+    "mfg_lightning.baselines": "mfg_lightning.motion.baselines",
+    "mfg_lightning.object_motion": "mfg_lightning.motion.object_motion",
+    "mfg_lightning.object_motion_viz": "mfg_lightning.pictures.object_motion",
+    "mfg_lightning.trajectories": "mfg_lightning.trajectory.trajectories",
+    "mfg_lightning.pose_io": "mfg_lightning.trajectory.pose_io",
+    "mfg_lightning.visualization": "mfg_lightning.pictures.colours",
+    "mfg_lightning.plots": "mfg_lightning.pictures.plots",
+    "mfg_lightning.callbacks": "mfg_lightning.run.callbacks",
+    "mfg_lightning.checkpoints": "mfg_lightning.run.checkpoints",
+    "mfg_lightning.runs": "mfg_lightning.run.runs",
+    "mfg_lightning.scoring": "mfg_lightning.analysis.scoring",
+    "mfg_lightning.basis": "mfg_lightning.analysis.basis",
+    "mfg_lightning.sweeps": "mfg_lightning.analysis.sweeps",
+    "mfg_lightning.result_tables": "mfg_lightning.analysis.result_tables",
+}
+
+
+def moved_target(target: str) -> str:
+    """``target`` with its module renamed by :data:`MOVED_MODULES` (the longest matching
+    module prefix), or unchanged."""
+    parts = target.split(".")
+    for n in range(len(parts) - 1, 0, -1):
+        new = MOVED_MODULES.get(".".join(parts[:n]))
+        if new is not None:
+            return ".".join([new, *parts[n:]])
+    return target
+
+
+def with_moved_targets(cfg: Any, source: str | Path) -> Any:
+    """A plain config (mappings and lists) with every ``_target_`` of a moved module renamed
+    (:func:`moved_target`), logged once per config. Anything else is returned as it is."""
+    renamed: list[str] = []
+
+    def walk(node: Any) -> Any:
+        if isinstance(node, Mapping):
+            out = {k: walk(v) for k, v in node.items()}
+            target = out.get("_target_")
+            if isinstance(target, str) and moved_target(target) != target:
+                out["_target_"] = moved_target(target)
+                renamed.append(f"{target} → {out['_target_']}")
+            return out
+        if isinstance(node, list):
+            return [walk(v) for v in node]
+        return node
+
+    cfg = walk(cfg)
+    if renamed:
+        log.warning("%s names classes by their 0.1 modules: reading %s", source, ", ".join(renamed))
+    return cfg
+
+
 def _optimisers_and_schedulers() -> list[Any]:
     """torch's own optimiser and lr-scheduler classes."""
     from torch.optim import Optimizer, lr_scheduler
@@ -289,7 +358,9 @@ LEGACY_MODEL_SETTINGS: dict[str, dict[str, Any]] = {
 
 
 def with_legacy_settings(cfg: Mapping[str, Any], path: str | Path) -> dict[str, Any]:
-    """``cfg`` with every missing :data:`LEGACY_MODEL_SETTINGS` key filled in (logged)."""
+    """``cfg`` with its moved ``_target_`` modules renamed (:func:`with_moved_targets`) and every
+    missing :data:`LEGACY_MODEL_SETTINGS` key filled in (both logged)."""
+    cfg = with_moved_targets(cfg, path)
     cfg = {k: dict(v) if isinstance(v, Mapping) else v for k, v in cfg.items()}
     filled = []
     for part, settings in LEGACY_MODEL_SETTINGS.items():
@@ -332,7 +403,7 @@ def with_legacy_dataset_settings(cfg: dict[str, Any], path: str | Path) -> dict[
     * Synthetic ``test_offsets`` is ``offsets`` (one name with ``dataset=kitti``'s; it now sets
       the offsets of every split).
     """
-    cfg = _with_legacy_flow(cfg, path)
+    cfg = _with_legacy_flow(with_moved_targets(cfg, path), path)
     if "test_offsets" in cfg:
         cfg = dict(cfg)
         offsets = cfg.pop("test_offsets")
@@ -447,5 +518,6 @@ def dataset_config(ckpt: Mapping[str, Any], path: str | Path) -> dict | None:
         stored = OmegaConf.to_container(cfg.dataset, resolve=True)
     except Exception as err:  # an interpolation into keys the file does not have
         raise CheckpointError(f"{run_config}: cannot resolve dataset: {err}") from err
+    stored = with_legacy_dataset_settings(stored, run_config)
     check_targets(stored, str(run_config), "dataset")
-    return with_legacy_dataset_settings(stored, run_config)
+    return stored

@@ -76,7 +76,9 @@ def checkpoint_datamodule(
         ckpt_path: the checkpoint, for the error messages.
         size: the checkpoint's :class:`mfg_lightning.run.checkpoints.ModelSize`, checked against a
             given dataset's ``height`` × ``width``; None: not checked.
-        overrides: keys set on the dataset config (e.g. ``eval_batch_size``).
+        overrides: keys set on the dataset config (e.g. ``eval_batch_size``). A ``dataset_cfg``
+            without ``_target_`` (loader settings only, as ``trainer=gpu`` sets) is read as more
+            of them, on the stored dataset.
 
     Raises:
         CheckpointSizeError: the given dataset delivers another resolution than the model takes.
@@ -84,6 +86,11 @@ def checkpoint_datamodule(
     """
     from mfg_lightning.run.checkpoints import CheckpointSizeError
 
+    if dataset_cfg is not None and "_target_" not in dataset_cfg:
+        # Settings without a dataset (trainer=gpu's loader workers and pinned memory): they
+        # apply to the checkpoint's own dataset rather than replace it.
+        partial = OmegaConf.to_container(dataset_cfg, resolve=True)
+        dataset_cfg, overrides = None, {**partial, **overrides}
     if dataset_cfg is not None and size is not None:
         given = (int(dataset_cfg.height), int(dataset_cfg.width))
         if given != (size.height, size.width):

@@ -22,9 +22,10 @@ from typing import Any
 import lightning as L
 from hydra.utils import instantiate
 from lightning.pytorch.utilities.exceptions import SIGTERMException
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from mfg_lightning.core.atomic import atomic_write_text
+from mfg_lightning.models.mfg_module import check_precision
 from mfg_lightning.run.callbacks import LastCheckpoint
 from mfg_lightning.run.checkpoints import CheckpointError
 from mfg_lightning.run.runs import (
@@ -101,8 +102,31 @@ def exit_on_sigterm(trainer: L.Trainer) -> Iterator[None]:
         raise SystemExit(128 + signal.SIGTERM) from None
 
 
+def check_trainer_settings(cfg: DictConfig) -> None:
+    """Refuse what the run cannot do before anything is built or written, and settle the
+    trainer settings that contradict each other.
+
+    * ``trainer.precision``: ``32-true``, ``bf16-mixed`` or ``16-mixed``
+      (:func:`mfg_lightning.models.mfg_module.check_precision`; a ``*-true`` low precision is one
+      ``error:`` line naming the key).
+    * ``trainer.deterministic=true`` with ``trainer.benchmark=true`` (``trainer=gpu``'s): cuDNN's
+      benchmark picks its convolution algorithms by timing them, so ``deterministic`` wins and
+      ``benchmark`` is turned off (in the config that ``config.yaml`` records).
+
+    Raises:
+        ValueError: naming the key.
+    """
+    trainer = cfg.get("trainer") or {}
+    check_precision(trainer.get("precision", "32-true"))
+    if trainer.get("deterministic") and trainer.get("benchmark"):
+        log.info("trainer.deterministic=%s: trainer.benchmark turned off", trainer.deterministic)
+        with open_dict(cfg):
+            cfg.trainer.benchmark = False
+
+
 def train(cfg: DictConfig) -> dict[str, Any]:
     """Fit and test as configured. Returns the final metrics (``val/*`` and ``test/*``)."""
+    check_trainer_settings(cfg)
     output_dir = Path(cfg.paths.output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
     ckpt_path = resolve_ckpt_path(cfg.get("ckpt_path"), output_dir, bool(cfg.get("resume")))

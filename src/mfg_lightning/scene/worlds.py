@@ -14,8 +14,8 @@ holds:
   the hills and pitch of real KITTI trajectories. The grid also stores, for every cell, the arc
   length ``s`` and the signed lateral offset ``d`` (metres, positive to the right of the
   direction of travel) of the nearest path point: the road coordinates that lane markings,
-  kerbs and sidewalks are drawn in.
-* **Static boxes**: facades (with windows, drawn by :mod:`mfg_lightning.scene.render`) set back
+  kerbs and sidewalks are drawn in (centreline and ground: :mod:`.road`).
+* **Static boxes**: facades (with windows, drawn by :mod:`mfg_lightning.scene.shading`) set back
   beyond the sidewalks, parked cars and textured boxes (containers, vans) in the parking lanes.
   Every box is yaw-aligned with the road where it stands, rests on the ground (its bottom is
   buried a little so that slopes leave no gap) and is kept clear of *every* pass of the path,
@@ -40,11 +40,26 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from scipy.ndimage import gaussian_filter, gaussian_filter1d
-from scipy.spatial import cKDTree
 
-from mfg_lightning.scene.camera import CAMERA_HEIGHT
+from mfg_lightning.scene.box_params import (
+    NUM_PARAMS,
+    PARAM_CRATE_LABEL,
+    PARAM_CRATE_RIB_PERIOD,
+    PARAM_FACADE_OFFSET_U,
+    PARAM_FACADE_OFFSET_V,
+    PARAM_FACADE_SHOP,
+    PARAM_FACADE_STYLE,
+    PARAM_FLOOR_HEIGHT,
+    PARAM_PEDESTRIAN_SKIN,
+    PARAM_SPARE_OFFSET,
+    PARAM_TEXTURE_OFFSET,
+    PARAM_WINDOW_HEIGHT,
+    PARAM_WINDOW_SPACING,
+    PARAM_WINDOW_WIDTH,
+)
+from mfg_lightning.scene.road import Ground, ground_grid, road_centreline
 from mfg_lightning.scene.seeding import seeded_rng
+from mfg_lightning.scene.world_config import WorldConfig
 
 __all__ = [
     "CAR",
@@ -53,6 +68,11 @@ __all__ = [
     "KIND_NAMES",
     "PARKED_CAR",
     "PEDESTRIAN",
+    "SECTION",
+    "SECTION_MARGIN",
+    "Boxes",
+    "Ground",
+    "MovingObjects",
     "World",
     "WorldConfig",
     "yaw_pose",
@@ -62,12 +82,6 @@ __all__ = [
 FACADE, PARKED_CAR, CRATE, CAR, PEDESTRIAN = 0, 1, 2, 3, 4
 KIND_NAMES = ("facade", "parked car", "crate", "car", "pedestrian")
 
-#: Straight road added beyond both ends of the trajectory (metres).
-EXTENSION = 250.0
-#: Arc-length spacing of the resampled path (metres).
-PATH_STEP = 0.5
-#: Largest number of grid cells of a section's ground: longer sections get coarser cells.
-MAX_GRID_CELLS = 600_000
 #: Arc length of a section of the path (metres): frames in one section see one ground.
 SECTION = 100.0
 #: Centreline beyond a section's ends that its ground is built from (metres; at least the
@@ -117,98 +131,6 @@ _CLOTHES = np.array(
 _SKIN = np.array([[225, 190, 160], [190, 140, 110], [120, 85, 60]], dtype=np.float64)
 
 
-@dataclass(frozen=True)
-class WorldConfig:
-    """Layout and densities of a persistent world.
-
-    Lengths in metres; densities per 100 m of path (per side where stated); speeds in metres per
-    frame (KITTI's 10 Hz: 1 m/frame = 36 km/h).
-
-    Attributes:
-        lane_width: width of one lane. The camera drives in the middle of its lane.
-        lanes_per_side: lanes beside the camera's on each side (oncoming on the left, same
-            direction on the right). The road spans ``±lane_width · (lanes_per_side + 0.5)``.
-        parking_width: parking strip between the outer lane and the kerb on each side.
-        sidewalk_width: sidewalk between the kerb and the building line.
-        facade_coverage: fraction of the path's length lined with facades on each side.
-        facade_setback: range of the distance of a facade behind the sidewalk.
-        facade_length, facade_depth, facade_height: ranges of a facade box's size.
-        parked_per_100m: parked boxes per 100 m per side (at most one per 5.5 m).
-        crate_fraction: fraction of parked boxes that are textured boxes (containers, vans)
-            rather than cars.
-        cars_per_100m: moving cars per 100 m of path (all lanes beside the camera's).
-        car_speed: range of a moving car's speed.
-        pedestrians_per_100m: pedestrians per 100 m of path (both sidewalks).
-        pedestrian_speed: range of a pedestrian's walking speed.
-        exposure_std: stationary standard deviation of the log exposure gain.
-        exposure_corr: frame-to-frame correlation of the log exposure gain (AR(1)).
-        sensor_noise: standard deviation of the per-pixel sensor noise, grey levels.
-        grid_cell: ground-grid cell size (grown automatically beyond ``MAX_GRID_CELLS``).
-        margin: ground grid beyond the path's bounding box.
-    """
-
-    lane_width: float = 3.3
-    lanes_per_side: int = 1
-    parking_width: float = 2.2
-    sidewalk_width: float = 3.0
-    facade_coverage: float = 0.8
-    facade_setback: tuple[float, float] = (0.3, 6.0)
-    facade_length: tuple[float, float] = (8.0, 30.0)
-    facade_depth: tuple[float, float] = (8.0, 16.0)
-    facade_height: tuple[float, float] = (6.0, 20.0)
-    parked_per_100m: float = 6.0
-    crate_fraction: float = 0.2
-    cars_per_100m: float = 2.5
-    car_speed: tuple[float, float] = (0.4, 1.3)
-    pedestrians_per_100m: float = 3.0
-    pedestrian_speed: tuple[float, float] = (0.08, 0.16)
-    exposure_std: float = 0.04
-    exposure_corr: float = 0.9
-    sensor_noise: float = 1.0
-    grid_cell: float = 1.0
-    margin: float = 80.0
-
-    def __post_init__(self) -> None:
-        for name in ("lane_width", "parking_width", "sidewalk_width", "grid_cell", "margin"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"WorldConfig.{name} must be > 0, got {getattr(self, name)}")
-        for name in (
-            "facade_setback",
-            "facade_length",
-            "facade_depth",
-            "facade_height",
-            "car_speed",
-            "pedestrian_speed",
-        ):
-            lo, hi = getattr(self, name)
-            if not 0 <= lo <= hi:
-                raise ValueError(f"WorldConfig.{name} must be a range 0 <= lo <= hi, got {lo, hi}")
-        for name in ("parked_per_100m", "cars_per_100m", "pedestrians_per_100m", "sensor_noise"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"WorldConfig.{name} must be >= 0, got {getattr(self, name)}")
-        if not 0 <= self.facade_coverage <= 1 or not 0 <= self.crate_fraction <= 1:
-            raise ValueError("WorldConfig.facade_coverage and crate_fraction must be in [0, 1]")
-        if self.lanes_per_side < 0:
-            raise ValueError(f"WorldConfig.lanes_per_side must be >= 0, got {self.lanes_per_side}")
-        if not 0 <= self.exposure_corr < 1 or self.exposure_std < 0:
-            raise ValueError("WorldConfig.exposure_corr must be in [0, 1), exposure_std >= 0")
-
-    @property
-    def road_half_width(self) -> float:
-        """Distance from the path to the outer edge of the outer lane (metres)."""
-        return self.lane_width * (self.lanes_per_side + 0.5)
-
-    @property
-    def kerb(self) -> float:
-        """Distance from the path to the kerb (outer edge of the parking strip, metres)."""
-        return self.road_half_width + self.parking_width
-
-    @property
-    def building_line(self) -> float:
-        """Distance from the path to the back of the sidewalk (metres)."""
-        return self.kerb + self.sidewalk_width
-
-
 def yaw_pose(centre: np.ndarray, yaw: np.ndarray) -> torch.Tensor:
     """Poses ``T_world_obj`` of boxes turned by ``yaw`` about the world's vertical (y) axis.
 
@@ -246,7 +168,8 @@ class Boxes:
         kind: ``(M,)`` int64 one of ``FACADE`` … ``PEDESTRIAN``.
         colour, colour2: ``(M, 3)`` float64 main and secondary colour (wall and glass, paint
             and glass, clothes), RGB 0-255.
-        params: ``(M, 8)`` float64 kind-specific texture parameters (see the renderer).
+        params: ``(M, NUM_PARAMS)`` float64 kind-specific texture parameters, the columns named
+            in :mod:`.box_params`.
     """
 
     centre: np.ndarray
@@ -302,89 +225,27 @@ class MovingObjects:
         return len(self.s0)
 
 
-class Ground:
-    """The ground of one section of a world: a height field and road coordinates on a grid.
+@dataclass
+class _Placed:
+    """Candidate static boxes, placed at road coordinates before any section picks its own
+    (``n`` boxes)."""
 
-    Attributes:
-        lo, hi: the range of centreline arc lengths this ground is built from (metres).
-        origin: ``(x0, z0)`` world coordinates of grid cell ``(0, 0)``'s centre.
-        cell: cell size (metres).
-        grid: ``(nz, nx, 4)`` float32 per cell: ground y, and the arc length ``s``, lateral
-            offset ``d`` and ``|d|`` of the nearest centreline point.
-        max_slope: the steepest ground slope (rise over run).
-        static_index, static_centre: the static boxes standing in this section (indices into
-            ``World.static``, ``(m,)``) and their centres on this ground (``(m, 3)``), set by
-            :meth:`World.ground`.
-    """
+    boxes: Boxes
+    s: np.ndarray  # (n,) arc length each box was placed at (metres)
+    clearance: np.ndarray  # (n,) distance it must keep from every pass of the path (metres)
+    footprint_x: np.ndarray  # (n, 9) world x of its footprint points (metres)
+    footprint_z: np.ndarray  # (n, 9) world z of its footprint points (metres)
 
-    def __init__(
-        self, lo: float, hi: float, origin: tuple[float, float], cell: float, grid: np.ndarray
-    ) -> None:
-        self.lo, self.hi, self.origin, self.cell = lo, hi, origin, cell
-        self.grid = torch.from_numpy(grid)
-        self._height = self.grid[..., 0].contiguous().view(-1)
-        self._road = self.grid[..., 1:].contiguous().view(-1, 3)
-        gz, gx = np.gradient(grid[..., 0], cell)
-        self.max_slope = float(np.sqrt(gx * gx + gz * gz).max())
-
-    def _cells(self, x: torch.Tensor, z: torch.Tensor):
-        """Corner index and bilinear fractions of world points (clamped at the border)."""
-        nz, nx = self.grid.shape[:2]
-        gx = ((x - self.origin[0]) / self.cell).clamp(0, nx - 1.001)
-        gz = ((z - self.origin[1]) / self.cell).clamp(0, nz - 1.001)
-        ix, iz = gx.floor(), gz.floor()
-        return iz.long() * nx + ix.long(), nx, gx - ix, gz - iz
-
-    def height(
-        self, x: torch.Tensor, z: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Ground y (down) at world points and its slopes.
-
-        Args:
-            x, z: world coordinates (metres), equal shapes, float32 or float64.
-
-        Returns:
-            ``(y, dy/dx, dy/dz)`` of the bilinear height field, shaped and typed like ``x``.
-        """
-        i00, nx, fx, fz = self._cells(x.reshape(-1), z.reshape(-1))
-        h = self._height
-        h00, h01, h10, h11 = (
-            h.index_select(0, i).to(x.dtype) for i in (i00, i00 + 1, i00 + nx, i00 + nx + 1)
+    @staticmethod
+    def concat(parts: list[_Placed]) -> _Placed:
+        """The parts' boxes one after the other, in order."""
+        return _Placed(
+            Boxes.concat([p.boxes for p in parts]),
+            *(
+                np.concatenate([getattr(p, f) for p in parts])
+                for f in ("s", "clearance", "footprint_x", "footprint_z")
+            ),
         )
-        a = h00 + (h01 - h00) * fx
-        b = h10 + (h11 - h10) * fx
-        dx = ((h01 - h00) + (h11 - h10 - h01 + h00) * fz) / self.cell
-        shape = x.shape
-        return (a + (b - a) * fz).view(shape), dx.view(shape), ((b - a) / self.cell).view(shape)
-
-    def road_coordinates(
-        self, x: torch.Tensor, z: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Road coordinates of world points.
-
-        Args:
-            x, z: world coordinates (metres), ``(n,)`` each.
-
-        Returns:
-            ``(s, d, dist)``: arc length and signed lateral offset (metres, positive to the
-            right of the direction of travel) of the nearest centreline point, and the distance
-            to the centreline. Between two passes of the path, where the nearest point jumps
-            from one to the other, ``d`` is meaningless: there it is 10 km (off any road).
-        """
-        i00, nx, fx, fz = self._cells(x, z)
-        g = self._road
-        c00, c01, c10, c11 = (
-            g.index_select(0, i).to(x.dtype) for i in (i00, i00 + 1, i00 + nx, i00 + nx + 1)
-        )
-        fx, fz = fx[:, None], fz[:, None]
-        a = c00 + (c01 - c00) * fx
-        b = c10 + (c11 - c10) * fx
-        v = a + (b - a) * fz
-        s, d, dist = v[:, 0], v[:, 1], v[:, 2]
-        # Bilinear |d| exceeds |bilinear d| only where d changes sign in the cell: by less than a
-        # cell at the centreline, by metres where the nearest pass jumps (d flips from +D to -D).
-        torn = (dist - d.abs()) > 2.0 * self.cell
-        return s, torch.where(torn, torch.full_like(d, 1e4), d), dist
 
 
 @dataclass
@@ -434,6 +295,10 @@ class World:
     exposure: np.ndarray
     sun: np.ndarray
     _sections: dict = field(default_factory=dict, repr=False)
+    # The 9 footprint points (x and z, ``(M, 9)``) of every static box, which each section
+    # tests against its own ground (:meth:`_static_in`).
+    _footprint_x: np.ndarray = field(default_factory=lambda: np.zeros((0, 9)), repr=False)
+    _footprint_z: np.ndarray = field(default_factory=lambda: np.zeros((0, 9)), repr=False)
 
     # ----------------------------------------------------------------------------------------
     # Generation
@@ -452,7 +317,7 @@ class World:
         Args:
             poses: ``(N, 4, 4)`` camera-to-world poses ``T_world_cam`` (KITTI convention:
                 camera x right, y down, z forward), e.g. KITTI ground truth or
-                :func:`mfg_lightning.data.camera.procedural_trajectory`.
+                :func:`mfg_lightning.scene.camera.procedural_trajectory`.
             seed: seed of the world's content.
             name: the trajectory's name (e.g. ``"00"`` or ``"train03"``): worlds of different
                 trajectories differ even with one seed.
@@ -470,7 +335,7 @@ class World:
         poses = poses.to(torch.float64).contiguous()
         if not bool(torch.isfinite(poses).all()):
             raise ValueError(f"World.generate: trajectory {name!r} has non-finite poses")
-        path_s, path_xyz, path_dir, frame_s = _road_centreline(poses.numpy())
+        path_s, path_xyz, path_dir, frame_s = road_centreline(poses.numpy())
         world = cls(
             poses=poses,
             seed=int(seed),
@@ -487,7 +352,13 @@ class World:
             exposure=_exposure(seeded_rng(seed, "world", name, "exposure"), poses.shape[0], cfg),
             sun=_sun(seeded_rng(seed, "world", name, "sun")),
         )
-        world._place_static(seeded_rng(seed, "world", name, "static"))
+        placed = world._place_static(seeded_rng(seed, "world", name, "static"))
+        world.static, world.static_s, world.static_clearance = (
+            placed.boxes,
+            placed.s,
+            placed.clearance,
+        )
+        world._footprint_x, world._footprint_z = placed.footprint_x, placed.footprint_z
         world.moving = world._place_moving(seeded_rng(seed, "world", name, "moving"))
         return world
 
@@ -519,7 +390,7 @@ class World:
             if j == self.num_sections - 1:
                 hi = np.inf
             sel = (self.path_s >= lo) & (self.path_s <= hi)
-            origin, cell, grid = _ground_grid(
+            origin, cell, grid = ground_grid(
                 self.path_s[sel],
                 self.path_xyz[sel],
                 self.path_dir[sel],
@@ -637,9 +508,18 @@ class World:
         colour2: np.ndarray,
         params: np.ndarray,
         clearance: float,
-    ) -> tuple[Boxes, np.ndarray, np.ndarray]:
-        """Candidate boxes at road coordinates ``(s, lateral)`` (their centre y is set per
-        section), with their footprints ``(n, 9)`` x and z."""
+    ) -> _Placed:
+        """Candidate boxes at road coordinates ``(s, lateral)`` (``(n,)`` metres each; their
+        centre y is set per section), with their footprints.
+
+        Args:
+            size: ``(n, 3)`` full sizes (metres).
+            bury: how deep the bottom sits below the ground (metres), so slopes leave no gap.
+            kind: the boxes' kind (``FACADE`` … ``PEDESTRIAN``).
+            colour, colour2, params: ``(n, 3)``, ``(n, 3)``, ``(n, NUM_PARAMS)``, as
+                :class:`Boxes`.
+            clearance: the distance (metres) the footprints must keep from every pass.
+        """
         half = size / 2
         cx, cz, yaw, px, pz = self._footprints(s, lateral, half)
         boxes = Boxes(
@@ -652,116 +532,115 @@ class World:
             colour2=colour2,
             params=params,
         )
-        self._candidates.append((boxes, s, np.full(len(s), clearance), px, pz))
-        return boxes
+        return _Placed(boxes, s, np.full(len(s), clearance), px, pz)
 
-    def _place_static(self, rng: np.random.Generator) -> None:
+    def _place_static(self, rng: np.random.Generator) -> _Placed:
+        """Every candidate static box: on each side of the path its facades, then its parked
+        boxes (the order of the random draws, which the worlds depend on)."""
+        parts: list[_Placed] = []
+        for side in (-1.0, 1.0):
+            for placed in (self._place_facades(rng, side), self._place_parked(rng, side)):
+                if placed is not None:
+                    parts.append(placed)
+        if not parts:
+            return _Placed(_empty_boxes(), np.zeros(0), np.zeros(0), *(np.zeros((0, 9)),) * 2)
+        return _Placed.concat(parts)
+
+    def _place_facades(self, rng: np.random.Generator, side: float) -> _Placed | None:
+        """Facades on one side (``side`` -1 left, +1 right): a sequence of blocks and gaps
+        along the path, set back behind the building line (None: no block)."""
         cfg = self.config
         s_lo, s_hi = float(self.path_s[0]), float(self.path_s[-1])
-        self._candidates: list = []
-        for side in (-1.0, 1.0):
-            # Facades: a sequence of blocks and gaps along the path.
-            s_list, length, depth, setback = [], [], [], []
-            s = s_lo + rng.uniform(0, 10)
-            while s < s_hi:
-                if rng.random() < cfg.facade_coverage:
-                    n = rng.uniform(*cfg.facade_length)
-                    s_list.append(s + n / 2)
-                    length.append(n)
-                    depth.append(rng.uniform(*cfg.facade_depth))
-                    setback.append(rng.uniform(*cfg.facade_setback))
-                    s += n + rng.choice([0.0, rng.uniform(0.5, 4.0)])
-                else:
-                    s += rng.uniform(6.0, 25.0)
-            k = len(s_list)
-            if k:
-                depth_a = np.asarray(depth)
-                lateral = side * (cfg.building_line + np.asarray(setback) + depth_a / 2)
-                height = rng.uniform(*cfg.facade_height, k)
-                size = np.stack([depth_a, height + 1.5, np.asarray(length)], -1)
-                wall = _WALLS[rng.integers(0, len(_WALLS), k)] * rng.uniform(0.85, 1.1, (k, 1))
-                glass = np.stack([rng.uniform(35, 70, k)] * 3, -1) + rng.uniform(-5, 10, (k, 3))
-                params = np.stack(
-                    [
-                        rng.uniform(2.9, 3.6, k),  # floor height
-                        rng.uniform(2.2, 3.6, k),  # window spacing
-                        rng.uniform(0.45, 0.7, k),  # window width / spacing
-                        rng.uniform(0.4, 0.6, k),  # window height / floor height
-                        rng.integers(0, 3, k).astype(np.float64),  # wall style
-                        rng.uniform(0, 1000, k),  # texture offset
-                        rng.uniform(0, 1000, k),
-                        rng.uniform(0.0, 1.0, k),  # shop front on the ground floor if < 0.4
-                    ],
-                    -1,
-                )
-                self._boxes_at(
-                    np.asarray(s_list),
-                    lateral,
-                    size,
-                    1.5,
-                    FACADE,
-                    wall,
-                    glass,
-                    params,
-                    cfg.building_line - 0.3,
-                )
-            # Parked boxes in the parking strip: gaps of at least 5.5 m between centres.
-            rate = cfg.parked_per_100m / 100.0
-            if rate > 0:
-                mean_gap = max(1.0 / rate - 5.5, 0.1)
-                n_max = int((s_hi - s_lo) * rate * 1.5) + 2
-                pos = s_lo + np.cumsum(5.5 + rng.exponential(mean_gap, n_max))
-                pos = pos[pos < s_hi]
-                k = len(pos)
-                crate = rng.random(k) < cfg.crate_fraction
-                which = rng.integers(0, len(_CRATE_SIZES), k)
-                size = np.where(
-                    crate[:, None], np.asarray(_CRATE_SIZES)[which], np.asarray(_CAR_SIZE)
-                ) * rng.uniform(0.92, 1.08, (k, 1))
-                lateral = side * (cfg.road_half_width + cfg.parking_width / 2) + rng.normal(
-                    0, 0.1, k
-                )
-                paint = np.where(
-                    crate[:, None],
-                    _CRATE_PAINT[rng.integers(0, len(_CRATE_PAINT), k)],
-                    _CAR_PAINT[rng.integers(0, len(_CAR_PAINT), k)],
-                ) * rng.uniform(0.9, 1.05, (k, 1))
-                glass = np.stack([rng.uniform(25, 45, k)] * 3, -1)
-                params = np.stack(
-                    [
-                        rng.uniform(0, 1000, k),
-                        rng.uniform(0, 1000, k),
-                        rng.uniform(0.25, 0.4, k),  # crate corrugation period
-                        rng.integers(0, 2, k).astype(np.float64),  # crate label
-                        *(np.zeros(k) for _ in range(4)),
-                    ],
-                    -1,
-                )
-                # Parked cars stand either way round.
-                flip = rng.random(k) < 0.3
-                boxes = self._boxes_at(
-                    pos,
-                    lateral,
-                    size,
-                    0.25,
-                    PARKED_CAR,
-                    paint,
-                    glass,
-                    params,
-                    cfg.road_half_width + 0.1,
-                )
-                boxes.kind = np.where(crate, CRATE, PARKED_CAR)
-                boxes.yaw = boxes.yaw + np.pi * flip
-        parts = self._candidates
-        del self._candidates
-        if not parts:
-            self._footprint_x = self._footprint_z = np.zeros((0, 9))
-            return
-        self.static = Boxes.concat([p[0] for p in parts])
-        self.static_s = np.concatenate([p[1] for p in parts])
-        self.static_clearance = np.concatenate([p[2] for p in parts])
-        self._footprint_x = np.concatenate([p[3] for p in parts])
-        self._footprint_z = np.concatenate([p[4] for p in parts])
+        s_list, length, depth, setback = [], [], [], []
+        s = s_lo + rng.uniform(0, 10)
+        while s < s_hi:
+            if rng.random() < cfg.facade_coverage:
+                n = rng.uniform(*cfg.facade_length)
+                s_list.append(s + n / 2)
+                length.append(n)
+                depth.append(rng.uniform(*cfg.facade_depth))
+                setback.append(rng.uniform(*cfg.facade_setback))
+                s += n + rng.choice([0.0, rng.uniform(0.5, 4.0)])
+            else:
+                s += rng.uniform(6.0, 25.0)
+        k = len(s_list)
+        if not k:
+            return None
+        depth_a = np.asarray(depth)
+        lateral = side * (cfg.building_line + np.asarray(setback) + depth_a / 2)
+        height = rng.uniform(*cfg.facade_height, k)
+        size = np.stack([depth_a, height + 1.5, np.asarray(length)], -1)
+        wall = _WALLS[rng.integers(0, len(_WALLS), k)] * rng.uniform(0.85, 1.1, (k, 1))
+        glass = np.stack([rng.uniform(35, 70, k)] * 3, -1) + rng.uniform(-5, 10, (k, 3))
+        # Drawn column by column, in this order.
+        params = np.zeros((k, NUM_PARAMS))
+        params[:, PARAM_FLOOR_HEIGHT] = rng.uniform(2.9, 3.6, k)
+        params[:, PARAM_WINDOW_SPACING] = rng.uniform(2.2, 3.6, k)
+        params[:, PARAM_WINDOW_WIDTH] = rng.uniform(0.45, 0.7, k)
+        params[:, PARAM_WINDOW_HEIGHT] = rng.uniform(0.4, 0.6, k)
+        params[:, PARAM_FACADE_STYLE] = rng.integers(0, 3, k)
+        params[:, PARAM_FACADE_OFFSET_U] = rng.uniform(0, 1000, k)
+        params[:, PARAM_FACADE_OFFSET_V] = rng.uniform(0, 1000, k)
+        params[:, PARAM_FACADE_SHOP] = rng.uniform(0.0, 1.0, k)
+        return self._boxes_at(
+            np.asarray(s_list),
+            lateral,
+            size,
+            1.5,
+            FACADE,
+            wall,
+            glass,
+            params,
+            cfg.building_line - 0.3,
+        )
+
+    def _place_parked(self, rng: np.random.Generator, side: float) -> _Placed | None:
+        """Parked cars and crates in the parking strip on one side (``side`` -1 left, +1
+        right), at least 5.5 m between centres (None: no parking, ``parked_per_100m`` 0)."""
+        cfg = self.config
+        s_lo, s_hi = float(self.path_s[0]), float(self.path_s[-1])
+        rate = cfg.parked_per_100m / 100.0
+        if not rate > 0:
+            return None
+        mean_gap = max(1.0 / rate - 5.5, 0.1)
+        n_max = int((s_hi - s_lo) * rate * 1.5) + 2
+        pos = s_lo + np.cumsum(5.5 + rng.exponential(mean_gap, n_max))
+        pos = pos[pos < s_hi]
+        k = len(pos)
+        crate = rng.random(k) < cfg.crate_fraction
+        which = rng.integers(0, len(_CRATE_SIZES), k)
+        size = np.where(
+            crate[:, None], np.asarray(_CRATE_SIZES)[which], np.asarray(_CAR_SIZE)
+        ) * rng.uniform(0.92, 1.08, (k, 1))
+        lateral = side * (cfg.road_half_width + cfg.parking_width / 2) + rng.normal(0, 0.1, k)
+        paint = np.where(
+            crate[:, None],
+            _CRATE_PAINT[rng.integers(0, len(_CRATE_PAINT), k)],
+            _CAR_PAINT[rng.integers(0, len(_CAR_PAINT), k)],
+        ) * rng.uniform(0.9, 1.05, (k, 1))
+        glass = np.stack([rng.uniform(25, 45, k)] * 3, -1)
+        # Drawn column by column, in this order; the other columns stay zero.
+        params = np.zeros((k, NUM_PARAMS))
+        params[:, PARAM_TEXTURE_OFFSET] = rng.uniform(0, 1000, k)
+        params[:, PARAM_SPARE_OFFSET] = rng.uniform(0, 1000, k)
+        params[:, PARAM_CRATE_RIB_PERIOD] = rng.uniform(0.25, 0.4, k)
+        params[:, PARAM_CRATE_LABEL] = rng.integers(0, 2, k)
+        # Parked cars stand either way round.
+        flip = rng.random(k) < 0.3
+        placed = self._boxes_at(
+            pos,
+            lateral,
+            size,
+            0.25,
+            PARKED_CAR,
+            paint,
+            glass,
+            params,
+            cfg.road_half_width + 0.1,
+        )
+        placed.boxes.kind = np.where(crate, CRATE, PARKED_CAR)
+        placed.boxes.yaw = placed.boxes.yaw + np.pi * flip
+        return placed
 
     def _place_moving(self, rng: np.random.Generator) -> MovingObjects:
         cfg = self.config
@@ -790,9 +669,9 @@ class World:
         ped_legs = _CLOTHES[rng.integers(0, len(_CLOTHES), n_ped)] * 0.7
         skin = _SKIN[rng.integers(0, len(_SKIN), n_ped)]
         n = n_car + n_ped
-        params = np.zeros((n, 8))
-        params[:, 0:2] = rng.uniform(0, 1000, (n, 2))
-        params[n_car:, 2:5] = skin
+        params = np.zeros((n, NUM_PARAMS))
+        params[:, [PARAM_TEXTURE_OFFSET, PARAM_SPARE_OFFSET]] = rng.uniform(0, 1000, (n, 2))
+        params[n_car:, PARAM_PEDESTRIAN_SKIN] = skin
         size = np.concatenate([car_size, ped_size]).reshape(n, 3)
         bury = np.concatenate([np.full(n_car, 0.25), np.full(n_ped, 0.05)])
         boxes = Boxes(
@@ -828,123 +707,8 @@ def _empty_boxes() -> Boxes:
         kind=np.zeros(0, dtype=np.int64),
         colour=np.zeros((0, 3)),
         colour2=np.zeros((0, 3)),
-        params=np.zeros((0, 8)),
+        params=np.zeros((0, NUM_PARAMS)),
     )
-
-
-def _road_centreline(
-    poses: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The road centreline under a trajectory, resampled every ``PATH_STEP`` metres.
-
-    The ground point of every frame is the camera position moved ``CAMERA_HEIGHT`` down the
-    camera's own y axis. Frames where the car stands still add nothing; heights are smoothed
-    along the path over a couple of metres (suspension bumps and pitch jitter are not the
-    road's), the horizontal course over a metre. The path is extended ``EXTENSION`` metres
-    straight beyond both ends.
-
-    Returns:
-        ``(s, xyz, heading, frame_s)``: ``(P,)`` arc length (horizontal; 0 at the first frame),
-        ``(P, 3)`` ground points, ``(P, 2)`` unit horizontal heading ``(dx, dz)``, ``(N,)`` arc
-        length of every frame.
-    """
-    ground = poses[:, :3, 3] + CAMERA_HEIGHT * poses[:, :3, 1]
-    step = np.linalg.norm(np.diff(ground[:, [0, 2]], axis=0), axis=1)
-    arc = np.concatenate([[0.0], np.cumsum(step)])
-    frame_arc = arc
-    moving = np.concatenate([[True], np.diff(arc) > 1e-3])
-    arc, ground = arc[moving], ground[moving]
-    if arc[-1] < 1.0:
-        # A standing car: a straight road along the first camera's horizontal forward axis.
-        fwd = poses[0, :3, 2][[0, 2]]
-        fwd = fwd / n if (n := np.linalg.norm(fwd)) > 1e-6 else np.array([0.0, 1.0])
-        s = np.arange(0.0, 1.0 + 1e-9, PATH_STEP)
-        xyz = ground[:1] + s[:, None] * np.array([fwd[0], 0.0, fwd[1]])
-    else:
-        s = np.linspace(0.0, arc[-1], max(int(np.ceil(arc[-1] / PATH_STEP)), 1) + 1)
-        xyz = np.stack([np.interp(s, arc, ground[:, i]) for i in range(3)], -1)
-        xyz[:, [0, 2]] = gaussian_filter1d(xyz[:, [0, 2]], 1.0 / PATH_STEP, axis=0, mode="nearest")
-        xyz[:, 1] = gaussian_filter1d(xyz[:, 1], 2.0 / PATH_STEP, mode="nearest")
-    heading = np.gradient(xyz[:, [0, 2]], axis=0)
-    norm = np.linalg.norm(heading, axis=1, keepdims=True)
-    heading = np.where(norm > 1e-9, heading / norm.clip(1e-12), np.array([0.0, 1.0]))
-    # Recompute the arc length of the smoothed course, then extend both ends straight.
-    raw = s
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xyz[:, [0, 2]], axis=0), axis=1))])
-    frame_s = np.interp(frame_arc, raw, s)
-    ext = np.arange(PATH_STEP, EXTENSION + 1e-9, PATH_STEP)
-    h0, h1 = heading[0], heading[-1]
-    before = xyz[0] - ext[::-1, None] * np.array([h0[0], 0.0, h0[1]])
-    after = xyz[-1] + ext[:, None] * np.array([h1[0], 0.0, h1[1]])
-    s = np.concatenate([-ext[::-1], s, s[-1] + ext])
-    xyz = np.concatenate([before, xyz, after])
-    heading = np.concatenate(
-        [np.repeat(h0[None], len(ext), 0), heading, np.repeat(h1[None], len(ext), 0)]
-    )
-    return s, xyz, heading, frame_s
-
-
-def _ground_grid(
-    s: np.ndarray,
-    xyz: np.ndarray,
-    heading: np.ndarray,
-    cfg: WorldConfig,
-    extension: np.ndarray,
-) -> tuple[tuple[float, float], float, np.ndarray]:
-    """The ground grid: per cell the ground y, and s, d, |d| of the nearest centreline point.
-
-    Returns:
-        ``((x0, z0), cell, grid)`` with ``grid`` ``(nz, nx, 4)`` float32.
-    """
-    lo = xyz[:, [0, 2]].min(0) - cfg.margin
-    hi = xyz[:, [0, 2]].max(0) + cfg.margin
-    area = float(np.prod(hi - lo))
-    cell = max(cfg.grid_cell, math.sqrt(area / MAX_GRID_CELLS))
-    # Cells on one world-wide lattice: overlapping sections interpolate the same cell values.
-    lo = np.floor(lo / cell) * cell
-    nx, nz = (np.ceil((hi - lo) / cell).astype(int) + 1).tolist()
-    gx = lo[0] + cell * np.arange(nx)
-    gz = lo[1] + cell * np.arange(nz)
-    X, Z = np.meshgrid(gx, gz, indexing="xy")
-    pts = np.stack([X.ravel(), Z.ravel()], -1)
-    _, idx = cKDTree(xyz[:, [0, 2]]).query(pts)
-    rel = pts - xyz[idx][:, [0, 2]]
-    h = heading[idx]
-    along = (rel * h).sum(-1)
-    lateral = rel[:, 0] * h[:, 1] - rel[:, 1] * h[:, 0]  # · right = (dz, -dx)
-    # Heights: a Gaussian-weighted mean of the centreline heights nearby (kernel regression,
-    # splatted on the grid and filtered), so that passes of the path that meet blend smoothly
-    # and every frame's ground point keeps its height; the straight extensions count little
-    # where they cross the real path. Away from the path the weights fade (through ``floor``)
-    # into a broadly smoothed field of the nearest centreline heights, so the ground is smooth
-    # everywhere.
-    weight = np.where(extension, 0.05, 1.0)
-    num = np.zeros(nz * nx)
-    den = np.zeros(nz * nx)
-    fx = (xyz[:, 0] - lo[0]) / cell
-    fz = (xyz[:, 2] - lo[1]) / cell
-    ix, iz = np.floor(fx).astype(int), np.floor(fz).astype(int)
-    for dx, dz in ((0, 0), (1, 0), (0, 1), (1, 1)):
-        w = weight * np.abs(1 - dx - (fx - ix)) * np.abs(1 - dz - (fz - iz))
-        flat = np.clip(iz + dz, 0, nz - 1) * nx + np.clip(ix + dx, 0, nx - 1)
-        np.add.at(num, flat, w * xyz[:, 1])
-        np.add.at(den, flat, w)
-    num = gaussian_filter(num.reshape(nz, nx), 3.0 / cell, mode="nearest")
-    den = gaussian_filter(den.reshape(nz, nx), 3.0 / cell, mode="nearest")
-    far = gaussian_filter(xyz[idx, 1].reshape(nz, nx), 20.0 / cell, mode="nearest")
-    # On the path den ≈ (1 / PATH_STEP) · cell² / (√(2π) · 3 m) ≈ 0.27 per m² of cell.
-    floor = 0.0003 * cell * cell
-    height = (num + floor * far) / (den + floor)
-    grid = np.stack(
-        [
-            height.ravel(),
-            s[idx] + along,
-            lateral,
-            np.abs(lateral),
-        ],
-        -1,
-    ).reshape(nz, nx, 4)
-    return (float(lo[0]), float(lo[1])), float(cell), grid.astype(np.float32)
 
 
 def _exposure(rng: np.random.Generator, n: int, cfg: WorldConfig) -> np.ndarray:

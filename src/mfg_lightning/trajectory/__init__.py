@@ -1,2 +1,3 @@
-"""Trajectories: chaining per-frame motions into poses and snippets (:mod:`.trajectories`) and
-reading / writing KITTI and TUM trajectory files (:mod:`.pose_io`)."""
+"""Trajectories: chaining per-frame motions into poses and snippets (:mod:`.trajectories`),
+reading / writing KITTI and TUM trajectory files (:mod:`.pose_io`) and matching an estimate's
+poses to the ground truth's by frame index or timestamp (:mod:`.association`)."""

@@ -4,7 +4,9 @@ Formats, as distributed:
 
 * **KITTI** (``poses/XX.txt`` of the odometry benchmark; ``../shared/docs/formats.md``): one line
   per frame, 12 numbers, the row-major 3×4 ``[R | t]`` of ``T_world_cam`` (camera-to-world, the
-  camera of frame 0 is the world), metres.
+  camera of frame 0 is the world), metres. Results may put the frame index first (13 numbers a
+  line, as kitti-odom-eval reads them): then the file may start late, end early and skip frames;
+  the indices must be whole numbers ≥ 0 in increasing order (``PoseFile.frames``).
 * **TUM** (Sturm et al. 2012, the TUM RGB-D benchmark's ``groundtruth.txt``): one line per pose,
   ``timestamp tx ty tz qx qy qz qw``: time in seconds, the camera's position and its orientation
   as a unit quaternion with the scalar last, again camera-to-world.
@@ -41,6 +43,7 @@ __all__ = [
     "PoseFile",
     "PoseFileError",
     "PoseFormat",
+    "check_increasing",
     "detect_pose_format",
     "read_kitti_poses",
     "read_kitti_times",
@@ -86,6 +89,8 @@ class PoseFile:
         poses: ``(N, 4, 4)`` float64 camera-to-world poses ``T_world_cam``, in file order.
         timestamps: ``(N,)`` float64 seconds (TUM), or ``None`` (KITTI files have none).
         lines: ``(N,)`` int, the 1-based line number of each pose, for error messages.
+        frames: ``(N,)`` int64 frame indices of a KITTI file with an index column (13 numbers a
+            line), increasing; ``None`` for 12 numbers a line (frames ``0 … N − 1``) and TUM.
     """
 
     path: Path
@@ -93,9 +98,14 @@ class PoseFile:
     poses: np.ndarray
     timestamps: np.ndarray | None
     lines: np.ndarray
+    frames: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.poses.shape[0])
+
+    def frame_indices(self) -> np.ndarray:
+        """``(N,)`` int64 frame index of every pose: the index column, else ``0 … N − 1``."""
+        return self.frames if self.frames is not None else np.arange(len(self), dtype=np.int64)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -159,7 +169,8 @@ def _is_float(text: str) -> bool:
 
 
 def detect_pose_format(path: str | os.PathLike[str]) -> PoseFormat:
-    """The format of a pose file from the column count of its first pose line (12 KITTI, 8 TUM).
+    """The format of a pose file from the column count of its first pose line (12 or 13 KITTI,
+    8 TUM).
 
     Raises:
         PoseFileError: unreadable or empty file, or a column count of neither format.
@@ -170,14 +181,15 @@ def detect_pose_format(path: str | os.PathLike[str]) -> PoseFormat:
 
 
 def _format_of(path: Path, number: int, fields: list[str]) -> PoseFormat:
-    if len(fields) == _COLUMNS["kitti"]:
+    if len(fields) in (_COLUMNS["kitti"], _COLUMNS["kitti"] + 1):
         return "kitti"
     if len(fields) == _COLUMNS["tum"]:
         return "tum"
     raise PoseFileError(
         path,
         number,
-        f"cannot tell the format from {len(fields)} columns (KITTI has 12, TUM has 8)",
+        f"cannot tell the format from {len(fields)} columns (KITTI has 12, or 13 with a frame "
+        "index first; TUM has 8)",
     )
 
 
@@ -197,12 +209,62 @@ def _check_rotations(path: Path, lines: Sequence[int], R: np.ndarray) -> None:
 
 
 def _parse_kitti(path: Path, rows: list[tuple[int, list[str]]]) -> PoseFile:
-    values = [_numbers(path, n, f, 12, "a row-major 3×4 pose") for n, f in rows]
+    # The first line decides between 12 numbers and 13 (a frame index first); every line then
+    # has as many.
+    indexed = len(rows[0][1]) == 13
+    what = "a frame index and a row-major 3×4 pose" if indexed else "a row-major 3×4 pose"
+    values = np.asarray(
+        [_numbers(path, n, f, 13 if indexed else 12, what) for n, f in rows], dtype=np.float64
+    )
     lines = np.array([n for n, _ in rows], dtype=np.int64)
+    frames = _frame_indices(path, lines, values[:, 0]) if indexed else None
     poses = np.tile(np.eye(4), (len(values), 1, 1))
-    poses[:, :3, :] = np.asarray(values, dtype=np.float64).reshape(-1, 3, 4)
+    poses[:, :3, :] = values[:, int(indexed) :].reshape(-1, 3, 4)
     _check_rotations(path, lines, poses[:, :3, :3])
-    return PoseFile(path, "kitti", poses, None, lines)
+    return PoseFile(path, "kitti", poses, None, lines, frames)
+
+
+def _frame_indices(path: Path, lines: np.ndarray, column: np.ndarray) -> np.ndarray:
+    """The index column of a 13-number KITTI file as int64: whole numbers ≥ 0, increasing."""
+    bad = np.flatnonzero((column != np.round(column)) | (column < 0) | (column > 2**53))
+    if bad.size:
+        i = int(bad[0])
+        raise PoseFileError(
+            path, int(lines[i]), f"frame index {float(column[i])!r} is not a whole number >= 0"
+        )
+    frames = column.astype(np.int64)
+    check_increasing(path, lines, frames, "frame index", "frame indices must increase")
+    return frames
+
+
+def check_increasing(
+    path: str | os.PathLike[str],
+    lines: Sequence[int],
+    values: np.ndarray,
+    what: str,
+    why: str,
+) -> None:
+    """Refuse values that do not strictly increase, naming the first line that does not.
+
+    Args:
+        path: the file the values come from.
+        lines: ``(N,)`` the 1-based line of each value.
+        values: ``(N,)`` frame indices or timestamps.
+        what: their name in the message (``"timestamp"``).
+        why: why they must increase, ending the message.
+
+    Raises:
+        PoseFileError: ``<path>:<line>: <what> v does not follow u (line l): <why>``.
+    """
+    back = np.flatnonzero(np.diff(values) <= 0)
+    if back.size:
+        i = int(back[0]) + 1
+        previous, value = values[i - 1].item(), values[i].item()
+        raise PoseFileError(
+            path,
+            int(lines[i]),
+            f"{what} {value!r} does not follow {previous!r} (line {int(lines[i - 1])}): {why}",
+        )
 
 
 def _parse_tum(path: Path, rows: list[tuple[int, list[str]]]) -> PoseFile:
@@ -234,7 +296,8 @@ def read_poses(
 
     Args:
         path: the file.
-        fmt: ``"kitti"``, ``"tum"`` or ``"auto"`` (by the column count of the first pose line).
+        fmt: ``"kitti"`` (12 numbers a line, or 13 with a frame index first), ``"tum"`` or
+            ``"auto"`` (by the column count of the first pose line).
 
     Returns:
         :class:`PoseFile` with ``(N, 4, 4)`` float64 camera-to-world poses.
@@ -242,7 +305,8 @@ def read_poses(
     Raises:
         PoseFileError: missing or unreadable file, no poses, a line with the wrong number of
             columns, a field that is not a number, a non-finite number, a 3×3 block that is not a
-            rotation or a quaternion that is not a unit one.
+            rotation or a quaternion that is not a unit one, a frame index that is not a whole
+            number or does not increase.
     """
     path = Path(path)
     rows = _data_lines(path)
@@ -256,7 +320,8 @@ def read_poses(
 
 
 def read_kitti_poses(path: str | os.PathLike[str]) -> np.ndarray:
-    """``(N, 4, 4)`` float64 camera-to-world poses of a KITTI ``poses/XX.txt`` file."""
+    """``(N, 4, 4)`` float64 camera-to-world poses of a KITTI ``poses/XX.txt`` file (in file
+    order; an index column is read and dropped: :func:`read_poses` keeps it)."""
     return read_poses(path, "kitti").poses
 
 
@@ -295,17 +360,27 @@ def _format_number(value: float) -> str:
     return repr(float(value))
 
 
-def write_kitti_poses(path: str | os.PathLike[str], poses: object) -> None:
+def write_kitti_poses(
+    path: str | os.PathLike[str], poses: object, frames: object | None = None
+) -> None:
     """Write camera-to-world poses as a KITTI pose file (12 numbers per line, row-major 3×4).
 
     Args:
         path: the file (replaced atomically).
         poses: ``(N, 4, 4)`` or ``(N, 3, 4)`` array-like (numpy, CPU tensor), finite, N >= 1.
             Numbers are written with the shortest text that reads back exactly.
+        frames: ``(N,)`` increasing whole frame indices ≥ 0 to write first on each line (13
+            numbers, the layout kitti-odom-eval also reads), or None.
     """
     array = _as_poses(poses)[:, :3, :].reshape(-1, 12)
-    text = "".join(" ".join(map(_format_number, row)) + "\n" for row in array)
-    atomic_write_text(Path(path), text)
+    text = [" ".join(map(_format_number, row)) for row in array]
+    if frames is not None:
+        index = np.asarray(frames).reshape(-1)
+        steps = np.diff(index)
+        if index.shape[0] != array.shape[0] or (index < 0).any() or (steps <= 0).any():
+            raise ValueError(f"frames must be {array.shape[0]} increasing indices >= 0")
+        text = [f"{int(f)} {line}" for f, line in zip(index, text, strict=True)]
+    atomic_write_text(Path(path), "".join(line + "\n" for line in text))
 
 
 def write_kitti_times(path: str | os.PathLike[str], timestamps: object) -> None:

@@ -25,8 +25,10 @@ from mfg_lightning.core import geometry
 
 __all__ = [
     "check_sequence_pair",
+    "consecutive_windows",
     "evaluation_poses",
     "motions_from_poses",
+    "relative_poses",
     "sequence_trajectory",
     "snippets_from_central_frame",
     "snippets_from_motions",
@@ -167,24 +169,73 @@ def snippets_from_central_frame(center_to_others: Tensor) -> Tensor:
     return geometry.relative_pose(in_center[:, :1], in_center)
 
 
-def evaluation_poses(poses: Tensor) -> Tensor:
+def evaluation_poses(poses: Tensor, project: bool = True) -> Tensor:
     """Poses prepared for the trajectory metrics: detached, float64, rotations on SO(3).
 
     Metrics compute in float64 so that results do not depend on the precision the model ran in;
     the rotation blocks are projected onto SO(3)
     (:func:`mfg_lightning.core.geometry.project_to_se3`)
     because pose files are only orthonormal to ~1e-7, which the arccos of rotation angles would
-    otherwise amplify into a spurious error floor. Apple's MPS has no float64, so such tensors move
-    to the CPU.
+    otherwise amplify into a spurious error floor (evo's angles agree with the projected ones).
+    Apple's MPS has no float64, so such tensors move to the CPU.
 
     Args:
         poses: ``(..., 4, 4)`` approximately rigid transforms.
+        project: ``False`` keeps the rotation blocks as written (kitti-odom-eval's and the KITTI
+            devkit's arithmetic, with :func:`relative_poses` ``project=False``).
 
     Returns:
-        ``(..., 4, 4)`` float64 rigid transforms, on the input's device (CPU for MPS input).
+        ``(..., 4, 4)`` float64 transforms (rigid when projected), on the input's device (CPU for
+        MPS input).
     """
     _check_poses(poses, "poses", min_dim=2)
     poses = poses.detach()
     if poses.device.type == "mps":
         poses = poses.cpu()
-    return geometry.project_to_se3(poses.to(torch.float64))
+    poses = poses.to(torch.float64)
+    return geometry.project_to_se3(poses) if project else poses
+
+
+def relative_poses(T_world_a: Tensor, T_world_b: Tensor, project: bool = True) -> Tensor:
+    """``T_world_a^-1 · T_world_b`` (``b`` in the frame of ``a``), batched.
+
+    Args:
+        T_world_a, T_world_b: ``(..., 4, 4)`` camera-to-world poses (broadcast together).
+        project: ``True``: the rigid inverse ``[Rᵀ | −Rᵀt]`` of poses on SO(3)
+            (:func:`mfg_lightning.core.geometry.relative_pose`); ``False``: the general matrix
+            inverse, as kitti-odom-eval's ``np.linalg.inv`` on rotation blocks as written (which
+            differs from the rigid one by their rounding, ~1e-7 for 6-digit files).
+
+    Returns:
+        ``(..., 4, 4)`` relative poses.
+    """
+    if project:
+        return geometry.relative_pose(T_world_a, T_world_b)
+    return torch.linalg.inv(T_world_a) @ T_world_b
+
+
+def consecutive_windows(frames: Tensor, length: int) -> Tensor:
+    """The starts of the windows of ``length`` rows whose frame indices are consecutive.
+
+    Args:
+        frames: ``(M,)`` integer frame indices of the rows of a matched trajectory, increasing
+            (a row per matched pose; holes where the estimate has no pose).
+        length: rows per window (a snippet's ``L``).
+
+    Returns:
+        ``(S,)`` int64 row indices ``i`` with ``frames[i + j] = frames[i] + j`` for every
+        ``j < length``: the snippets of :func:`snippets_from_poses` that span no hole.
+    """
+    if frames.dim() != 1:
+        raise ValueError(f"frames must be (M,), got shape {tuple(frames.shape)}")
+    count = max(frames.shape[0] - length + 1, 0)
+    starts = torch.arange(count, device=frames.device)
+    if count == 0:
+        return starts
+    # Every step inside the window is +1: no hole, and no repeated frame (timestamp association
+    # can match two estimated poses to one ground-truth frame).
+    steps = torch.diff(frames) == 1
+    ok = torch.ones(count, dtype=torch.bool, device=frames.device)
+    for j in range(length - 1):
+        ok &= steps[j : j + count]
+    return starts[ok]

@@ -1,0 +1,509 @@
+"""Precision as a setting (issue 22): float32 geometry, losses, object motion and metrics under
+any autocast; ``*-true`` refused; ``16-mixed`` from its first step; no host synchronisation in a
+training step outside the logging steps; the GPU configs and ``bench/gpu_check.py`` on a CPU.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import math
+import os
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import lightning as L
+import pytest
+import torch
+import torch.nn.functional as F
+from hydra.utils import instantiate
+from lightning.pytorch.plugins.precision import MixedPrecision
+from torchmetrics import MeanMetric
+
+from conftest import REPO, quiet_trainer
+from mfg_lightning.core import geometry as G
+from mfg_lightning.core.config import compose
+from mfg_lightning.core.errors import user_error_message
+from mfg_lightning.data.sample import SampleError, sanitize_flow
+from mfg_lightning.data.synthetic import SyntheticDataModule, SyntheticDrivingDataset
+from mfg_lightning.metrics.frame_errors import FiniteMean
+from mfg_lightning.models.losses import MFGLoss, sparsity_count
+from mfg_lightning.models.mfg import MFG, bilinear_matrix, upsample_bilinear
+from mfg_lightning.models.mfg_module import (
+    FP16_INIT_SCALE,
+    HOST_INTRINSICS,
+    MFGLitModule,
+    NonFiniteLossError,
+    check_precision,
+    fit_grad_scaler,
+)
+from mfg_lightning.motion.object_motion import extract_object_motion
+from mfg_lightning.run.callbacks import BatchChecks
+from mfg_lightning.run.checkpoints import module_from_checkpoint
+from mfg_lightning.run.runs import build_model
+from mfg_lightning.run.training import check_trainer_settings, train
+
+#: torch.autocast dtypes on the CPU: what bf16-mixed and 16-mixed run the encoder in.
+LOW = {"bf16-mixed": torch.bfloat16, "16-mixed": torch.float16}
+H, W = 48, 128
+
+
+def _motions(n: int = 64, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Random driving-like motions (m, rad per frame) and KITTI-like intrinsics at 48 × 128."""
+    g = torch.Generator().manual_seed(seed)
+    t = torch.randn(n, 3, generator=g) * torch.tensor([0.05, 0.02, 0.5])
+    w = torch.randn(n, 3, generator=g) * torch.tensor([0.005, 0.02, 0.005])
+    K = torch.tensor([74.145, 74.145, 62.179, 22.867]).expand(n, 4)
+    return t, w, K
+
+
+@pytest.mark.parametrize("precision", sorted(LOW))
+def test_recovering_exact_fields_under_autocast_gives_float32_answer(precision: str) -> None:
+    """The issue's measurement: in bf16 the recovery erred by up to 2.2e-3 m / 8.5e-5 rad (fx
+    74.145 cast to 74.0); under autocast it now gives float32's answer."""
+    t, w, K = _motions()
+    v_t = G.translational_field(t, K, H, W)
+    v_w = G.rotational_field(w, K, H, W)
+    t32, w32 = G.recover_motion(v_t, v_w, K)
+    with torch.autocast("cpu", dtype=LOW[precision]):
+        fields = G.translational_field(t, K, H, W), G.rotational_field(w, K, H, W)
+        t_mix, w_mix = G.recover_motion(*fields, K)
+    assert fields[0].dtype == fields[1].dtype == t_mix.dtype == w_mix.dtype == torch.float32
+    assert (t_mix - t32).abs().max() <= 1e-5
+    assert (w_mix - w32).abs().max() <= 1e-7
+    # and float32's answer is the truth to float32 rounding
+    assert (t32 - t).abs().max() < 1e-5 and (w32 - w).abs().max() < 1e-6
+
+
+def test_low_precision_arguments_are_widened_to_float32() -> None:
+    t, w, K = _motions(8)
+    field = G.translational_field(t.bfloat16(), K.bfloat16(), H, W)
+    assert field.dtype == torch.float32
+    # float64 stays float64, and the float32 path is the undecorated function's
+    assert G.so3_exp(w.double()).dtype == torch.float64
+    assert torch.equal(G.so3_exp(w), G.so3_exp.__wrapped__(w))
+
+
+@pytest.mark.parametrize("precision", sorted(LOW))
+def test_decoders_losses_and_object_motion_run_in_float32(precision: str) -> None:
+    torch.manual_seed(0)
+    net = MFG(height=32, width=64, hidden_units=32, channels=(8, 8, 8, 16, 16)).eval()
+    flow = torch.randn(2, 2, 32, 64) * 3
+    with torch.autocast("cpu", dtype=LOW[precision]):
+        out = net(flow)
+        decoded = net.decode(out.hidden)
+    # The encoder ran in the low precision; the fields come out in float32, as the float32
+    # decoders give them from those hidden units.
+    assert out.hidden.dtype == LOW[precision]
+    assert out.v_t.dtype == out.v_omega.dtype == torch.float32
+    reference = net.decode(out.hidden.float())
+    assert torch.equal(decoded[0], reference[0]) and torch.equal(decoded[1], reference[1])
+
+    loss = MFGLoss(w_s=100.0)
+    gt = (torch.randn_like(out.v_t), torch.randn_like(out.v_omega) * 0.1)
+    with torch.autocast("cpu", dtype=LOW[precision]):
+        terms = loss(out.v_t, out.v_omega, *gt, out.hidden)
+        count = sparsity_count(out.hidden)
+    plain = loss(out.v_t, out.v_omega, *gt, out.hidden.float())
+    for mixed, full in zip(terms, plain, strict=True):
+        assert mixed.dtype == torch.float32 and torch.equal(mixed, full)
+    assert torch.equal(count, sparsity_count(out.hidden.float()))
+
+    depth = torch.rand(2, 32, 64) * 30 + 2
+    with torch.autocast("cpu", dtype=LOW[precision]):
+        res = extract_object_motion(flow, out.v_t, out.v_omega, depth)
+    ref = extract_object_motion(flow, out.v_t, out.v_omega, depth)
+    assert res.residual.dtype == torch.float32 and torch.equal(res.residual, ref.residual)
+    assert torch.equal(res.mask, ref.mask)
+
+
+def test_finite_mean_is_mean_metric_without_its_host_check() -> None:
+    values = [torch.rand(5, dtype=torch.float64), torch.rand(3, dtype=torch.float64)]
+    ours, theirs = FiniteMean(), MeanMetric()
+    for v in values:
+        ours.update(v, weight=4)
+        theirs.update(v, weight=4)
+    assert torch.equal(ours.compute(), theirs.compute())
+    # NaN values are left out, as MeanMetric's default does, and counted
+    ours.update(torch.tensor([float("nan"), 1.0]))
+    theirs = MeanMetric(nan_strategy="ignore")
+    for v in [*values, torch.tensor([float("nan"), 1.0])]:
+        theirs.update(v, weight=4 if v.dtype == torch.float64 else 1)
+    assert ours.compute().item() == pytest.approx(theirs.compute().item(), rel=1e-6)
+    assert int(ours.nan_count) == 1
+
+
+@pytest.mark.parametrize("value", ["bf16-true", "16-true", "64-true", "transformer-engine"])
+def test_unsupported_precisions_are_refused_naming_the_key(value: str, tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match=rf"^trainer\.precision={value} is refused") as err:
+        check_precision(value)
+    if value.endswith("-true") and value != "64-true":
+        assert "poses, intrinsics and depth" in str(err.value)
+    # The training run refuses it before it builds or writes anything: one error line.
+    cfg = compose("train", ["debug=tiny", f"paths.output_dir={tmp_path / 'r'}"])
+    cfg.trainer.precision = value
+    with pytest.raises(ValueError) as err:
+        train(cfg)
+    assert user_error_message(err.value).startswith(f"trainer.precision={value} is refused")
+    assert not (tmp_path / "r").exists()
+
+
+def test_accepted_precisions_and_lightning_aliases() -> None:
+    for value, name in [
+        ("32-true", "32-true"),
+        (32, "32-true"),
+        ("bf16", "bf16-mixed"),
+        ("bf16-mixed", "bf16-mixed"),
+        ("16", "16-mixed"),
+        ("16-mixed", "16-mixed"),
+    ]:
+        assert check_precision(value) == name
+
+
+def test_a_trainer_with_a_true_low_precision_is_refused_by_the_module() -> None:
+    model = _module()
+    trainer = quiet_trainer(max_steps=1, precision="bf16-true")
+    with pytest.raises(ValueError, match="trainer.precision=bf16-true"):
+        trainer.fit(model, datamodule=_dm())
+
+
+# --------------------------------------------------------------------------------------------
+# Training and evaluation under each precision
+# --------------------------------------------------------------------------------------------
+
+
+def _module(loss: MFGLoss | None = None, **kw) -> MFGLitModule:
+    torch.manual_seed(0)
+    net = MFG(height=32, width=64, hidden_units=32, channels=(8, 8, 8, 16, 16))
+    return MFGLitModule(
+        net,
+        loss or MFGLoss(w_s=1.0),
+        functools.partial(torch.optim.Adam, lr=1e-3, fused=True),
+        image_log_every_n_steps=0,
+        **kw,
+    )
+
+
+def _dm(cls: type = SyntheticDataModule) -> SyntheticDataModule:
+    return cls(
+        height=32,
+        width=64,
+        batch_size=4,
+        eval_batch_size=8,
+        train_sequences=1,
+        test_sequences=1,
+        sequence_length=12,
+        val_fraction=0.2,
+    )
+
+
+def _precision_options(precision: str) -> dict:
+    """Trainer options for ``precision`` on a CPU: Lightning turns ``precision="16-mixed"`` on a
+    CPU into bf16-mixed, so fp16 autocast is asked for with its plugin."""
+    if precision == "16-mixed":
+        return {"plugins": [MixedPrecision("16-mixed", "cpu")]}
+    return {"precision": precision}
+
+
+@pytest.mark.parametrize("precision", ["32-true", "bf16-mixed", "16-mixed"])
+def test_tiny_training_under_each_precision_steps_from_the_first_step(precision: str) -> None:
+    model = _module()
+    before = [p.detach().clone() for p in model.parameters()]
+    trainer = quiet_trainer(
+        max_steps=3, limit_val_batches=1, log_every_n_steps=1, **_precision_options(precision)
+    )
+    trainer.fit(model, datamodule=_dm())
+    assert trainer.precision == precision
+    assert math.isfinite(float(trainer.callback_metrics["train/loss"]))
+    assert math.isfinite(float(trainer.callback_metrics["val/trans_err"]))
+    assert all(torch.isfinite(p).all() for p in model.parameters())
+    assert not any(torch.equal(p, q) for p, q in zip(model.parameters(), before, strict=True))
+    # Every one of the 3 steps updated the weights (fused Adam counts only the steps it took).
+    state = trainer.optimizers[0].state[next(model.parameters())]
+    assert float(state["step"]) == 3
+    assert float(trainer.callback_metrics["train/skipped_steps"]) == 0
+    if precision == "16-mixed":
+        scaler = trainer.precision_plugin.scaler
+        # started at the fitted scale, not torch's 65536, and never had to back off
+        assert scaler.get_scale() == FP16_INIT_SCALE
+
+
+def test_only_lightnings_default_grad_scaler_is_refitted() -> None:
+    default = MixedPrecision("16-mixed", "cpu")
+    assert default.scaler.get_scale() == 2.0**16  # torch's, which overflows fp16 at first
+    assert fit_grad_scaler(default) and default.scaler.get_scale() == FP16_INIT_SCALE
+    given = MixedPrecision("16-mixed", "cpu", scaler=torch.amp.GradScaler("cpu", init_scale=8.0))
+    assert not fit_grad_scaler(given) and given.scaler.get_scale() == 8.0
+    assert not fit_grad_scaler(MixedPrecision("bf16-mixed", "cpu"))
+
+
+@pytest.fixture(scope="module")
+def tiny_checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A float32-trained tiny model (the debug=tiny config, 40 steps) as a checkpoint."""
+    out = tmp_path_factory.mktemp("ckpt")
+    cfg = compose("train", ["debug=tiny", f"paths.output_dir={out}"])
+    torch.manual_seed(0)
+    model = build_model(cfg)
+    dm = instantiate(cfg.dataset)
+    trainer = quiet_trainer(max_steps=40, limit_val_batches=0)
+    trainer.fit(model, datamodule=dm)
+    path = out / "tiny.ckpt"
+    trainer.save_checkpoint(path)
+    return path
+
+
+@pytest.mark.parametrize("precision", sorted(LOW))
+def test_a_float32_checkpoint_evaluates_the_same_under_mixed_precision(
+    tiny_checkpoint: Path, precision: str
+) -> None:
+    """Test ATE and RPE within 1 % of the float32 evaluation (the encoder alone runs in the low
+    precision; measured: well under 0.1 %)."""
+    results = {}
+    for p in ("32-true", precision):
+        model = module_from_checkpoint(tiny_checkpoint)
+        dm = instantiate(model.dataset_config)
+        trainer = quiet_trainer(**_precision_options(p))
+        trainer.test(model, datamodule=dm)
+        results[p] = {k: float(v) for k, v in trainer.callback_metrics.items()}
+    ref, mixed = results["32-true"], results[precision]
+    for name in ("test/ate", "test/rpe_trans", "test/rpe_rot", "test/trans_err"):
+        assert math.isfinite(ref[name]) and ref[name] > 0, name
+        assert mixed[name] == pytest.approx(ref[name], rel=0.01), name
+
+
+# --------------------------------------------------------------------------------------------
+# No host synchronisation in the training step
+# --------------------------------------------------------------------------------------------
+
+SYNCS = ("__bool__", "item", "__int__", "__float__", "tolist", "nonzero")
+
+
+@contextlib.contextmanager
+def no_host_sync() -> Iterator[None]:
+    """Every way a tensor's value reaches Python raises inside (on a GPU each would wait for
+    the device)."""
+    saved = {name: getattr(torch.Tensor, name) for name in SYNCS}
+
+    def forbidden(name: str):
+        def raiser(self, *args, **kwargs):
+            raise AssertionError(f"host synchronisation in the training step: Tensor.{name}")
+
+        return raiser
+
+    for name in SYNCS:
+        setattr(torch.Tensor, name, forbidden(name))
+    try:
+        yield
+    finally:
+        for name, method in saved.items():
+            setattr(torch.Tensor, name, method)
+
+
+class CorruptFlow(torch.utils.data.Dataset):
+    """Synthetic samples with a patch of NaN flow (masked and counted by the module)."""
+
+    def __init__(self, inner: SyntheticDrivingDataset) -> None:
+        self.inner = inner
+
+    def __len__(self) -> int:
+        return len(self.inner)
+
+    def __getitem__(self, i: int) -> dict:
+        s = self.inner[i]
+        s["flow"][:, :2, :3] = float("nan")
+        return s
+
+
+class CorruptDataModule(SyntheticDataModule):
+    def build_dataset(self, split: str):
+        return CorruptFlow(super().build_dataset(split))
+
+
+class NaNLoss(MFGLoss):
+    """Fault injection: the loss of the calls numbered in ``bad`` (from 1) is NaN."""
+
+    def __init__(self, bad: set[int]) -> None:
+        super().__init__(w_s=1.0)
+        self.calls, self.bad = 0, bad
+
+    def forward(self, *args):
+        terms = super().forward(*args)
+        self.calls += 1
+        return terms._replace(total=terms.total * float("nan")) if self.calls in self.bad else terms
+
+
+def test_patched_syncs_raise() -> None:
+    x = torch.ones(2)
+    with no_host_sync():
+        for call in (lambda: bool(x[0]), x.sum().item, lambda: int(x[0]), x.tolist, x.nonzero):
+            with pytest.raises(AssertionError, match="host synchronisation"):
+                call()
+    assert bool(x[0])
+
+
+@pytest.mark.parametrize("precision", ["32-true", "bf16-mixed"])
+def test_no_host_sync_in_the_training_step_outside_logging_steps(precision: str) -> None:
+    """The module's training step, with masked NaN flow and a non-finite loss among its steps,
+    runs with every host read of a tensor raising, except on the logging steps (which read the
+    deferred counts)."""
+    model = _module(NaNLoss(bad={2}))
+    step = model.training_step
+    guarded = []
+
+    def training_step(batch, batch_idx):
+        if model._writes_logs_this_step():
+            return step(batch, batch_idx)
+        guarded.append(batch_idx)
+        with no_host_sync():
+            return step(batch, batch_idx)
+
+    model.training_step = training_step
+    trainer = quiet_trainer(
+        max_steps=5, log_every_n_steps=5, limit_val_batches=0, precision=precision
+    )
+    trainer.fit(model, datamodule=_dm(CorruptDataModule))
+    assert guarded == [0, 1, 2, 0]  # 9 samples: batches of 4, 4, 1; step 5 is the logging step
+    # What the deferred counts say at the logging step: 6 NaN pixels in each of 4 + 4 + 1 + 4 + 4
+    # samples, 1 skipped step.
+    assert float(trainer.callback_metrics["train/nonfinite_flow_pixels"]) == 6 * 17
+    assert float(trainer.callback_metrics["train/skipped_steps"]) == 1
+    assert all(torch.isfinite(p).all() for p in model.parameters())
+
+
+class Snapshots(L.Callback):
+    """The weights and Adam's step count after every training step."""
+
+    def __init__(self) -> None:
+        self.weights: list[list[torch.Tensor]] = []
+        self.steps: list[float] = []
+
+    def on_train_batch_end(self, trainer, pl_module, *args) -> None:
+        self.weights.append([p.detach().clone() for p in pl_module.parameters()])
+        state = trainer.optimizers[0].state[next(pl_module.parameters())]
+        self.steps.append(float(state["step"]))
+
+
+def test_a_non_finite_loss_is_skipped_inside_the_fused_optimiser() -> None:
+    """The replacement of the host-side skip: the step whose loss is NaN leaves weights and Adam's
+    state as the step before left them (after a real step, so Adam's momentum is non-zero),
+    and training goes on."""
+    model = _module(NaNLoss(bad={2}))
+    snaps = Snapshots()
+    trainer = quiet_trainer(max_steps=3, limit_val_batches=0, callbacks=[snaps])
+    trainer.fit(model, datamodule=_dm())
+    assert snaps.steps == [1.0, 1.0, 2.0]
+    for p, q in zip(snaps.weights[0], snaps.weights[1], strict=True):
+        assert torch.equal(p, q)
+    assert not any(
+        torch.equal(p, q) for p, q in zip(snaps.weights[1], snaps.weights[2], strict=True)
+    )
+    assert not hasattr(trainer.optimizers[0], "found_inf")  # nothing left for a later step
+
+
+def test_persistent_non_finite_losses_stop_the_run_at_a_logging_step() -> None:
+    model = _module(NaNLoss(bad=set(range(1, 100))), max_consecutive_nonfinite=3)
+    trainer = quiet_trainer(max_steps=10, log_every_n_steps=1, limit_val_batches=0)
+    with pytest.raises(NonFiniteLossError, match=r"3 consecutive non-finite losses.*synthetic/"):
+        trainer.fit(model, datamodule=_dm())
+    assert all(torch.isfinite(p).all() for p in model.parameters())
+
+
+def test_sanitize_flow_counts_in_a_tensor() -> None:
+    flow = torch.zeros(2, 2, 4, 4)
+    flow[0, 1, 2, 3] = float("inf")
+    clean, valid, n_bad = sanitize_flow(flow, torch.ones(2, 4, 4, dtype=torch.bool))
+    assert isinstance(n_bad, torch.Tensor) and int(n_bad) == 1
+    assert torch.isfinite(clean).all() and not valid[0, 2, 3] and valid.sum() == 31
+
+
+def _batch(bad_pose: bool = False) -> dict:
+    ds = _dm().dataset("train")
+    batch = torch.utils.data.default_collate([ds[0], ds[1]])
+    if bad_pose:
+        batch["pose"][1, 0, 3] = float("nan")
+    return batch
+
+
+def test_deferred_batch_checks_refuse_a_bad_batch_later_naming_it() -> None:
+    """On an accelerator the value checks are read when their copy has landed (here: the CPU
+    stands in for it); the batch is still refused, by its own sample ids."""
+    checks = BatchChecks(deferred=True, check_every=10)
+    model = _module()
+    bad = _batch(bad_pose=True)
+    checks.on_train_batch_start(None, model, bad, 0)  # not read yet on an accelerator...
+    with pytest.raises(SampleError, match=rf"{bad['sample_id'][1]}: 'pose' has non-finite"):
+        checks.on_train_batch_start(None, model, _batch(), 1)  # ...but by the next batch
+    # Not deferred: at once, as before.
+    with pytest.raises(SampleError, match="'pose' has non-finite"):
+        BatchChecks().on_train_batch_start(None, model, bad, 0)
+
+
+def test_the_batch_keeps_its_host_intrinsics_on_another_device() -> None:
+    batch = _batch()
+    moved = _module().transfer_batch_to_device(batch, torch.device("meta"), 0)
+    assert moved["intrinsics"].device.type == "meta"
+    assert moved[HOST_INTRINSICS] is batch["intrinsics"]
+
+
+# --------------------------------------------------------------------------------------------
+# Deterministic CUDA, the GPU configs
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("align_corners", [True, False])
+def test_the_deterministic_upsampling_is_bilinear_interpolation(align_corners: bool) -> None:
+    """On CUDA with deterministic algorithms on, the fields are upsampled by two matrix products
+    (F.interpolate's CUDA backward has no deterministic kernel): the same values and gradients."""
+    f = torch.randn(3, 2, 24, 64, requires_grad=True)
+    ref = F.interpolate(f, size=(48, 128), mode="bilinear", align_corners=align_corners)
+    M_h, M_w = bilinear_matrix(24, 48, align_corners), bilinear_matrix(64, 128, align_corners)
+    ours = M_h @ f @ M_w.T
+    assert (ours - ref).abs().max() < 1e-6
+    g = torch.randn_like(ref)
+    (grad_ref,) = torch.autograd.grad(ref, f, g)
+    (grad_ours,) = torch.autograd.grad(ours, f, g)
+    assert (grad_ours - grad_ref).abs().max() < 1e-4
+    # the CPU keeps F.interpolate
+    assert torch.equal(upsample_bilinear(f, (48, 128), align_corners), ref)
+
+
+def test_gpu_trainer_configs() -> None:
+    cfg = compose("train", ["trainer=gpu", "paths.output_dir=/tmp/unused"])
+    assert cfg.trainer.accelerator == "gpu" and cfg.trainer.benchmark is True
+    assert cfg.dataset.num_workers > 0 and cfg.dataset.pin_memory and cfg.dataset.persistent_workers
+    assert cfg.dataset._target_.endswith("SyntheticDataModule")  # merged into the dataset
+    user = compose("train", ["trainer=gpu", "dataset.num_workers=1", "paths.output_dir=/tmp/u"])
+    assert user.dataset.num_workers == 1  # the command line wins
+    ddp = compose("train", ["trainer=ddp_gpu", "paths.output_dir=/tmp/unused"])
+    assert ddp.trainer.strategy.process_group_backend == "nccl"
+    assert ddp.trainer.accelerator == "gpu" and ddp.dataset.pin_memory
+    det = compose("train", ["trainer=gpu", "trainer.deterministic=true", "paths.output_dir=/tmp/u"])
+    check_trainer_settings(det)
+    assert det.trainer.benchmark is False
+
+
+@pytest.mark.slow
+def test_gpu_check_runs_on_a_cpu(tmp_path: Path) -> None:
+    """bench/gpu_check.py in its tiny setting on the CPU (seconds): it trains under both
+    precisions, evaluates the checkpoint on both devices and writes its report."""
+    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", MFG_CACHE_DIR=str(tmp_path))
+    command = [
+        sys.executable,
+        str(REPO / "bench" / "gpu_check.py"),
+        "--tiny",
+        "--accelerator",
+        "cpu",
+        "--out",
+        str(tmp_path),
+    ]
+    proc = subprocess.run(
+        command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300
+    )
+    assert proc.returncode == 0, f"{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
+    text = (tmp_path / "gpu_check.md").read_text()
+    for needle in ("samples/s", "32-true", "bf16-mixed", "## Environment", "deterministic"):
+        assert needle in text, needle
+    assert "| no |" not in text  # every comparison within its tolerance
+    assert "samples/s" in proc.stdout
