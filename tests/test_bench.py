@@ -92,22 +92,46 @@ def test_accuracy_benchmark(tmp_path: Path, shared_poses: Path) -> None:
 
 def test_throughput_benchmark(tmp_path: Path) -> None:
     text = _run_bench("throughput.py", tmp_path, "--threads", "1")
+    peaks = {r[0]: r[1] for r in _table_rows(text, "## GEMM peak and the model's FLOPs")}
+    assert _number(peaks["256² matmul, float32 (GFLOP/s)"]) > 0
+    assert _number(peaks["256² matmul, bfloat16 (GFLOP/s)"]) > 0
+    assert _number(peaks["network forward (GFLOP / sample)"]) > 0
+    assert _number(peaks["network backward (GFLOP / sample)"]) > 0
     training = _table_rows(text, "## Training: Lightning Trainer against a bare PyTorch loop")
+    # float32 and bf16-mixed side by side at every batch size, through Lightning and bare.
     assert {(r[0], r[1]) for r in training} == {
-        (b, v) for b in ("1", "4") for v in ("before (for-loop Adam)", "after (fused Adam)")
+        (b, p) for b in ("1", "2", "4") for p in ("float32", "bf16-mixed")
     }
     for row in training:
         # Rates, "ratio (min–max)", ms/step; then the difference in ms/step (either sign).
         assert all(_number(c.split()[0]) > 0 for c in row[2:6]), row
         assert math.isfinite(float(row[6])), row
+        # Each rate as a fraction of its own dtype's GEMM peak.
+        assert all(_number(c) > 0 for c in row[7:9]), row
+    ratios = _table_rows(text, "## bf16-mixed against float32")
+    assert [r[0] for r in ratios] == ["1", "2", "4"]
+    assert all(_number(r[1].split()[0]) > 0 and _number(r[2].split()[0]) > 0 for r in ratios)
     inference = _table_rows(text, "## Inference")
-    assert [r[0] for r in inference] == ["1", "4"]
+    assert [r[0] for r in inference] == ["1", "2", "4"]
     assert all(_number(r[1]) > 0 and _number(r[2]) > 0 for r in inference)
-    assert _table_rows(text, "## Synthetic generator")[0][1].isdigit()
+    # Loader-only rates: the generator in process and in a worker, cached DIS flow.
+    loaders = _table_rows(text, "## The data: loader-only rates")
+    assert len(loaders) == 4 and all(r[1].isdigit() for r in loaders), loaders
+    assert "one DataLoader worker" in loaders[2][0] and "DIS" in loaders[3][0]
+    on_data = _table_rows(text, "Training on the real loader:")
+    assert [r[0] for r in on_data] == ["float32", "bf16-mixed"]
     assert _number(_table_rows(text, "## Peak resident memory")[0][1]) > 50
-    assert "aten::" in text  # the profile
+    assert "aten::" in text  # the profiles
+    assert "## Profile of the bare training step, batch 4, bf16-mixed" in text
+    kernels = _table_rows(text, "## Per-layer kernels")
+    assert kernels[0][0].startswith("`encoder.0 Conv2d") and "decoder_omega" in kernels[-1][0]
     candidates = {r[1] for r in _table_rows(text, "## Candidate speed-ups")}
-    assert "fused Adam + channels-last" in candidates
+    assert {
+        "float32 + channels-last",
+        "bf16 + channels-last",
+        "bf16 + first conv in float32",
+        "bf16 + first conv's input padded to 8 channels",
+    } <= candidates
 
 
 def test_scaleout_benchmark(tmp_path: Path) -> None:
