@@ -86,13 +86,13 @@ def versions() -> dict[str, str]:
 
 
 def command_line() -> str:
-    """The command that is running, as a user would type it from the repository root."""
-    script = Path(sys.argv[0]).resolve()
-    try:
-        script_text = str(script.relative_to(REPO))
-    except ValueError:
-        script_text = str(script)
-    return shlex.join(["python", script_text, *sys.argv[1:]])
+    """The command that is running, as a user would type it from the repository root (paths
+    made portable: :func:`mfg_lightning.core.paths.portable_path`)."""
+    from mfg_lightning.core.paths import portable_path
+    from mfg_lightning.flow.cache import default_cache_dir
+
+    cache = default_cache_dir()
+    return shlex.join(["python", *(portable_path(a, REPO, cache) for a in sys.argv)])
 
 
 def markdown_table(header: Sequence[str], rows: Sequence[Sequence[object]]) -> str:

@@ -194,3 +194,22 @@ def test_grid_ray_cast_equals_the_general_ray_cast() -> None:
     depth_0, hit_0 = raycast.ray_cast_grid(xy[0, 0], xy[1, :, 0], torch.zeros(0, 2, 3))
     assert torch.equal(hit_0.flatten(), raycast.ray_cast(rays, torch.zeros(0, 2, 3))[1])
     assert torch.equal(depth_0.flatten(), raycast.ray_cast(rays, torch.zeros(0, 2, 3))[0])
+
+
+def test_committed_command_lines_name_no_absolute_path(monkeypatch, tmp_path: Path) -> None:
+    """A result's command line: paths in the repository relative to it, ``../shared`` beside it,
+    the cache as ``<cache>``, anything else as ``<path>``."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("bench_common", BENCH / "_common.py")
+    assert spec and spec.loader
+    common = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(common)
+    monkeypatch.setenv("MFG_CACHE_DIR", str(tmp_path / "cache"))
+    argv = [str(BENCH / "accuracy.py"), "--poses-dir", str(REPO.parent / "shared" / "poses"),
+            "--work", str(tmp_path / "cache" / "w"), "--out", "/elsewhere/x", "--tiny"]  # fmt: skip
+    monkeypatch.setattr(sys, "argv", argv)
+    assert common.command_line() == (
+        "python bench/accuracy.py --poses-dir ../shared/poses --work '<cache>/w' "
+        "--out '<path>' --tiny"
+    )

@@ -9,7 +9,9 @@ import time
 from pathlib import Path
 
 from mfg_lightning.core.atomic import atomic_write_bytes, atomic_write_text
+from mfg_lightning.core.paths import portable_overrides
 from mfg_lightning.core.tables import Column, Table
+from mfg_lightning.flow.cache import default_cache_dir
 from mfg_lightning.pictures.plots import figure_png
 from mfg_lightning.study import claims as C
 from mfg_lightning.study import stages as S
@@ -89,16 +91,20 @@ def write_report(study: S.Study, report: Path, th: Thresholds) -> Path:
     main = study.cached("main")
     recipe = main["recipe"] if main else None
     machine = _machine()
+    # Paths as a reader finds them (relative, ../shared, <cache>), not this machine's.
+    data = " ".join(portable_overrides(cfg.data, Path.cwd(), default_cache_dir()))
+    main_overrides = main["overrides"] if main else cfg.main
+    main_text = " ".join(portable_overrides(main_overrides, Path.cwd(), default_cache_dir()))
     text = [
         "# Reproduction of the paper's claims",
         "",
         "Produced by `python -m mfg_lightning.reproduce` (one command; every figure below comes "
         "from it): synthetic worlds rendered along the real KITTI trajectories, "
-        f"overrides `{' '.join(cfg.data)}`; choices made on the validation tails of the training "
+        f"overrides `{data}`; choices made on the validation tails of the training "
         "sequences only, then fixed.",
         "",
         *(f"- **{k}**: {v}" for k, v in machine.items()),
-        f"- **main model**: `{' '.join(main['overrides'] if main else cfg.main)}`",
+        f"- **main model**: `{main_text}`",
         f"- **budget used**: {total / 60:.1f} min over the stages below (each trained "
         "model's steps × batch in its row, from its cached result), frames per sequence "
         f"{cfg.budget.max_frames or 'all'}",
