@@ -103,6 +103,8 @@ def reduction(tmp: Path) -> tuple[dict, dict]:
             "mfg_lightning.train",
             "debug=tiny",
             "trainer=ddp",
+            # evaluate computes in float32: the same precision on both sides of the comparison
+            "trainer.precision=32-true",
             "logger=none",
             f"hydra.run.dir={ddp_dir}",
         ],

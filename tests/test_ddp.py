@@ -49,6 +49,9 @@ def test_ddp_metrics_equal_single_process_metrics_of_the_same_checkpoint(tmp_pat
         "mfg_lightning.train",
         "debug=tiny",
         "trainer=ddp",
+        # the run tests in the precision it trained in and evaluate in float32: the same
+        # precision on both sides, so that only the reduction is compared
+        "trainer.precision=32-true",
         "logger=none",
         f"hydra.run.dir={ddp_dir}",
         cwd=tmp_path,

@@ -507,3 +507,35 @@ def test_gpu_check_runs_on_a_cpu(tmp_path: Path) -> None:
         assert needle in text, needle
     assert "| no |" not in text  # every comparison within its tolerance
     assert "samples/s" in proc.stdout
+
+
+def test_auto_precision_is_bf16_on_a_cpu_with_native_bf16_and_float32_elsewhere(
+    monkeypatch,
+) -> None:
+    from mfg_lightning.models import mfg_module
+
+    for explicit in ("32-true", "bf16-mixed", "16-mixed", "bf16-true"):
+        assert mfg_module.resolve_precision(explicit, "cpu") == explicit
+    monkeypatch.setattr(mfg_module, "cpu_has_native_bf16", lambda: True)
+    assert mfg_module.resolve_precision("auto", "cpu") == "bf16-mixed"
+    assert mfg_module.resolve_precision("auto", "gpu") == "32-true"  # measured on CPUs only
+    monkeypatch.setattr(mfg_module, "cpu_has_native_bf16", lambda: False)
+    assert mfg_module.resolve_precision("auto", "cpu") == "32-true"
+    monkeypatch.undo()
+    assert isinstance(mfg_module.cpu_has_native_bf16(), bool)
+
+
+def test_auto_precision_is_recorded_in_the_run_config(tmp_path: Path) -> None:
+    """The default ``trainer.precision=auto`` is made concrete before anything is written: the
+    run's config.yaml says what it trained in; evaluation defaults to float32."""
+    from omegaconf import OmegaConf
+
+    from conftest import tiny_training
+    from mfg_lightning.core.config import compose
+    from mfg_lightning.models.mfg_module import resolve_precision
+
+    assert compose("train").trainer.precision == "auto"
+    assert compose("evaluate", ["ckpt_path=x"]).trainer.precision == "32-true"
+    run = tiny_training(tmp_path)
+    recorded = OmegaConf.load(run / "config.yaml").trainer.precision
+    assert recorded == resolve_precision("auto", "auto") != "auto"

@@ -38,10 +38,31 @@ def build_model(cfg: DictConfig) -> L.LightningModule:
     return model
 
 
+def resolve_configured_precision(cfg: DictConfig) -> Any:
+    """Make ``cfg.trainer.precision=auto`` concrete in ``cfg`` (logged); return the precision.
+
+    :func:`mfg_lightning.models.mfg_module.resolve_precision`: ``bf16-mixed`` on a CPU with
+    native bfloat16, ``32-true`` elsewhere.
+    """
+    from omegaconf import open_dict
+
+    from mfg_lightning.models.mfg_module import PRECISION_AUTO, resolve_precision
+
+    trainer = cfg.get("trainer")
+    if trainer is None or str(trainer.get("precision")) != PRECISION_AUTO:
+        return None if trainer is None else trainer.get("precision")
+    chosen = resolve_precision(PRECISION_AUTO, trainer.get("accelerator", "auto"))
+    log.info("trainer.precision=auto: %s on this machine", chosen)
+    with open_dict(cfg):
+        cfg.trainer.precision = chosen
+    return chosen
+
+
 def build_trainer(cfg: DictConfig, callbacks: list[Any], loggers: list[Any]) -> L.Trainer:
     """The configured ``lightning.Trainer``, writing checkpoints atomically unless the config
     brings its own checkpoint IO plugin (``trainer.plugins``: one or a list, configs with a
     ``_target_`` or Lightning's plugin names)."""
+    resolve_configured_precision(cfg)
     given = cfg.trainer.get("plugins") or []
     given = list(given) if isinstance(given, (list, ListConfig)) else [given]
     plugins = [instantiate(p) if isinstance(p, DictConfig) else p for p in given]

@@ -35,6 +35,7 @@ from mfg_lightning.run.runs import (
     instantiate_list,
     log_final_metrics,
     log_hyperparameters,
+    resolve_configured_precision,
     run_info,
     write_metrics,
 )
@@ -106,7 +107,9 @@ def check_trainer_settings(cfg: DictConfig) -> None:
     """Refuse what the run cannot do before anything is built or written, and settle the
     trainer settings that contradict each other.
 
-    * ``trainer.precision``: ``32-true``, ``bf16-mixed`` or ``16-mixed``
+    * ``trainer.precision``: ``auto`` made concrete (:func:`resolve_configured_precision`; the
+      run's ``config.yaml`` records what it ran in), then ``32-true``, ``bf16-mixed`` or
+      ``16-mixed``
       (:func:`mfg_lightning.models.mfg_module.check_precision`; a ``*-true`` low precision is one
       ``error:`` line naming the key).
     * ``trainer.deterministic=true`` with ``trainer.benchmark=true`` (``trainer=gpu``'s): cuDNN's
@@ -117,6 +120,7 @@ def check_trainer_settings(cfg: DictConfig) -> None:
         ValueError: naming the key.
     """
     trainer = cfg.get("trainer") or {}
+    resolve_configured_precision(cfg)
     check_precision(trainer.get("precision", "32-true"))
     if trainer.get("deterministic") and trainer.get("benchmark"):
         log.info("trainer.deterministic=%s: trainer.benchmark turned off", trainer.deterministic)
