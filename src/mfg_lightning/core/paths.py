@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -20,16 +21,17 @@ def portable_path(text: str, root: str | Path, cache: str | Path | None = None) 
         The path relative to ``root``; ``../…`` beside it (``../shared/…``); ``<cache>/…`` under
         ``cache``; else ``<path>``. Other text is returned as it is.
     """
-    path = Path(text)
-    if not path.is_absolute():
+    if not Path(text).is_absolute():
         return text
-    bases = [(Path(root), None), (Path(root).resolve().parent, "..")]
+    # Normalised, links kept as they are: a ../shared that is a link still reads as ../shared.
+    path = Path(os.path.abspath(text))
+    top = Path(os.path.abspath(Path(root).expanduser()))
+    bases = [(top, None), (top.parent, "..")]
     if cache is not None:
-        bases.append((Path(cache), "<cache>"))
-    path = path.resolve()
+        bases.append((Path(os.path.abspath(Path(cache).expanduser())), "<cache>"))
     for base, shown in bases:
         try:
-            rest = path.relative_to(base.expanduser().resolve())
+            rest = path.relative_to(base)
         except ValueError:
             continue
         return str(rest) if shown is None else f"{shown}/{rest}"
