@@ -691,8 +691,9 @@ def write_flow_quality(
         "casts at that size. EPE: mean end-point error (pixels of the render size). Fl: "
         "KITTI's outlier rate, pixels with EPE > 3 px and > 5 % of the exact flow's "
         "magnitude. Pooled over every pixel of every pair whose exact flow is known "
-        "(`quality-<split>.json` beside the cache). Regions are the renderer's: road, "
-        "structure (facades, parked cars, crates), moving objects, far field (sky)."
+        "(`quality-<split>-<pairs>pairs-<digest>.json` beside the cache). Regions are the "
+        "renderer's: road, structure (facades, parked cars, crates), moving objects, far "
+        "field (sky)."
     )
     quality.add("## Quality by region\n\n" + quality_table(rendered))
     full = full_split_pairs(args.poses_dir)

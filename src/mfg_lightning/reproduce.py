@@ -1,7 +1,8 @@
 """Reproduce the paper's claims: ``python -m mfg_lightning.reproduce poses_dir=<KITTI poses/>``.
 
-Runs the stages (:mod:`mfg_lightning.study.run`; each cached as JSON under ``work_dir`` and
-skipped when cached; ``fresh=true`` starts over, ``stages=[...]`` selects) and, after every stage,
+Runs the stages (:mod:`mfg_lightning.study.run`; each cached as JSON under ``results_dir``,
+committed with the repository, and skipped when cached; the trained models under ``work_dir``;
+``fresh=true`` starts over, ``stages=[...]`` selects) and, after every stage,
 rewrites ``report`` with one row per claim (:mod:`mfg_lightning.study.claims`) and the PNG of its
 evidence beside it. ``reproduce=tiny`` runs the whole study in seconds (the test suite).
 """
@@ -25,9 +26,12 @@ def reproduce(cfg: DictConfig, trainer_choice: str = "default") -> Path:
     """Check the config, start over when ``fresh``, run the study, return the report's path."""
     check(cfg)
     study = S.Study(cfg, trainer_choice)
-    if cfg.fresh and study.work.exists():
-        shutil.rmtree(study.work)
-    (study.work / "sparsity").mkdir(parents=True, exist_ok=True)
+    if cfg.fresh:
+        # the trained models and the stage results (git restores committed ones)
+        for d in (study.work, study.results):
+            if d.exists():
+                shutil.rmtree(d)
+    (study.results / "sparsity").mkdir(parents=True, exist_ok=True)
     return run(study, Path(cfg.report))
 
 

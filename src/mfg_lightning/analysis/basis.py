@@ -144,6 +144,70 @@ def selectivity_rows(net: MFG, intrinsics: Tensor, n_units: int) -> list[dict[st
     ]
 
 
+def decoder_column_norms(net: MFG) -> tuple[Tensor, Tensor]:
+    """L2 norm of every unit's column in each decoder separately: ``(M,)`` translational,
+    ``(M,)`` rotational (the supplement ranks each decoder's units by its own norm)."""
+    w_t = net.decoder_t.weight.detach().double()
+    w_omega = net.decoder_omega.weight.detach().double()
+    return w_t.square().sum(0).sqrt().cpu(), w_omega.square().sum(0).sqrt().cpu()
+
+
+def decoder_selectivity(
+    net: MFG, intrinsics: Tensor, stats: PopulationStats, n_units: int
+) -> dict[str, dict[str, Any]]:
+    """Claim 5 as the supplement measures it, per decoder, in scale-free terms.
+
+    For each decoder (``"t"``: translational, ``"omega"``: rotational) the ``n_units`` units of
+    largest column norm *in that decoder* (Figures 5–8 rank each set by its own decoder), and for
+    each unit: the closed-form motion of its field at activation 1 (``|t|`` m or ``|ω|`` rad per
+    frame), its typical non-zero activation on ``stats``' inputs (mean activation when active),
+    the motion at that activation (ReLU is positively homogeneous: an activation scale and a
+    decoder column trade freely, their product does not), and the relative residual of the
+    one-motion fit of its field.
+
+    Returns:
+        ``{"t": {...}, "omega": {...}}``, each with ``units``, ``column_norm``, ``motion_at_1``,
+        ``typical_activation``, ``motion_typical``, ``residual``, ``firing_rate`` (lists in rank
+        order), ``directions`` ``(U, 3)`` (unit vectors, as lists) and their ``resultant``
+        length (1: one direction; 0: spread evenly).
+    """
+    n_t, n_w = decoder_column_norms(net)
+    fired = stats.firing_counts.double()
+    typical = torch.where(fired > 0, stats.activation_sums / fired.clamp_min(1), 0.0)
+    rates = stats.firing_rates.double()
+    K = intrinsics.double().cpu()
+    out: dict[str, dict[str, Any]] = {}
+    for key, norms in (("t", n_t), ("omega", n_w)):
+        order = torch.argsort(norms, descending=True, stable=True)[: max(0, n_units)]
+        v_t, v_w = unit_fields(net, order)
+        v_t, v_w = v_t.double(), v_w.double()
+        t, w = geometry.recover_motion(v_t, v_w, K)
+        if key == "t":
+            motion, field = t, v_t
+            fit = geometry.translational_field(t, K, net.height, net.width)
+        else:
+            motion, field = w, v_w
+            fit = geometry.rotational_field(w, K, net.height, net.width)
+        residual = (field - fit).flatten(1).norm(dim=1) / field.flatten(1).norm(dim=1).clamp_min(
+            1e-12
+        )
+        size = motion.norm(dim=1)
+        direction = motion / size[:, None].clamp_min(1e-12)
+        a = typical[order]
+        out[key] = {
+            "units": order.tolist(),
+            "column_norm": norms[order].tolist(),
+            "motion_at_1": size.tolist(),
+            "typical_activation": a.tolist(),
+            "motion_typical": (size * a).tolist(),
+            "residual": residual.tolist(),
+            "firing_rate": rates[order].tolist(),
+            "directions": direction.tolist(),
+            "resultant": float(direction.mean(0).norm()) if len(order) else math.nan,
+        }
+    return out
+
+
 # --------------------------------------------------------------------------------------------
 # Population sparsity
 # --------------------------------------------------------------------------------------------

@@ -87,7 +87,8 @@ class SyntheticDataModule(MFGDataModule):
     persistent worlds and estimates the flow on the frames (:class:`RenderedDrivingDataset`),
     precomputed into the cache by :meth:`prepare_data`, whose flow quality (EPE, Fl per region)
     is logged when training starts (``<split>/flow_epe/<region>``, ``<split>/flow_fl/<region>``
-    and a picture grid, to TensorBoard) and written beside the cache (``quality-<split>.json``).
+    and a picture grid, to TensorBoard) and written beside the cache
+    (``quality-<split>-<pairs>pairs-<digest>.json``, named by the pair set it measures).
 
     Args:
         trajectory: ``"procedural"`` or ``"kitti"``.
@@ -106,9 +107,10 @@ class SyntheticDataModule(MFGDataModule):
         offsets: target offsets of every split, ``target = frame + offset`` (``[1]``; ``[-2, -1,
             1, 2]``: the flows from a centre frame to its neighbours, for central-frame ATE), as
             ``dataset=kitti``'s.
-        frame_stride: training and validation use the source frames whose index is a multiple
-            of it (1: all; 3: a third of the pairs to render, on the same worlds and cache).
-            The test split always uses every frame, as the published protocols do.
+        frame_stride: training uses the source frames whose index is a multiple of it (1: all;
+            3: a third of the training pairs to render, on the same worlds and cache).
+            Validation and test always use every frame (validation's frame-by-frame ATE needs
+            five consecutive frames; the test split is the published protocols').
         scene: :class:`SceneConfig` fields.
         scene_seed: seed of the trajectories and scenes (None: ``seed``, which then also sets
             the training order); the config fixes it so that runs differing in ``seed`` see the
@@ -235,28 +237,56 @@ class SyntheticDataModule(MFGDataModule):
             else:
                 frames[seq] = (0, poses.shape[0] - 1)
         # Every split samples the same offsets (train+val: the pairs of both, for the cache).
+        # The stride thins training only: validation keeps every frame of the held-out tails,
+        # so that its frame-by-frame ATE (five consecutive frames) is defined.
         common = {
             "seed": self.scene_seed + (7919 if split == "test" else 0),
             "offsets": self.offsets,
             "name": f"synthetic/{split}",
-            "stride": 1 if split == "test" else self.frame_stride,
+            "stride": self.frame_stride if split == "train" else 1,
         }
         if isinstance(self.flow, EstimatedFlow):
-            return RenderedDrivingDataset(
+            ds = RenderedDrivingDataset(
                 trajs, frames, self.height, self.width,
                 flow=self.flow, world=self.world, cache_dir=self.cache_dir, **common,
             )  # fmt: skip
-        return SyntheticDrivingDataset(
-            trajs, frames, self.height, self.width, noise_std=self.flow.noise_std,
-            outlier_fraction=self.flow.outlier_fraction, scene=self.scene, **common,
-        )  # fmt: skip
+        else:
+            ds = SyntheticDrivingDataset(
+                trajs, frames, self.height, self.width, noise_std=self.flow.noise_std,
+                outlier_fraction=self.flow.outlier_fraction, scene=self.scene, **common,
+            )  # fmt: skip
+        if split == "train+val" and self.frame_stride > 1:
+            val_first = {seq: first for seq, (first, _) in self._val_frames(trajs).items()}
+            ds.samples = [
+                (seq, k, t)
+                for seq, k, t in ds.samples
+                if k % self.frame_stride == 0 or k >= val_first.get(seq, k + 1)
+            ]
+        return ds
+
+    def _val_frames(self, trajs: dict[str, torch.Tensor]) -> dict[str, tuple[int, int]]:
+        """Sequence → (first, last) source frame of its validation tail (none: absent)."""
+        out = {}
+        for seq, poses in trajs.items():
+            last = poses.shape[0] - 2
+            n_val = round(self.val_fraction * (last + 1))
+            if n_val:
+                out[seq] = (last - n_val + 1, last)
+        return out
 
     # -- estimated flow: precompute, quality, pictures ---------------------------------------
 
     def quality_path(self, split: str) -> Path:
+        """Where a split's flow quality is written: beside the cache, named by the pair set it
+        measures (the split, its pair count and a digest of its (sequence, source, target)
+        list), so that runs with other offsets, strides or frame counts on the same worlds
+        do not share it."""
+        import hashlib
+
         ds = self.dataset(split)
         assert isinstance(ds, RenderedDrivingDataset)
-        return ds.cache.root / f"quality-{split}.json"
+        digest = hashlib.sha256(repr(sorted(ds.samples)).encode()).hexdigest()[:12]
+        return ds.cache.root / f"quality-{split}-{len(ds.samples)}pairs-{digest}.json"
 
     def prepare_data(self) -> None:
         """``flow=dis``: render and estimate every missing pair of every split into the cache

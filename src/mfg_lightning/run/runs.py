@@ -166,6 +166,46 @@ def log_final_metrics(
             lg.experiment.finish()
 
 
+def keep_csv_metrics(loggers: list[Any]) -> list[Path]:
+    """Before a resumed run logs: move each CSVLogger's ``metrics.csv`` aside to
+    ``metrics.part<NNN>.csv`` (the next free number), which Lightning's CSV writer would
+    otherwise delete when it starts, so that the learning curve survives every resume
+    (:func:`read_csv_metrics` reads the parts and the current file in order). Returns the
+    files written."""
+    from lightning.pytorch.loggers import CSVLogger
+
+    kept = []
+    for lg in loggers:
+        if not isinstance(lg, CSVLogger):
+            continue
+        current = Path(lg.log_dir) / "metrics.csv"
+        if not current.is_file():
+            continue
+        n = len(list(current.parent.glob("metrics.part*.csv"))) + 1
+        target = current.with_name(f"metrics.part{n:03d}.csv")
+        current.replace(target)
+        kept.append(target)
+        log.info("resumed: the earlier CSV log is kept as %s", target)
+    return kept
+
+
+def read_csv_metrics(log_dir: Path) -> list[dict[str, str]]:
+    """Every row a CSVLogger wrote under ``log_dir`` (searched recursively), across resumes: the
+    parts :func:`keep_csv_metrics` moved aside, oldest first, then each ``metrics.csv``. Values
+    stay strings as the CSV holds them ("" where a row lacks a column)."""
+    import csv
+
+    files = sorted(
+        [*log_dir.glob("**/metrics.part*.csv"), *log_dir.glob("**/metrics.csv")],
+        key=lambda p: (str(p.parent), p.name == "metrics.csv", p.name),
+    )
+    rows: list[dict[str, str]] = []
+    for path in files:
+        with path.open(newline="") as fh:
+            rows += list(csv.DictReader(fh))
+    return rows
+
+
 def finish_stale_logger_runs() -> None:
     """End a W&B run that an earlier job of this process left open by failing, so that this
     job's logger starts its own run (Lightning reuses any open one)."""

@@ -33,6 +33,7 @@ from mfg_lightning.run.runs import (
     build_trainer,
     finish_stale_logger_runs,
     instantiate_list,
+    keep_csv_metrics,
     log_final_metrics,
     log_hyperparameters,
     resolve_configured_precision,
@@ -146,6 +147,8 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     callbacks.sort(key=lambda cb: isinstance(cb, LastCheckpoint))
     finish_stale_logger_runs()
     loggers = instantiate_list(cfg.get("logger"))
+    if ckpt_path is not None:
+        keep_csv_metrics(loggers)
     trainer = build_trainer(cfg, callbacks, loggers)
     hparams = flat_hparams(cfg)
     log_hyperparameters(loggers, hparams)

@@ -45,12 +45,12 @@ STAGES = (
     "data",
     "main",
     "table1",
-    "sparsity",
-    "table2",
-    "robustness",
+    "methods",
     "basis",
     "object_motion",
-    "learning_curve",
+    "table2",
+    "sparsity",
+    "balance",
     "recipe",
 )
 
@@ -58,39 +58,42 @@ STAGES = (
 def run(study: S.Study, report: Path) -> Path:
     """Every selected stage in order, the report rewritten after each.
 
-    The stages that score the main model (``robustness`` … ``learning_curve``) run only when
-    ``main`` has a result; ``table1`` is then read from the cache only.
+    The stages that evaluate the main model (``table1`` … ``object_motion``) follow it at once,
+    while its checkpoint is on this machine (a fresh clone resuming from the committed results
+    trains it again only when one of them is not cached); then the other models, each trained
+    and evaluated in its own stage.
     """
     cfg = study.cfg
     th = Thresholds(**cfg.thresholds)
     main_extra = list(cfg.main)
+    budget = cfg.budget
 
     def write() -> Path:
         return write_report(study, report, th)
 
     study.stage("data", lambda: stage_data(study, main_extra))
     write()
-    main = study.stage("main", lambda: study.train("main", main_extra, cfg.budget.main_steps))
+    main = study.stage(
+        "main",
+        lambda: study.train("main", main_extra, budget.main_steps, budget.get("main_max_time")),
+    )
     write()
     if main:
         t1 = study.stage("table1", lambda: stage_table1(study, main, main_extra))
-    else:
-        t1 = study.cached("table1")
-    write()
-    for name, extra, plain, w in sparsity_variants(cfg):
-        study.stage(f"sparsity/{name}", partial(stage_sparsity, study, name, extra, plain, w))
         write()
-    study.stage("table2", lambda: stage_table2(study))
-    write()
-    if main:
-        study.stage("robustness", lambda: stage_robustness(study, main, main_extra, t1))
+        study.stage("methods", lambda: stage_methods(study, main, main_extra, t1))
         write()
         study.stage("basis", lambda: stage_basis(study, main, main_extra))
         write()
         study.stage("object_motion", lambda: stage_object_motion(study, main, main_extra))
         write()
-        study.stage("learning_curve", lambda: stage_learning_curve(main, t1))
+    study.stage("table2", lambda: stage_table2(study))
+    write()
+    for name, extra, plain, w in S.sparsity_variants(cfg):
+        study.stage(f"sparsity/{name}", partial(stage_sparsity, study, name, extra, plain, w))
         write()
+    study.stage("balance", lambda: stage_balance(study))
+    write()
     study.stage("recipe", lambda: stage_recipe(study))
     return write()
 
@@ -136,43 +139,35 @@ def stage_table1(study: S.Study, main: dict, main_extra: list[str]) -> dict | No
     }
 
 
-def sparsity_variants(cfg: DictConfig) -> list[tuple[str, list[str], bool, float]]:
-    """The runs of the sparsity sweep, in order: ``(name, overrides, plain, w_s)`` per
-    ``sparsity.w_s``, and for ``w_s = 100`` also one with ``sparsity.input_scale`` (not plain)."""
-    variants = []
-    for ws in cfg.sparsity.w_s:
-        variants.append((f"ws{ws:g}", [f"model.loss.w_s={ws}"], True, ws))
-        if float(ws) == 100.0:
-            scale = cfg.sparsity.input_scale
-            variants.append(
-                (
-                    f"ws{ws:g}_scale{scale:g}",
-                    [f"model.loss.w_s={ws}", f"model.net.input_scale={scale}"],
-                    False,
-                    ws,
-                )
-            )
-    return variants
+def _other(study: S.Study, name: str, extra: list[str], steps: int | None = None) -> dict:
+    """Train one of the other models under the common rule and the other models' caps."""
+    b = study.cfg.budget
+    return study.train(name, extra, steps or int(b.other_steps), b.get("other_max_time"))
 
 
 def stage_sparsity(study: S.Study, name: str, extra: list[str], plain: bool, w: float) -> dict:
-    """``sparsity/<name>``: train one variant; its smallest top-k within the val ATE tolerance
-    (``k_star``), active fraction and test ATE with all units and at ``k_star``."""
+    """``sparsity/<name>``: train one variant on the main model's data (±1, ±2); its smallest
+    top-k within the val ATE tolerance (``k_star``), active fraction, whether it collapsed (no
+    unit active on the average input), and test ATE with all units and at ``k_star``."""
     cfg = study.cfg
-    trained = study.train(name, extra, cfg.budget.other_steps)
+    extra = [*cfg.main, *extra]
+    trained = _other(study, name, extra)
     model = study.model(trained)
     dm = study.datamodule(study.train_config(name, extra, 1))
     ks = [float(k) for k in cfg.table1.top_k]
     val = S.mfg_scores(model, study.loader(dm, "val"), ks)
     k_star = S.smallest_k(val, float(cfg.sparsity.ate_tolerance))
     test = S.mfg_scores(model, study.loader(dm, "test"), [1.0, k_star or 1.0])
+    active = S.active_fraction(model, study.loader(dm, "val"))
+    units = int(model.net.hidden_units)
     return {
         **trained,
         "w_s": float(w),
         "plain": plain,
         "val": val,
         "k_star": k_star,
-        "active_fraction": S.active_fraction(model, study.loader(dm, "val")),
+        "active_fraction": active,
+        "collapsed": active is None or active * units < 1.0,
         "test_full": test["1"].get("ate"),
         "test_k_star": test[f"{k_star or 1.0:g}"].get("ate"),
     }
@@ -184,7 +179,7 @@ def stage_table2(study: S.Study) -> dict:
 
     cfg = study.cfg
     extra = list(cfg.table2.overrides)
-    trained = study.train("table2", extra, cfg.budget.other_steps)
+    trained = _other(study, "table2", extra)
     model = study.model(trained)
     dm = study.datamodule(study.train_config("table2", extra, 1))
     test = study.loader(dm, "test", forward_only=True)
@@ -199,102 +194,126 @@ def stage_table2(study: S.Study) -> dict:
     }
 
 
-def stage_robustness(
-    study: S.Study, main: dict, main_extra: list[str], t1: dict | None
-) -> dict | None:
-    """``robustness``: rotation and translation errors by flow coverage bin, of the main model
-    (all units, and at Table 1's ``k_star`` when it is sparse) and the classical methods."""
+def stage_methods(study: S.Study, main: dict, main_extra: list[str], t1: dict | None) -> dict:
+    """``methods``: the main model (all units, and at Table 1's validation ``k_star``) against
+    every classical baseline on every test frame of 09 and 10: ATE † (the +1 pairs), ATE *
+    (±1, ±2), RPE; and the rotation and translation errors of the +1 pairs by the image
+    fraction covered by moving objects (claim 4)."""
     from mfg_lightning.analysis.scoring import (
         Method,
         classical_methods,
         mfg_top_k_methods,
         score_methods,
+        scored_rows,
     )
 
     cfg = study.cfg
     model = study.model(main)
-    dm = study.datamodule(study.train_config("main", main_extra, 1))
-    ds = dm.dataset("test")
+    central = study.test_datamodule(main_extra)
+    ds = central.dataset("test")
     k_star = S.smallest_k(t1["val"], float(cfg.sparsity.ate_tolerance)) if t1 else None
     sparse = k_star is not None and k_star < 1
     predicts = mfg_top_k_methods(model, [None, k_star] if sparse else [None])
     rows = [Method("MFG (all units)", predicts[0])]
     if sparse:
         rows.append(Method(f"MFG k = {100 * k_star:g} % (val)", predicts[1]))
-    rows += classical_methods(ds.height, ds.width, oracle=False)
-    score_methods(rows, study.loader(dm, "test", forward_only=True))
+    rows += classical_methods(ds.height, ds.width)
+    score_methods(rows, study.loader(central, "test"))
+    forward = [t == s + 1 for _, s, t in ds.samples]
     edges = [float(e) for e in cfg.robustness.coverage_bins]
-    out = {}
+    bins = {}
     for m in rows:
-        rot = S.bin_errors(m.coverage, m.rot_err, edges)
-        out[m.name] = {
+        pick = [i for i, f in enumerate(forward[: len(m.rot_err)]) if f]
+        cov = [m.coverage[i] for i in pick]
+        rot = S.bin_errors(cov, [m.rot_err[i] for i in pick], edges)
+        bins[m.name] = {
             "rot_bins": rot,
-            "trans_bins": S.bin_errors(m.coverage, m.trans_err, edges),
+            "trans_bins": S.bin_errors(cov, [m.trans_err[i] for i in pick], edges),
             "growth": S.growth(rot),
         }
     return {
+        "test_pairs": len(ds),
+        "forward_pairs": sum(forward),
+        "rows": scored_rows(rows),
         "edges": edges,
-        "counts": [b["n"] for b in out[rows[0].name]["rot_bins"]],
-        "methods": out,
+        "counts": [b["n"] for b in bins[rows[0].name]["rot_bins"]],
+        "bins": bins,
     }
 
 
 def stage_basis(study: S.Study, main: dict, main_extra: list[str]) -> dict:
-    """``basis``: the selectivity of the main model's units (intrinsics of the first test
-    sample)."""
+    """``basis``: claim 5's measurements of the main model (validation activations,
+    intrinsics of the first test sample)."""
+    from mfg_lightning.study.measures import basis_measurements
+
     model = study.model(main)
     dm = study.datamodule(study.train_config("main", main_extra, 1))
     K = dm.dataset("test")[0]["intrinsics"]
-    return S.selectivity(model, K, int(study.cfg.basis.units))
+    return basis_measurements(model, study.loader(dm, "val"), K, int(study.cfg.basis.units))
 
 
 def stage_object_motion(study: S.Study, main: dict, main_extra: list[str]) -> dict:
-    """``object_motion``: the main model's object masks scored on the test split."""
+    """``object_motion``: the main model's object masks on the test split (+1 pairs), the
+    filters against the threshold chosen on validation, on exact and on estimated flow."""
     from hydra.utils import instantiate
 
+    from mfg_lightning.study.measures import object_motion_by_flow
+
+    cfg = study.cfg
     model = study.model(main)
     child = study.train_config("main", main_extra, 1)
     dm = study.datamodule(child)
-    om = instantiate(child.object_motion)
-    return S.object_motion_scores(
+    return object_motion_by_flow(
         model,
+        study.loader(dm, "val", forward_only=True),
         study.loader(dm, "test", forward_only=True),
-        om,
-        float(study.cfg.object_motion.slow_px),
+        instantiate(child.object_motion),
+        [float(x) for x in cfg.object_motion.thresholds],
+        float(cfg.object_motion.slow_px),
     )
 
 
-def stage_learning_curve(main: dict, t1: dict | None) -> dict:
-    """``learning_curve``: the main run's logged validation curve (samples seen per point) and
-    Table 1's test ATE."""
-    curve = S.logged_curve(Path(main["checkpoint"]).parents[1])
-    for p in curve:
-        p["samples"] = int(p["step"]) * main["batch_size"]
-    return {"points": curve, "test_ate": (t1 or {}).get("test", {}).get("1", {}).get("ate")}
+def stage_balance(study: S.Study) -> dict:
+    """``balance``: the paper's printed balancing reading (squared norm ratio) on the main
+    model's data at the other models' budget: its test scores (claim 3's rotation) and claim
+    5's measurements, beside the released code's reading (the main model)."""
+    from mfg_lightning.study.measures import basis_measurements
+
+    cfg = study.cfg
+    extra = [*cfg.main, "model.loss.balance_squared=true"]
+    trained = _other(study, "balance_squared", extra)
+    model = study.model(trained)
+    dm = study.datamodule(study.train_config("balance_squared", extra, 1))
+    K = dm.dataset("test")[0]["intrinsics"]
+    return {
+        **trained,
+        "test": S.mfg_scores(model, study.loader(dm, "test"), [1.0])["1"],
+        "basis": basis_measurements(model, study.loader(dm, "val"), K, int(cfg.basis.units)),
+    }
 
 
 def stage_recipe(study: S.Study) -> dict:
-    """``recipe``: the same number of samples at the CPU batch size and at the paper's recipe;
-    each run's curve and its val and test ATE."""
+    """``recipe``: ``recipe.epochs`` epochs of the main model's training pairs at the CPU
+    batch size and at the paper's recipe (batch 1), each under the common rule; each run's
+    curve and its val and test ATE."""
     cfg = study.cfg
-    samples = int(cfg.recipe.samples)
+    main_extra = list(cfg.main)
+    dm = study.datamodule(study.train_config("recipe_cpu", main_extra, 1))
+    samples = int(float(cfg.recipe.epochs) * len(dm.dataset("train")))
     out = {}
     for name, extra, batch in (
         ("cpu", [], int(cfg.budget.batch_size)),
         ("paper", list(cfg.recipe.paper), 1),
     ):
+        extra = [*main_extra, *extra]
         steps = max(1, samples // batch)
-        extra = [*extra, f"trainer.val_check_interval={max(1, steps // 4)}"]
-        trained = study.train(f"recipe_{name}", extra, steps)
+        trained = _other(study, f"recipe_{name}", extra, steps)
         model = study.model(trained)
-        dm = study.datamodule(study.train_config(f"recipe_{name}", extra, steps))
-        curve = S.logged_curve(Path(trained["checkpoint"]).parents[1])
-        for p in curve:
-            p["samples"] = int(p["step"]) * batch
+        run_dm = study.datamodule(study.train_config(f"recipe_{name}", extra, steps))
         out[name] = {
             **trained,
-            "curve": curve,
-            "val_ate": S.mfg_scores(model, study.loader(dm, "val"), [1.0])["1"].get("ate"),
-            "test_ate": S.mfg_scores(model, study.loader(dm, "test"), [1.0])["1"].get("ate"),
+            "epochs": trained["samples_seen"] / max(len(run_dm.dataset("train")), 1),
+            "val_ate": S.mfg_scores(model, study.loader(run_dm, "val"), [1.0])["1"].get("ate"),
+            "test_ate": S.mfg_scores(model, study.loader(run_dm, "test"), [1.0])["1"].get("ate"),
         }
     return out

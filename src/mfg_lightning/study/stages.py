@@ -1,19 +1,19 @@
 """The stages of the reproduction study (``python -m mfg_lightning.reproduce``).
 
-Each stage computes one JSON-able result, cached atomically as ``<work_dir>/<stage>.json`` and
-skipped when cached (an interrupted study resumes). Models are trained by
-:func:`mfg_lightning.run.training.train` from the ``train`` config composed with the study's
-overrides,
-into ``<work_dir>/models/<name>`` with ``resume=true`` (an interrupted training continues from its
-``last.ckpt``); checkpoints are selected on validation (``val/ate``) only, never on the test
-sequences. Evaluation reuses :mod:`mfg_lightning.analysis.scoring` (MFG at any k, classical
-baselines),
+Each stage computes one JSON-able result, cached atomically as ``<results_dir>/<stage>.json``
+(committed with the repository: a fresh clone resumes from them) and skipped when cached (an
+interrupted study resumes). Models are trained by :func:`mfg_lightning.run.training.train` from
+the ``train`` config composed with the study's overrides, into ``<work_dir>/models/<name>`` with
+``resume=true`` (an interrupted training continues from its ``last.ckpt``) under the convergence
+rule (``callbacks=convergence``, :mod:`mfg_lightning.run.convergence`, the study's
+``convergence`` block) and the stage's caps (steps, time); checkpoints are selected on validation
+(``val/ate``) only, never on the test sequences. Evaluation reuses
+:mod:`mfg_lightning.analysis.scoring` (MFG at any k, classical baselines),
 :mod:`mfg_lightning.analysis.basis`, :mod:`mfg_lightning.motion.object_motion` and its scores.
 """
 
 from __future__ import annotations
 
-import csv
 import itertools
 import json
 import logging
@@ -49,13 +49,14 @@ class Study:
         self.cfg = cfg
         self.trainer_choice = trainer_choice
         self.work = Path(cfg.work_dir).expanduser()
+        self.results = Path(cfg.results_dir).expanduser()
         self.ran: list[str] = []
         self.seconds: dict[str, float] = {}
 
     # -- cache ---------------------------------------------------------------------------
 
     def path(self, name: str) -> Path:
-        return self.work / f"{name}.json"
+        return self.results / f"{name}.json"
 
     def cached(self, name: str) -> Result | None:
         try:
@@ -77,6 +78,7 @@ class Study:
         if result is None:
             return None
         result["seconds"] = time.perf_counter() - start
+        result["commit"] = _commit()
         atomic_write_text(self.path(name), json.dumps(result, indent=1) + "\n")
         self.ran.append(name)
         print(f"ran: {name} ({result['seconds']:.0f} s)", flush=True)
@@ -84,16 +86,23 @@ class Study:
 
     # -- configs, data, models -----------------------------------------------------------
 
-    def train_config(self, name: str, extra: list[str], steps: int) -> DictConfig:
-        """The ``train`` config of model ``name``: the study's data, then ``extra``."""
+    def train_config(
+        self, name: str, extra: list[str], steps: int, max_time: str | None = None
+    ) -> DictConfig:
+        """The ``train`` config of model ``name``: the study's data, the convergence rule with
+        its caps (``steps``; ``max_time``, Lightning's "DD:HH:MM:SS"), then ``extra``."""
         from mfg_lightning.core.config import compose
 
         b = self.cfg.budget
+        rule = [f"callbacks.convergence.{k}={v}" for k, v in self.cfg.convergence.items()]
         ov = [
             *self.cfg.data,
             f"trainer={self.trainer_choice}",
             f"trainer.max_steps={int(steps)}",
             f"trainer.val_check_interval={max(1, min(int(b.val_every), int(steps)))}",
+            "callbacks=convergence",
+            "model.scheduler=null",
+            *rule,
             "logger=csv",
             "~callbacks.rich_progress_bar",
             "++trainer.enable_progress_bar=false",
@@ -109,8 +118,8 @@ class Study:
         if b.max_frames is not None:
             # before ``extra``, which may set its own (Table 2's smaller training set)
             ov.insert(len(self.cfg.data), f"dataset.max_frames={int(b.max_frames)}")
-        if b.max_time:
-            ov.append(f"++trainer.max_time={b.max_time}")
+        if max_time:
+            ov.append(f"++trainer.max_time={max_time}")
         return compose("train", ov)
 
     def datamodule(self, cfg: DictConfig) -> Any:
@@ -135,34 +144,62 @@ class Study:
             ds.precompute_flow(progress=False, workers=int(self.cfg.budget.workers))
         return dm
 
-    def train(self, name: str, extra: list[str], steps: int) -> Result:
-        """Train (or resume) model ``name``; its best checkpoint by ``val/ate``."""
+    def train(self, name: str, extra: list[str], steps: int, max_time: str | None = None) -> Result:
+        """Train (or resume) model ``name`` under the convergence rule, capped at ``steps`` and
+        ``max_time``; its best checkpoint by ``val/ate``, the steps it ran, whether it converged
+        (and why it stopped), its validation curve."""
         from mfg_lightning.run.training import train
 
-        cfg = self.train_config(name, extra, steps)
+        cfg = self.train_config(name, extra, steps, max_time)
         out = Path(cfg.paths.output_dir)
         resumed = (out / "checkpoints" / "last.ckpt").is_file()
         start = time.perf_counter()
         train(cfg)
         seconds = time.perf_counter() - start
         chosen, selected_on = chosen_checkpoint(out)
+        status = json.loads((out / "convergence.json").read_text())
+        ran = int(status["step"] or 0)
+        batch = int(cfg.dataset.batch_size)
+        curve = logged_curve(out)
+        for p in curve:
+            p["samples"] = int(p["step"]) * batch
         return {
             "name": name,
             "overrides": list(extra),
-            "steps": int(steps),
-            "batch_size": int(cfg.dataset.batch_size),
-            "samples_seen": int(steps) * int(cfg.dataset.batch_size),
+            "steps": ran,
+            "step_cap": int(steps),
+            "time_cap": max_time,
+            "batch_size": batch,
+            "samples_seen": ran * batch,
             "train_seconds": seconds,
             "resumed": resumed,
-            "checkpoint": str(chosen),
+            # relative to work_dir: the committed result names no path of this machine
+            "checkpoint": str(chosen.relative_to(self.work)),
             "selected_on": selected_on,
             "recipe": recipe_of(cfg),
+            "convergence": {k: v for k, v in status.items() if k != "curve"},
+            "curve": curve,
         }
 
+    def checkpoint(self, trained: Result) -> Path:
+        """The checkpoint of a trained model's result (relative to ``work_dir``)."""
+        return self.work / trained["checkpoint"]
+
     def model(self, trained: Result) -> Any:
+        """The trained model of a stage result; a checkpoint that is not on this machine (a
+        fresh clone resuming from the committed results) is rebuilt by training the model
+        again with the same settings, and is then the one that is evaluated."""
         from mfg_lightning.run.checkpoints import module_from_checkpoint
 
-        return module_from_checkpoint(trained["checkpoint"]).eval()
+        path = self.checkpoint(trained)
+        if not path.is_file():
+            log.warning("%s: not on this machine; training %s again", path, trained["name"])
+            again = self.train(
+                trained["name"], list(trained["overrides"]), trained["step_cap"],
+                trained.get("time_cap"),
+            )  # fmt: skip
+            path = self.checkpoint(again)
+        return module_from_checkpoint(str(path)).eval()
 
     def loader(self, dm: Any, split: str, forward_only: bool = False) -> DataLoader:
         """A split's evaluation loader; ``forward_only``: the samples ``k → k+1`` only."""
@@ -175,6 +212,26 @@ class Study:
         return DataLoader(
             ds, batch_size=int(self.cfg.budget.eval_batch_size), collate_fn=collate_samples
         )
+
+
+def sparsity_variants(cfg: DictConfig) -> list[tuple[str, list[str], bool, float]]:
+    """The runs of the sparsity sweep, in order: ``(name, overrides, plain, w_s)`` per
+    ``sparsity.w_s``; for ``w_s = 100`` also one with ``sparsity.input_scale``, and for the
+    largest ``w_s`` also one at ``sparsity.low_lr`` (to separate a collapse from the rate);
+    ``plain`` is False for those two."""
+    variants = []
+    largest = max(float(w) for w in cfg.sparsity.w_s)
+    for ws in cfg.sparsity.w_s:
+        variants.append((f"ws{ws:g}", [f"model.loss.w_s={ws}"], True, ws))
+        if float(ws) == 100.0:
+            scale = cfg.sparsity.input_scale
+            extra = [f"model.loss.w_s={ws}", f"model.net.input_scale={scale}"]
+            variants.append((f"ws{ws:g}_scale{scale:g}", extra, False, ws))
+        if float(ws) == largest and cfg.sparsity.get("low_lr"):
+            lr = float(cfg.sparsity.low_lr)
+            extra = [f"model.loss.w_s={ws}", f"model.optimizer.lr={lr:g}"]
+            variants.append((f"ws{ws:g}_lr{lr:g}", extra, False, ws))
+    return variants
 
 
 def recipe_of(cfg: DictConfig) -> dict[str, Any]:
@@ -240,15 +297,23 @@ def chosen_checkpoint(run_dir: Path) -> tuple[Path, str]:
 
 
 def logged_curve(run_dir: Path) -> list[dict[str, float]]:
-    """The validation rows (``step``, ``val/*``) of a training run's CSV log, by step."""
+    """The validation rows (``step``, ``val/*``) of a training run's CSV log, by step, across
+    resumes (:func:`mfg_lightning.run.runs.read_csv_metrics`; a later row of a step wins)."""
+    from mfg_lightning.run.runs import read_csv_metrics
+
     rows: dict[int, dict[str, float]] = {}
-    for path in sorted(run_dir.glob("csv/**/metrics.csv")):
-        with path.open() as fh:
-            for r in csv.DictReader(fh):
-                if r.get("val/ate") not in (None, ""):
-                    vals = {k: float(v) for k, v in r.items() if k.startswith("val/") and v != ""}
-                    rows[int(r["step"])] = {"step": float(r["step"]), **vals}
+    for r in read_csv_metrics(run_dir / "csv"):
+        if r.get("val/ate") not in (None, ""):
+            vals = {k: float(v) for k, v in r.items() if k.startswith("val/") and v != ""}
+            rows[int(r["step"])] = {"step": float(r["step"]), **vals}
     return [rows[s] for s in sorted(rows)]
+
+
+def _commit() -> str | None:
+    from mfg_lightning.run.runs import git_commit
+
+    c = git_commit()
+    return c[:12] if c else None
 
 
 def bin_errors(
@@ -313,11 +378,12 @@ def selectivity(model: Any, intrinsics: torch.Tensor, units: int) -> dict[str, A
 
 
 def object_motion_scores(
-    model: Any, loader: DataLoader, cfg: Any, slow_px: float
+    model: Any, loader: DataLoader, cfg: Any, slow_px: float, flow_key: str = "flow"
 ) -> dict[str, dict[str, dict[str, float]]]:
     """Object-mask scores of the paper's filters and the threshold baseline, over all samples
     and split slow / fast by each sample's mean ground-truth object flow (near / far: the
-    scores' own depth split)."""
+    scores' own depth split). ``flow_key``: the batch's flow the model sees (``"flow"``, the
+    estimated flow; ``"exact_flow"``, the rendered worlds' exact flow)."""
     from mfg_lightning.data.sample import sanitize_flow
     from mfg_lightning.metrics.object_motion import ObjectMotionScores
     from mfg_lightning.motion.object_motion import extract_object_motion, threshold_baseline
@@ -327,13 +393,11 @@ def object_motion_scores(
     for batch in loader:
         if batch is None or "object_mask" not in batch:
             continue
-        flow, _, _ = sanitize_flow(batch["flow"], batch["flow_valid"])
+        flow, valid, _ = sanitize_flow(batch[flow_key], batch["flow_valid"])
         with torch.inference_mode():
             out = model(flow)
         depth, gt = batch["depth"], batch["object_mask"].bool()
-        res = extract_object_motion(
-            flow, out.v_t, out.v_omega, depth, cfg, valid=batch["flow_valid"]
-        )
+        res = extract_object_motion(flow, out.v_t, out.v_omega, depth, cfg, valid=valid)
         base = threshold_baseline(res.residual, cfg.baseline_threshold, res.valid)
         speed = (batch["object_flow"].norm(dim=1) * gt).flatten(1).sum(1) / gt.flatten(1).sum(
             1

@@ -19,7 +19,9 @@ __all__ = [
     "NOT_RUN",
     "PARTLY",
     "Thresholds",
+    "combine_parts",
     "count_verdict",
+    "no_worse_verdict",
     "relative_deviation",
     "relative_verdict",
     "worst",
@@ -76,3 +78,30 @@ def count_verdict(met: int, total: int) -> str:
     if total <= 0:
         raise ValueError(f"count_verdict needs at least one part, got {total}")
     return HOLDS if met >= total else PARTLY if met > 0 else NOT_HOLD
+
+
+def no_worse_verdict(
+    ours: float | None, reference: float | None, th: Thresholds, higher_is_better: bool = False
+) -> str:
+    """Ours against a reference that it should match or beat: as good or better, or worse by
+    at most ``holds`` (relative), holds; worse by at most ``partly``, partly; else does not hold
+    (also when either is undefined)."""
+    if ours is None or reference is None or not (math.isfinite(ours) and math.isfinite(reference)):
+        return NOT_HOLD
+    if reference == 0:
+        return HOLDS if (ours >= 0 if higher_is_better else ours <= 0) else NOT_HOLD
+    worse = 1.0 - ours / reference if higher_is_better else ours / reference - 1.0
+    return HOLDS if worse <= th.holds else PARTLY if worse <= th.partly else NOT_HOLD
+
+
+def combine_parts(verdicts: Iterable[str]) -> str:
+    """A claim of several parts: every part holds, holds; none holds nor partly holds, does not
+    hold; otherwise partly."""
+    found = list(verdicts)
+    if not found:
+        return NOT_HOLD
+    if all(v == HOLDS for v in found):
+        return HOLDS
+    if all(v == NOT_HOLD for v in found):
+        return NOT_HOLD
+    return PARTLY
