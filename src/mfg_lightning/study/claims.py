@@ -276,7 +276,7 @@ def claim_sparsity(
             + (f"; {state}" if state else "")
         )
     if t1 is None:
-        return row, _sweep_figure(models), sweep
+        return row, _sweep_figure(models, None), sweep
     k_star = smallest_k(t1["val"], tol)
     full = t1["val"].get("1", {}).get("ate")
     at = t1["val"].get(f"{k_star:g}", {}).get("ate") if k_star is not None else None
@@ -295,12 +295,21 @@ def claim_sparsity(
         f"({fmt(full)}) is {fmt(None if k_star is None else 100 * k_star, 1)} % "
         f"(ATE † {fmt(at)})"
     )
-    return row, _sweep_figure(models), sweep
+    return row, _sweep_figure(models, t1["val"]), sweep
 
 
-def _sweep_figure(models: dict[str, dict]) -> Any:
+def _sweep_figure(models: dict[str, dict], main_val: dict | None) -> Any:
+    """The main model's validation ATE † against k (claim 2's evidence); the sweep's active
+    fractions and smallest k when it has run."""
     if not models:
-        return None
+        if not main_val:
+            return None
+        ks = sorted((float(k) for k in main_val), reverse=True)
+        lines = {"main model": ([100 * k for k in ks], [main_val[f"{k:g}"].get("ate") for k in ks])}
+        return plots.line_figure(
+            [("val ATE † (m)", lines)], "hidden units kept, k (%)",
+            "Main model (w_s = 100): validation ATE against k", log_x=True, log_y=True,
+        )  # fmt: skip
     names = list(models)
     af = [models[n].get("active_fraction") for n in names]
     ks = [models[n].get("k_star") for n in names]
@@ -509,10 +518,10 @@ def claim_object_motion(om: dict | None, th: Thresholds) -> tuple[Row, Any]:
     names = [_label(g, k) for g, k in cats]
     panels = [
         (
-            f"{name} flow",
+            f"{name} flow (threshold {r['threshold']['threshold']:g} px)",
             {
                 "filters (§4)": [get(r["scores"], "filters", g, k) for g, k in cats],
-                f"threshold {r['threshold']['threshold']:g} px": [
+                "threshold (chosen on validation)": [
                     get(r["scores"], "threshold", g, k) for g, k in cats
                 ],
             },

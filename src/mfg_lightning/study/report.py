@@ -11,7 +11,7 @@ from typing import Any
 
 from mfg_lightning.core.atomic import atomic_write_bytes, atomic_write_text
 from mfg_lightning.core.paths import portable_overrides, portable_path
-from mfg_lightning.core.tables import Column, Table
+from mfg_lightning.core.tables import Column, Table, fmt
 from mfg_lightning.flow.cache import default_cache_dir
 from mfg_lightning.pictures.plots import figure_png
 from mfg_lightning.study import claims as C
@@ -149,6 +149,7 @@ def write_report(study: S.Study, report: Path, th: Thresholds) -> Path:
         "",
         *([f"- {line}" for line in sweep] or ["not run yet"]),
         "",
+        *_methods_section(study.cached("methods")),
         "## Did it converge",
         "",
         "Not a claim of the paper (it says only that it trains to convergence): each model's "
@@ -173,6 +174,30 @@ def write_report(study: S.Study, report: Path, th: Thresholds) -> Path:
     path = atomic_write_text(report, "\n".join(text))
     print(f"wrote {path}", flush=True)
     return path
+
+
+def _methods_section(mt: dict | None) -> list[str]:
+    """The main model against every classical baseline on every test pair (stage ``methods``)."""
+    if mt is None:
+        return []
+    keys = ("09/ate", "10/ate", "09/ate_central", "10/ate_central", "rpe_trans", "rpe_rot")
+    rows = [
+        [r["name"], *(fmt(r["metrics"].get(k), 5 if k == "rpe_rot" else 4) for k in keys),
+         f"{r['ms_per_frame']:.1f}", r.get("note", "")]
+        for r in mt["rows"]
+    ]  # fmt: skip
+    heads = ("method", "ATE † 09 (m)", "ATE † 10 (m)", "ATE * 09 (m)", "ATE * 10 (m)",
+             "RPE trans (m)", "RPE rot (rad)", "ms / pair", "note")  # fmt: skip
+    return [
+        "## The method comparison (every test pair of 09 and 10, DIS flow)",
+        "",
+        f"The main model against every classical baseline on the {mt['test_pairs']} test pairs "
+        f"(±1, ±2; † and RPE from the {mt['forward_pairs']} +1 pairs). The classical methods see "
+        "one pair and cannot know the scale: their translation is given the ground-truth length.",
+        "",
+        Table([Column(h) for h in heads], rows).markdown(),
+        "",
+    ]
 
 
 def _figure(figdir: Path, name: str, fig: Any) -> str:
