@@ -339,44 +339,6 @@ def growth(bins: list[dict[str, float]]) -> float | None:
     return filled[-1]["mean"] / filled[0]["mean"]
 
 
-def selectivity(model: Any, intrinsics: torch.Tensor, units: int) -> dict[str, Any]:
-    """Per-unit closed-form fits of the ``units`` largest units' decoder fields: relative
-    residuals, preferred motions and their spread (resultant length of the unit directions:
-    1 = one direction, 0 = spread evenly)."""
-    from mfg_lightning.analysis import basis
-    from mfg_lightning.core import geometry
-
-    net = model.net
-    rows = basis.selectivity_rows(net, intrinsics, units)
-    idx = [r["unit"] for r in rows]
-    v_t, v_w = basis.unit_fields(net, idx)
-    K = intrinsics.double()
-    t = torch.tensor([[r["tx"], r["ty"], r["tz"]] for r in rows], dtype=torch.float64)
-    w = torch.tensor([[r["wx"], r["wy"], r["wz"]] for r in rows], dtype=torch.float64)
-    fit_t = geometry.translational_field(t, K, net.height, net.width)
-    fit_w = geometry.rotational_field(w, K, net.height, net.width)
-
-    def rel(v: torch.Tensor, fit: torch.Tensor) -> list[float]:
-        v = v.double()
-        return (
-            (v - fit).flatten(1).norm(dim=1) / v.flatten(1).norm(dim=1).clamp_min(1e-12)
-        ).tolist()
-
-    def spread(x: torch.Tensor) -> float:
-        unit = x / x.norm(dim=1, keepdim=True).clamp_min(1e-12)
-        return float(unit.mean(0).norm()) if len(x) else math.nan
-
-    return {
-        "rows": rows,
-        "residual_t": rel(v_t, fit_t),
-        "residual_w": rel(v_w, fit_w),
-        "t_norm_median": float(t.norm(dim=1).median()) if len(t) else None,
-        "w_norm_median": float(w.norm(dim=1).median()) if len(w) else None,
-        "t_resultant": spread(t),
-        "w_resultant": spread(w),
-    }
-
-
 def object_motion_scores(
     model: Any, loader: DataLoader, cfg: Any, slow_px: float, flow_key: str = "flow"
 ) -> dict[str, dict[str, dict[str, float]]]:
