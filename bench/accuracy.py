@@ -99,6 +99,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "being $MFG_CACHE_DIR or ~/.cache/mfg_lightning; a temporary one with --tiny)"
     )
     p.add_argument("--work", type=Path, help=work)
+    share = (
+        "the rendered-and-estimated flow cache of the dis run (default <work>/cache); pass the "
+        "reproduction study's flow_cache_dir (<cache dir>) to reuse the pairs it rendered"
+    )
+    p.add_argument("--flow-cache", type=Path, help=share)
     p.add_argument("--fresh", action="store_true", help="discard the cached stages first")
     p.add_argument(
         "--workers",
@@ -121,7 +126,8 @@ def flow_overrides(args: argparse.Namespace, flow: str) -> list[str]:
     """The ``flow`` group overrides of one source."""
     if flow == "exact":
         return ["flow=exact"]
-    ov = ["flow=dis", f"flow.preset={args.dis_preset}", f"dataset.cache_dir={args.work / 'cache'}"]
+    cache = args.flow_cache or args.work / "cache"
+    ov = ["flow=dis", f"flow.preset={args.dis_preset}", f"dataset.cache_dir={cache}"]
     if args.render_size:
         ov += [f"flow.height={args.render_size[0]}", f"flow.width={args.render_size[1]}"]
     return ov

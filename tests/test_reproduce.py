@@ -3,6 +3,7 @@ trainings on KITTI trajectories), resumed with every stage cached; verdicts agai
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import subprocess
@@ -87,8 +88,16 @@ def test_tiny_study_runs_resumes_and_rebuilds_from_committed_results(tmp_path: P
         assert f"| {name} |" in conv, name
     assert str(tmp_path) not in text
     checkpoints = {p: p.stat().st_mtime_ns for p in work.glob("models/*/checkpoints/*.ckpt")}
-    # main, table2, 4 sparsity models (w_s 0, 100, input scale, low rate), balance, 2 recipes
-    assert len({p.parts[-3] for p in checkpoints}) == 9
+    # main, table2, 4 sparsity models (w_s 0, 100, input scale, low rate), balance, the paper
+    # recipe (the CPU recipe's run is the main model's)
+    assert {p.parts[-3] for p in checkpoints} == {
+        "main", "table2", "ws0", "ws100", "ws100_scale0.2", "ws100_lr0.0001", "balance_squared",
+        "recipe_paper",
+    }  # fmt: skip
+    recipe = json.loads((results / "recipe.json").read_text())
+    main = json.loads((results / "main.json").read_text())
+    assert recipe["cpu"]["same_as"] == "main" and recipe["cpu"]["steps"] == main["steps"]
+    assert recipe["paper"]["epochs"] >= 0.5 and recipe["paper"]["batch_size"] == 1
     stage_files = sorted(p.relative_to(results) for p in results.glob("**/*.json"))
     assert len(stage_files) == 13
     for f in stage_files:

@@ -147,11 +147,12 @@ RULES: dict[str, Rule] = {
         ),
         Rule(
             "R",
-            "CPU recipe against the paper's (same samples, one epoch or more each)",
+            "CPU recipe against the paper's (each under the common rule, one epoch or more)",
             "batch 1, Adam lr 1e-5, betas (0.99, 0.999), constant rate",
             (
-                "the paper's recipe's validation ATE † against the CPU recipe's (the relative "
-                "deviation); both runs at one epoch or more, else not run",
+                "the paper's recipe's validation ATE † against the CPU recipe's (the main "
+                "model's setting and run; the relative deviation); both runs at one epoch or "
+                "more, else not judged",
             ),
         ),
     )
@@ -546,8 +547,9 @@ def claim_recipe(rc: dict | None, th: Thresholds) -> tuple[Row, Any]:
     else:
         row.verdict = "not judged (shorter than one epoch)"
     row.ours = (
-        f"{fmt(a.get('epochs'), 2)} / {fmt(b.get('epochs'), 2)} epochs: CPU recipe (batch "
-        f"{a['recipe']['batch_size']}, lr {a['recipe']['lr']:g}) val ATE † {fmt(a['val_ate'])}, "
+        f"{fmt(a.get('epochs'), 2)} / {fmt(b.get('epochs'), 2)} epochs: CPU recipe "
+        f"({'the main model: ' if a.get('same_as') else ''}batch {a['recipe']['batch_size']}, "
+        f"lr {a['recipe']['lr']:g}) val ATE † {fmt(a['val_ate'])}, "
         f"test {fmt(a['test_ate'])}; paper recipe val ATE † {fmt(b['val_ate'])}, test "
         f"{fmt(b['test_ate'])}" + ("" if long_enough else " (shorter than one epoch: not judged)")
     )

@@ -59,7 +59,14 @@ def _trained_models(study: S.Study, sparsity: dict[str, dict]) -> dict[str, dict
             models[{"balance": "balance_squared"}.get(name, name)] = r
     models.update({f"sparsity {k}": v for k, v in sparsity.items()})
     if (rc := study.cached("recipe")) is not None:
-        models.update({f"recipe {k}": v for k, v in rc.items() if isinstance(v, dict)})
+        # the CPU recipe's run is the main model's (``same_as``): its row is the main one
+        models.update(
+            {
+                f"recipe {k}": v
+                for k, v in rc.items()
+                if isinstance(v, dict) and not v.get("same_as")
+            }
+        )
     return models
 
 

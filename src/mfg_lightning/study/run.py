@@ -7,6 +7,7 @@ by :mod:`mfg_lightning.study.claims` and written by :mod:`mfg_lightning.study.re
 
 from __future__ import annotations
 
+import math
 import time
 from functools import partial
 from pathlib import Path
@@ -95,7 +96,7 @@ def run(study: S.Study, report: Path) -> Path:
         write()
     study.stage("balance", lambda: stage_balance(study))
     write()
-    study.stage("recipe", lambda: stage_recipe(study))
+    study.stage("recipe", lambda: stage_recipe(study, main))
     return write()
 
 
@@ -293,24 +294,38 @@ def stage_balance(study: S.Study) -> dict:
     }
 
 
-def stage_recipe(study: S.Study) -> dict:
-    """``recipe``: ``recipe.epochs`` epochs of the main model's training pairs at the CPU
-    batch size and at the paper's recipe (batch 1), each under the common rule; each run's
-    curve and its val and test ATE."""
+def stage_recipe(study: S.Study, main: dict | None) -> dict:
+    """``recipe``: row R, the CPU recipe against the paper's (batch 1, lr 1e-5), each under
+    the common rule and trained for at least ``recipe.epochs`` epochs of the main model's
+    training pairs (the rule's ``min_steps`` raised to that many steps); each run's curve and
+    its val and test ATE †.
+
+    The CPU recipe is the main model's own setting: its run is the main model's (the same
+    overrides and seed would train the same model again), unless that is not cached or is
+    shorter than ``recipe.epochs``. The paper's recipe has its own time cap,
+    ``budget.recipe_max_time`` (an epoch at batch 1 is ~26 K steps)."""
     cfg = study.cfg
+    b = cfg.budget
     main_extra = list(cfg.main)
     dm = study.datamodule(study.train_config("recipe_cpu", main_extra, 1))
-    samples = int(float(cfg.recipe.epochs) * len(dm.dataset("train")))
+    pairs = len(dm.dataset("train"))
+    samples = math.ceil(float(cfg.recipe.epochs) * pairs)
     out = {}
     for name, extra, batch in (
-        ("cpu", [], int(cfg.budget.batch_size)),
+        ("cpu", [], int(b.batch_size)),
         ("paper", list(cfg.recipe.paper), 1),
     ):
-        extra = [*main_extra, *extra]
-        steps = max(1, samples // batch)
-        trained = _other(study, f"recipe_{name}", extra, steps)
+        epoch_steps = max(1, math.ceil(samples / batch))
+        if name == "cpu" and main is not None and main["samples_seen"] >= samples:
+            trained = {**main, "same_as": "main"}
+        else:
+            rule_min = max(int(cfg.convergence.min_steps), epoch_steps)
+            extra = [*main_extra, *extra, f"callbacks.convergence.min_steps={rule_min}"]
+            steps = max(int(b.other_steps), epoch_steps)
+            max_time = b.get("recipe_max_time") or b.get("other_max_time")
+            trained = study.train(f"recipe_{name}", extra, steps, max_time)
         model = study.model(trained)
-        run_dm = study.datamodule(study.train_config(f"recipe_{name}", extra, steps))
+        run_dm = study.datamodule(study.train_config(f"recipe_{name}", trained["overrides"], 1))
         out[name] = {
             **trained,
             "epochs": trained["samples_seen"] / max(len(run_dm.dataset("train")), 1),
