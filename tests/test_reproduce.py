@@ -88,15 +88,14 @@ def test_tiny_study_runs_resumes_and_rebuilds_from_committed_results(tmp_path: P
         assert f"| {name} |" in conv, name
     assert str(tmp_path) not in text
     checkpoints = {p: p.stat().st_mtime_ns for p in work.glob("models/*/checkpoints/*.ckpt")}
-    # main, table2, 4 sparsity models (w_s 0, 100, input scale, low rate), balance, the paper
-    # recipe (the CPU recipe's run is the main model's)
+    # main, table2, 4 sparsity models (w_s 0, 100, input scale, low rate), balance, 2 recipes:
+    # the tiny main model runs past the other models' 2-step cap, so no model reuses its run
     assert {p.parts[-3] for p in checkpoints} == {
         "main", "table2", "ws0", "ws100", "ws100_scale0.2", "ws100_lr0.0001", "balance_squared",
-        "recipe_paper",
+        "recipe_cpu", "recipe_paper",
     }  # fmt: skip
     recipe = json.loads((results / "recipe.json").read_text())
-    main = json.loads((results / "main.json").read_text())
-    assert recipe["cpu"]["same_as"] == "main" and recipe["cpu"]["steps"] == main["steps"]
+    assert "same_as" not in recipe["cpu"] and recipe["cpu"]["epochs"] >= 0.5
     assert recipe["paper"]["epochs"] >= 0.5 and recipe["paper"]["batch_size"] == 1
     stage_files = sorted(p.relative_to(results) for p in results.glob("**/*.json"))
     assert len(stage_files) == 13
@@ -192,3 +191,25 @@ def test_verdict_rules_on_hand_made_results() -> None:
     row, _, sweep = C.claim_sparsity(t1, {"w_s=1000": sweep_model}, th, 0.05)
     assert row.verdict == HOLDS and "5.0 %" in row.ours
     assert "collapsed" in sweep[0]
+
+
+def test_main_run_serves_only_a_converged_run_within_the_other_caps() -> None:
+    """A model of the main setting reuses the main run only when that run met the rule within
+    the other models' step and time caps (else the caps would have made another run)."""
+    from types import SimpleNamespace
+
+    from omegaconf import OmegaConf
+
+    from mfg_lightning.study.run import _seconds, main_run_serves
+
+    budget = {"other_steps": 30000, "other_max_time": "00:00:30:00"}
+    study = SimpleNamespace(cfg=OmegaConf.create({"budget": budget}))
+    main = {"steps": 8000, "train_seconds": 1158.0, "convergence": {"converged": True}}
+    assert _seconds("00:01:00:00") == 3600.0 and _seconds(None) == math.inf
+    assert main_run_serves(study, main)
+    assert not main_run_serves(study, None)
+    assert not main_run_serves(study, {**main, "convergence": {"converged": False}})
+    assert not main_run_serves(study, {**main, "steps": 30001})
+    assert not main_run_serves(study, {**main, "train_seconds": 1801.0})
+    # a longer cap of its own (the paper recipe's) admits a longer main run
+    assert main_run_serves(study, {**main, "train_seconds": 3000.0}, "00:01:00:00")

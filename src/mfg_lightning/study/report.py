@@ -57,7 +57,8 @@ def _trained_models(study: S.Study, sparsity: dict[str, dict]) -> dict[str, dict
     for name in ("main", "table2", "balance"):
         if (r := study.cached(name)) is not None:
             models[{"balance": "balance_squared"}.get(name, name)] = r
-    models.update({f"sparsity {k}": v for k, v in sparsity.items()})
+    # a run that is the main model's (``same_as``) has the main model's row
+    models.update({f"sparsity {k}": v for k, v in sparsity.items() if not v.get("same_as")})
     if (rc := study.cached("recipe")) is not None:
         # the CPU recipe's run is the main model's (``same_as``): its row is the main one
         models.update(

@@ -92,7 +92,7 @@ def run(study: S.Study, report: Path) -> Path:
     study.stage("table2", lambda: stage_table2(study))
     write()
     for name, extra, plain, w in S.sparsity_variants(cfg):
-        study.stage(f"sparsity/{name}", partial(stage_sparsity, study, name, extra, plain, w))
+        study.stage(f"sparsity/{name}", partial(stage_sparsity, study, name, extra, plain, w, main))
         write()
     study.stage("balance", lambda: stage_balance(study))
     write()
@@ -147,13 +147,42 @@ def _other(study: S.Study, name: str, extra: list[str], steps: int | None = None
     return study.train(name, extra, steps or int(b.other_steps), b.get("other_max_time"))
 
 
-def stage_sparsity(study: S.Study, name: str, extra: list[str], plain: bool, w: float) -> dict:
+def _seconds(max_time: str | None) -> float:
+    """Lightning's ``max_time`` "DD:HH:MM:SS" in seconds (``inf``: no cap)."""
+    if not max_time:
+        return math.inf
+    d, h, m, sec = (int(x) for x in str(max_time).split(":"))
+    return float(((d * 24 + h) * 60 + m) * 60 + sec)
+
+
+def main_run_serves(study: S.Study, main: dict | None, max_time: str | None = None) -> bool:
+    """Whether the main model's run is the run a model of the main setting would make under
+    the other models' caps: it met the rule (was not stopped by its own caps) within
+    ``budget.other_steps`` and ``max_time`` (default ``budget.other_max_time``). Training
+    such a model again gives the same model (the seed and data are the same; the sweep's
+    w_s = 100 run repeated the main model's curve bit for bit), so it is not trained twice."""
+    if main is None or not (main.get("convergence") or {}).get("converged"):
+        return False
+    b = study.cfg.budget
+    cap = _seconds(max_time or b.get("other_max_time"))
+    return int(main["steps"]) <= int(b.other_steps) and float(main["train_seconds"]) <= cap
+
+
+def stage_sparsity(
+    study: S.Study, name: str, extra: list[str], plain: bool, w: float, main: dict | None
+) -> dict:
     """``sparsity/<name>``: train one variant on the main model's data (±1, ±2); its smallest
     top-k within the val ATE tolerance (``k_star``), active fraction, whether it collapsed (no
-    unit active on the average input), and test ATE with all units and at ``k_star``."""
+    unit active on the average input), and test ATE with all units and at ``k_star``. The
+    plain variant at the main model's w_s is the main model's run when that serves
+    (:func:`main_run_serves`)."""
     cfg = study.cfg
     extra = [*cfg.main, *extra]
-    trained = _other(study, name, extra)
+    same = plain and main is not None and float(main["recipe"]["w_s"]) == float(w)
+    if same and main_run_serves(study, main):
+        trained = {**main, "same_as": "main"}
+    else:
+        trained = _other(study, name, extra)
     model = study.model(trained)
     dm = study.datamodule(study.train_config(name, extra, 1))
     ks = [float(k) for k in cfg.table1.top_k]
@@ -316,7 +345,7 @@ def stage_recipe(study: S.Study, main: dict | None) -> dict:
         ("paper", list(cfg.recipe.paper), 1),
     ):
         epoch_steps = max(1, math.ceil(samples / batch))
-        if name == "cpu" and main is not None and main["samples_seen"] >= samples:
+        if name == "cpu" and main_run_serves(study, main) and main["samples_seen"] >= samples:
             trained = {**main, "same_as": "main"}
         else:
             rule_min = max(int(cfg.convergence.min_steps), epoch_steps)
