@@ -417,15 +417,21 @@ def claim_robustness(mt: dict | None, th: Thresholds) -> tuple[Row, Any]:
     return row, fig
 
 
+def one_motion_fractions(bs: dict, residual: float) -> dict[str, float]:
+    """Per decoder (``"t"``, ``"omega"``) of a ``basis`` measurement: the fraction of its top
+    units whose field one motion fits (relative residual ≤ ``residual``)."""
+    return {
+        k: sum(r <= residual for r in d["residual"]) / max(len(d["residual"]), 1)
+        for k, d in bs["per_decoder"].items()
+    }
+
+
 def claim_basis(bs: dict | None, residual: float, th: Thresholds) -> tuple[Row, Any]:
     row = Row.of("5")
     if bs is None:
         return row, None
     per, summ = bs["per_decoder"], bs["summary"]
-    explained = {
-        k: sum(r <= residual for r in d["residual"]) / max(len(d["residual"]), 1)
-        for k, d in per.items()
-    }
+    explained = one_motion_fractions(bs, residual)
     one = sum(v >= 0.8 for v in explained.values())
     spread = sum(summ[k]["resultant"] < 0.5 for k in summ)
     parts = [

@@ -223,11 +223,7 @@ def _balance_section(
     def row(name: str, test: dict, bs: dict | None) -> list[str]:
         if bs is None:
             return [name, fmt(test.get("ate")), fmt(test.get("rpe_rot"), 5), *["–"] * 4]
-        per = bs["per_decoder"]
-        one = {
-            k: sum(r <= residual for r in d["residual"]) / max(len(d["residual"]), 1)
-            for k, d in per.items()
-        }
+        one = C.one_motion_fractions(bs, residual)
         clamped = bs["data"].get("omega_weight_clamped")
         return [
             name, fmt(test.get("ate")), fmt(test.get("rpe_rot"), 5),
