@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -116,6 +117,29 @@ def test_tiny_study_runs_resumes_and_rebuilds_from_committed_results(tmp_path: P
     assert "ran:" not in third.stdout and not fresh.exists()
     rebuilt = report.read_text()
     assert rebuilt.split("## Claims")[1] == text.split("## Claims")[1]
+
+    # Row R on a fresh clone whose main model met the rule within the other caps: the CPU
+    # recipe is the main model, scored by Table 1's k = 100 % row, and the main model is not
+    # trained again for it (only the paper recipe trains)
+    served = tmp_path / "served"
+    shutil.copytree(results, served)
+    (served / "recipe.json").unlink()
+    main = json.loads((served / "main.json").read_text())
+    main["convergence"]["converged"] = True
+    (served / "main.json").write_text(json.dumps(main))
+    fourth = _run(
+        tmp_path, "reproduce=tiny", f"poses_dir={POSES}", f"results_dir={served}",
+        f"report={tmp_path / 'served.md'}", f"work_dir={tmp_path / 'served_work'}",
+        "stages=[recipe]", "budget.other_steps=6",
+    )  # fmt: skip
+    assert fourth.returncode == 0, fourth.stderr[-3000:]
+    assert "ran: recipe" in fourth.stdout
+    trained = {p.parts[-3] for p in (tmp_path / "served_work").glob("models/*/checkpoints/*")}
+    assert trained == {"recipe_paper"}
+    cpu = json.loads((served / "recipe.json").read_text())["cpu"]
+    t1 = json.loads((served / "table1.json").read_text())
+    assert cpu["same_as"] == "main"
+    assert (cpu["val_ate"], cpu["test_ate"]) == (t1["val"]["1"]["ate"], t1["test"]["1"]["ate"])
 
 
 def test_a_run_whose_val_ate_was_never_defined_is_evaluated_at_its_last_checkpoint(

@@ -79,8 +79,10 @@ def _stage_rows(study: S.Study) -> tuple[list[str], float]:
         r = study.cached(name) or {}
         seconds = float(r.get("seconds", 0.0))
         total += seconds
+        # a run that is another stage's (``same_as``) was trained there, not here
         trained = [r] if "steps" in r else [v for v in r.values() if isinstance(v, dict)
                                             and "steps" in v]  # fmt: skip
+        trained = [t for t in trained if not t.get("same_as")]
         shape = ", ".join(f"{t['steps']} × {t['batch_size']}" for t in trained)
         train_s = sum(float(t.get("train_seconds", 0.0)) for t in trained)
         rows.append(
