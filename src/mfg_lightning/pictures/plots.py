@@ -403,14 +403,27 @@ def line_figure(
         title: the figure's title.
         log_x, log_y: logarithmic axes.
     """
-    fig = _new_figure(4.2 * max(len(panels), 1), 3.4)
+    from matplotlib.ticker import EngFormatter
+
+    # many lines: the legend goes beside the panels, where it hides no curve
+    many = len({n for _, lines in panels for n in lines}) > 4
+    fig = _new_figure(4.2 * max(len(panels), 1) + (2.6 if many else 0.0), 3.4)
     for ax, lines, index in _side_by_side(fig, panels, log_y):
         for name, (x, y) in lines.items():
             ax.plot(x, _nan_for_none(y), marker="o", color=method_colour(index(name)), label=name)
         ax.set_xlabel(x_label)
         if log_x:
             ax.set_xscale("log")
+        else:
+            # 20k rather than 20000: long tick labels run into each other
+            ax.xaxis.set_major_formatter(EngFormatter(sep=""))
         ax.grid(True, which="both", alpha=0.3)
+    if many and fig.axes:
+        first = fig.axes[0]
+        handles, labels = first.get_legend_handles_labels()
+        if first.get_legend() is not None:
+            first.get_legend().remove()
+        fig.legend(handles, labels, fontsize="small", loc="outside right upper")
     if title:
         fig.suptitle(title)
     return fig

@@ -568,7 +568,9 @@ def claim_recipe(rc: dict | None, th: Thresholds) -> tuple[Row, Any]:
             },
         )
     ]
-    return row, plots.line_figure(panels, "training samples seen", "Recipes (validation)")
+    return row, plots.line_figure(
+        panels, "training samples seen", "Recipes (validation)", log_y=True
+    )
 
 
 # --------------------------------------------------------------------------------------------
