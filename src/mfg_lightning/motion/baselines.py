@@ -184,10 +184,6 @@ def essential_matrix_motion(
         fx, fy, cx, cy = K[b].tolist()
         cam = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
         p1, p2 = src.numpy(), dst.numpy()
-        # No point moves: there is no motion to find (and OpenCV ≥ 5.1 asserts on the
-        # all-zero polynomial of the 5-point solver instead of returning no solution).
-        if not np.any(np.abs(p2 - p1) > 1e-9):
-            continue
         # Re-seeded per frame: a frame's result does not depend on the batch it came in.
         cv2.setRNGSeed(seed)
         try:
@@ -201,8 +197,8 @@ def essential_matrix_motion(
                 maxIters=max_iters,
             )
         except cv2.error as err:
-            # Degenerate samples (a vanishing leading coefficient in the 5-point solver's
-            # polynomial) are an "estimate not found", as older OpenCV reported them.
+            # OpenCV >= 5.1 asserts on a degenerate sample (e.g. no point moves: the 5-point
+            # solver's polynomial vanishes) where 5.0 returned no solution; both mean no estimate.
             if "solvePoly" not in str(err):
                 raise
             continue
