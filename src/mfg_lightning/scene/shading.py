@@ -23,23 +23,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from mfg_lightning.scene.box_params import (
-    PARAM_CRATE_LABEL,
-    PARAM_CRATE_RIB_PERIOD,
-    PARAM_FACADE_OFFSET_U,
-    PARAM_FACADE_OFFSET_V,
-    PARAM_FACADE_SHOP,
-    PARAM_FACADE_STYLE,
-    PARAM_FLOOR_HEIGHT,
-    PARAM_PEDESTRIAN_SKIN,
-    PARAM_TEXTURE_OFFSET,
-    PARAM_WINDOW_HEIGHT,
-    PARAM_WINDOW_SPACING,
-    PARAM_WINDOW_WIDTH,
-    SHOP_FRONT_BELOW,
-    STYLE_BRICK,
-    STYLE_CONCRETE,
-)
+from mfg_lightning.scene import box_params as bp
 from mfg_lightning.scene.clipping import CULL_DISTANCE
 from mfg_lightning.scene.frame_boxes import CABIN, FrameBoxes
 from mfg_lightning.scene.road import Ground
@@ -83,6 +67,33 @@ class RayHits:
     on_box: Tensor
     on_ground: Tensor
     sky: Tensor
+
+
+@dataclass
+class _BoxSurface:
+    """The hits on boxes of one kind, as every box shader reads them (``n`` pixels).
+
+    Attributes:
+        table: the world's noise table (:func:`~.textures.noise_table`).
+        p: ``(n, 3)`` box-local hit points (metres).
+        face: ``(n,)`` the axis of the face hit (0 sides, 1 top or bottom, 2 ends).
+        hh: ``(n,)`` height of the hit above the ground (metres).
+        fp: ``(n,)`` the pixel footprint on the face (metres).
+        half: ``(n, 3)`` the box's half sizes (metres).
+        colour, colour2, params: the box's colours ``(n, 3)`` and texture parameters
+            ``(n, NUM_PARAMS)`` (see :class:`~.worlds.Boxes`; columns named in
+            :mod:`.box_params`).
+    """
+
+    table: Tensor
+    p: Tensor
+    face: Tensor
+    hh: Tensor
+    fp: Tensor
+    half: Tensor
+    colour: Tensor
+    colour2: Tensor
+    params: Tensor
 
 
 def haze(rgb: Tensor, t: Tensor) -> Tensor:
@@ -211,34 +222,19 @@ def _shade_ground(
     return out
 
 
-def _shade_facade(
-    table: Tensor,
-    p: Tensor,
-    face: Tensor,
-    hh: Tensor,
-    fp: Tensor,
-    colour: Tensor,
-    colour2: Tensor,
-    params: Tensor,
-    top: Tensor,
-) -> Tensor:
-    """Facade walls with windows, ``(n, 3)`` RGB.
-
-    The box shaders share their arguments: ``p`` ``(n, 3)`` box-local hit points (metres),
-    ``face`` ``(n,)`` the axis of the face hit (0 sides, 1 top or bottom, 2 ends), ``hh`` height
-    above the ground, ``fp`` the pixel footprint on the face (metres), ``half`` the box's half
-    sizes, ``colour``/``colour2``/``params`` the box's (see :class:`~.worlds.Boxes`; the
-    columns of ``params`` are named in :mod:`.box_params`); here ``top`` is the facade's height
-    above the ground.
-    """
-    floor_h, spacing = params[:, PARAM_FLOOR_HEIGHT], params[:, PARAM_WINDOW_SPACING]
-    win_w = params[:, PARAM_WINDOW_WIDTH] * spacing
-    win_h = params[:, PARAM_WINDOW_HEIGHT] * floor_h
-    style = params[:, PARAM_FACADE_STYLE]
-    shop = params[:, PARAM_FACADE_SHOP] < SHOP_FRONT_BELOW
-    u = torch.where(face == 0, p[:, 2], p[:, 0]) + params[:, PARAM_FACADE_OFFSET_U]
+def _shade_facade(s: _BoxSurface, top: Tensor) -> Tensor:
+    """Facade walls with windows, ``(n, 3)`` RGB; ``top`` ``(n,)`` is the facade's height above
+    the ground (metres)."""
+    table, p, face, hh, fp = s.table, s.p, s.face, s.hh, s.fp
+    colour, colour2, params = s.colour, s.colour2, s.params
+    floor_h, spacing = params[:, bp.PARAM_FLOOR_HEIGHT], params[:, bp.PARAM_WINDOW_SPACING]
+    win_w = params[:, bp.PARAM_WINDOW_WIDTH] * spacing
+    win_h = params[:, bp.PARAM_WINDOW_HEIGHT] * floor_h
+    style = params[:, bp.PARAM_FACADE_STYLE]
+    shop = params[:, bp.PARAM_FACADE_SHOP] < bp.SHOP_FRONT_BELOW
+    u = torch.where(face == 0, p[:, 2], p[:, 0]) + params[:, bp.PARAM_FACADE_OFFSET_U]
     v = hh
-    v_wall = v + params[:, PARAM_FACADE_OFFSET_V]
+    v_wall = v + params[:, bp.PARAM_FACADE_OFFSET_V]
     wall = 1.0 + fbm(table, u, v_wall, fp, [(3.0, 0.05), (0.6, 0.05), (0.12, 0.05)])
     brick_rows = periodic_dist(v, 0.075, 0.0)
     brick_cols = periodic_dist(u + 0.125 * ((v / 0.075).floor() % 2), 0.25, 0.0)
@@ -251,7 +247,7 @@ def _shade_facade(
     )
     concrete = wall * (1.0 - 0.25 * panel)
     tone = torch.where(
-        style == STYLE_BRICK, brick, torch.where(style == STYLE_CONCRETE, concrete, wall)
+        style == bp.STYLE_BRICK, brick, torch.where(style == bp.STYLE_CONCRETE, concrete, wall)
     )
     rgb = colour * tone[:, None]
     # Windows: one per (column, floor); glass of its own shade, a light frame around it.
@@ -266,7 +262,7 @@ def _shade_facade(
     shop_cov = coverage(du, 0.85 * spacing, fp) * coverage((v - 1.5).abs(), 2.2, fp) * shop
     glass_cov = torch.maximum(glass_cov, shop_cov)
     frame_cov = torch.maximum(frame_cov, shop_cov)
-    pane_row = level + 3 * params[:, PARAM_FACADE_OFFSET_U].floor()
+    pane_row = level + 3 * params[:, bp.PARAM_FACADE_OFFSET_U].floor()
     pane = 0.75 + 0.35 * cell_random(table, col, pane_row)
     glass = colour2 * pane[:, None] + 18.0 * (1 - dv / win_h.clamp_min(0.1))[:, None]
     frame = torch.tensor([215.0, 212.0, 205.0])
@@ -276,21 +272,13 @@ def _shade_facade(
     return rgb * (1 - 0.3 * plinth)
 
 
-def _shade_car(
-    table: Tensor,
-    p: Tensor,
-    face: Tensor,
-    hh: Tensor,
-    fp: Tensor,
-    half: Tensor,
-    colour: Tensor,
-    params: Tensor,
-    front_sign: float,
-) -> Tensor:
+def _shade_car(s: _BoxSurface, front_sign: float) -> Tensor:
     """Car bodies (ground to beltline): nearly uniform paint, wheels, lights, a dark sill."""
+    table, p, face, hh, fp, half = s.table, s.p, s.face, s.hh, s.fp, s.half
+    colour, params = s.colour, s.params
     along = p[:, 2]
     belt = half[:, 1] * 2 - 0.25  # body height above the ground (0.25 m are buried)
-    offset = params[:, PARAM_TEXTURE_OFFSET]
+    offset = params[:, bp.PARAM_TEXTURE_OFFSET]
     mottle = fbm(table, p[:, 0] + offset, along + hh, fp, [(0.8, 0.02), (0.2, 0.015)])
     paint = colour * (1.0 + mottle)[:, None]
     paint = paint * (0.8 + 0.2 * (hh / belt).clamp(0, 1))[:, None]
@@ -317,17 +305,10 @@ def _shade_car(
     return rgb + dark * (torch.tensor([22.0, 22.0, 24.0]) - rgb)
 
 
-def _shade_cabin(
-    table: Tensor,
-    p: Tensor,
-    face: Tensor,
-    hh: Tensor,
-    fp: Tensor,
-    half: Tensor,
-    colour: Tensor,
-    colour2: Tensor,
-) -> Tensor:
+def _shade_cabin(s: _BoxSurface) -> Tensor:
     """Car cabins: dark glass all round between painted pillars, a painted roof."""
+    p, face, fp, half = s.p, s.face, s.fp, s.half
+    colour, colour2 = s.colour, s.colour2
     pillar_side = torch.maximum(
         coverage(half[:, 2] - p[:, 2].abs(), 0.3, fp), coverage(p[:, 2].abs(), 0.12, fp)
     )
@@ -341,55 +322,45 @@ def _shade_cabin(
     return torch.where((face == 1)[:, None], colour, rgb)
 
 
-def _shade_crate(
-    table: Tensor,
-    p: Tensor,
-    face: Tensor,
-    hh: Tensor,
-    fp: Tensor,
-    half: Tensor,
-    colour: Tensor,
-    params: Tensor,
-) -> Tensor:
+def _shade_crate(s: _BoxSurface) -> Tensor:
     """Containers and vans: corrugated, weathered walls, some with a light label."""
+    table, p, face, hh, fp = s.table, s.p, s.face, s.hh, s.fp
+    colour, params = s.colour, s.params
     u = torch.where(face == 0, p[:, 2], p[:, 0])
-    period = params[:, PARAM_CRATE_RIB_PERIOD]
+    period = params[:, bp.PARAM_CRATE_RIB_PERIOD]
     rib = periodic_dist(u, period, 0.0) / period  # 0 … 0.5
     ribs = 1.0 + 0.12 * (4 * rib - 1) * fade(fp, 1.0) * (fp < period / 2)
     rust = 1.0 + fbm(
-        table, u + params[:, PARAM_TEXTURE_OFFSET], hh, fp, [(1.5, 0.08), (0.3, 0.06), (0.06, 0.05)]
+        table,
+        u + params[:, bp.PARAM_TEXTURE_OFFSET],
+        hh,
+        fp,
+        [(1.5, 0.08), (0.3, 0.06), (0.06, 0.05)],
     )
     rgb = colour * (ribs * rust)[:, None]
     label = (
         coverage(u.abs(), 2.2, fp)
         * coverage((hh - 1.3).abs(), 0.6, fp)
-        * (params[:, PARAM_CRATE_LABEL] > 0.5)
+        * (params[:, bp.PARAM_CRATE_LABEL] > 0.5)
         * (face == 0)
     )
     return rgb + label[:, None] * (torch.tensor([235.0, 235.0, 228.0]) - rgb)
 
 
-def _shade_pedestrian(
-    table: Tensor,
-    p: Tensor,
-    hh: Tensor,
-    fp: Tensor,
-    half: Tensor,
-    colour: Tensor,
-    colour2: Tensor,
-    params: Tensor,
-) -> Tensor:
+def _shade_pedestrian(s: _BoxSurface) -> Tensor:
     """Pedestrians: legs, torso, head."""
+    table, p, hh, fp, half = s.table, s.p, s.hh, s.fp, s.half
+    colour, colour2, params = s.colour, s.colour2, s.params
     top = half[:, 1] * 2
     cloth = 1.0 + fbm(
         table,
-        p[:, 0] + p[:, 2] + params[:, PARAM_TEXTURE_OFFSET],
+        p[:, 0] + p[:, 2] + params[:, bp.PARAM_TEXTURE_OFFSET],
         hh,
         fp,
         [(0.3, 0.08), (0.08, 0.06)],
     )
     rgb = torch.where((hh < 0.47 * top)[:, None], colour2, colour) * cloth[:, None]
-    return torch.where((hh > 0.85 * top)[:, None], params[:, PARAM_PEDESTRIAN_SKIN], rgb)
+    return torch.where((hh > 0.85 * top)[:, None], params[:, bp.PARAM_PEDESTRIAN_SKIN], rgb)
 
 
 def _shade_sky(table: Tensor, dx: Tensor, dy: Tensor, dz: Tensor) -> Tensor:
@@ -447,20 +418,22 @@ def _shade_boxes(
         if not len(sel):
             continue
         bs = b.index_select(0, sel)
-        kp, kface, khh, kfp, khalf = _take(sel, p, face, hh, fp, half)
-        colour, colour2, params = _take(bs, boxes.colour, boxes.colour2, boxes.params)
-        args = (table, kp, kface, khh, kfp)
+        surface = _BoxSurface(
+            table,
+            *_take(sel, p, face, hh, fp, half),
+            *_take(bs, boxes.colour, boxes.colour2, boxes.params),
+        )
         if k == FACADE:
             top = boxes.base.index_select(0, bs) + boxes.half.index_select(0, bs)[:, 1]
-            out = _shade_facade(*args, colour, colour2, params, top)
-            out = torch.where((kface == 1)[:, None], torch.tensor([85.0, 82.0, 80.0]), out)
+            out = _shade_facade(surface, top)
+            out = torch.where((surface.face == 1)[:, None], torch.tensor([85.0, 82.0, 80.0]), out)
         elif k in (PARKED_CAR, CAR):
-            out = _shade_car(*args, khalf, colour, params, 1.0)
+            out = _shade_car(surface, 1.0)
         elif k == CABIN:
-            out = _shade_cabin(*args, khalf, colour, colour2)
+            out = _shade_cabin(surface)
         elif k == CRATE:
-            out = _shade_crate(*args, khalf, colour, params)
+            out = _shade_crate(surface)
         else:
-            out = _shade_pedestrian(table, kp, khh, kfp, khalf, colour, colour2, params)
+            out = _shade_pedestrian(surface)
         rgb.index_copy_(0, sel, out)
     return rgb * (0.58 + 0.42 * lambert)[:, None]

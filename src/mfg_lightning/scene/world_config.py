@@ -5,7 +5,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["WorldConfig"]
+__all__ = ["Range", "WorldConfig"]
+
+#: A range ``(lo, hi)`` from which a quantity is drawn uniformly.
+Range = tuple[float, float]
 
 
 @dataclass(frozen=True)
@@ -43,16 +46,16 @@ class WorldConfig:
     parking_width: float = 2.2
     sidewalk_width: float = 3.0
     facade_coverage: float = 0.8
-    facade_setback: tuple[float, float] = (0.3, 6.0)
-    facade_length: tuple[float, float] = (8.0, 30.0)
-    facade_depth: tuple[float, float] = (8.0, 16.0)
-    facade_height: tuple[float, float] = (6.0, 20.0)
+    facade_setback: Range = (0.3, 6.0)
+    facade_length: Range = (8.0, 30.0)
+    facade_depth: Range = (8.0, 16.0)
+    facade_height: Range = (6.0, 20.0)
     parked_per_100m: float = 6.0
     crate_fraction: float = 0.2
     cars_per_100m: float = 2.5
-    car_speed: tuple[float, float] = (0.4, 1.3)
+    car_speed: Range = (0.4, 1.3)
     pedestrians_per_100m: float = 3.0
-    pedestrian_speed: tuple[float, float] = (0.08, 0.16)
+    pedestrian_speed: Range = (0.08, 0.16)
     exposure_std: float = 0.04
     exposure_corr: float = 0.9
     sensor_noise: float = 1.0
