@@ -201,7 +201,13 @@ def check_data_root(data_root: str | os.PathLike | None, point_at: str, layout: 
         raise DataRootError(f"dataset.data_root is not set: point it at {point_at}{tail}")
     root = Path(data_root).expanduser()
     if not root.is_dir():
-        raise DataRootError(f"dataset.data_root={root} is not a directory{tail}")
+        # The dataset configs default data_root below paths.data_dir, so the path may come from
+        # no setting the user typed: say both ways of pointing it at the data.
+        where = "" if root.is_absolute() else f" (relative to {Path.cwd()})"
+        raise DataRootError(
+            f"dataset.data_root={root}{where} is not a directory: point it at {point_at}, or set "
+            f"MFG_DATA_DIR to the folder holding the datasets (kitti/, vkitti/){tail}"
+        )
     return root
 
 
