@@ -23,7 +23,7 @@ The report, written into ``--out`` (default ``<multirun dir>/report/``), each fi
   single job's ATE is over its snippets.
 
 Main metrics (units as logged by the module): ``ate`` ± ``ate_std`` (m, ATE over 5-frame snippets,
-``../shared/docs/protocols.md``), ``rpe_trans`` (m) and ``rpe_rot`` (rad), ``trans_err`` (m) and
+``docs/protocols.md``), ``rpe_trans`` (m) and ``rpe_rot`` (rad), ``trans_err`` (m) and
 ``rot_err`` (rad) per frame, ``active_fraction`` (fraction of hidden units with a non-zero
 activation per test input, measured *after* top-k, so at most ``top_k``), ``train_seconds``.
 

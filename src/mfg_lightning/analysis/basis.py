@@ -8,7 +8,7 @@ activation ``e_j`` gives its translational basis field (at unit inverse depth, Ï
 rotational basis field, ``(2, H, W)`` pixels per frame at the input resolution. The unit's
 *preferred* translation ``t_j`` (m per frame) and rotation ``Ï‰_j`` (rad per frame) are the
 closed-form egomotion of those fields, :func:`mfg_lightning.core.geometry.recover_motion` with the
-test inputs' intrinsics (``../shared/docs/protocols.md``, "Basis selectivity"): the motion the
+test inputs' intrinsics (``docs/protocols.md``, "Basis selectivity"): the motion the
 unit stands for at activation 1. They follow this project's convention, the camera's own motion
 (driving forward: ``t_z > 0``); the paper prints the opposite sign (the scene's motion relative to
 the camera). Units are ordered by the L2 norm of their decoder weights, both decoders' columns

@@ -11,7 +11,7 @@ composed, so ``dataset.trajectory=kitti dataset.poses_dir=…``, ``dataset.train
 (same name and seed), every frame is rendered once
 (:func:`~mfg_lightning.scene.render.render_frame`) and, for Virtual KITTI, the forward flow of
 frame ``t → t + 1`` is the exact flow from that rendering
-(:func:`~mfg_lightning.scene.render.exact_flow`). Layouts (``../shared/docs/formats.md``)::
+(:func:`~mfg_lightning.scene.render.exact_flow`). Layouts (``docs/formats.md``)::
 
     layout=kitti (any size; default KITTI 00's 1241 × 376 and its P2)
     sequences/XX/image_2/000000.png …   8-bit RGB

@@ -2,7 +2,7 @@
 disk) or the user's own files: the ``flow`` config group (``flow=dis``, the default, or
 ``flow=files``).
 
-Layout read (``../shared/docs/formats.md``; ``data_root`` is the unpacked download, never
+Layout read (``docs/formats.md``; ``data_root`` is the unpacked download, never
 written to)::
 
     <data_root>/sequences/XX/image_2/000000.png …   left colour camera, 8-bit PNG

@@ -1,6 +1,6 @@
 """Virtual KITTI 1.3.1 and 2.0.3 as Lightning DataModules with the paper's two splits.
 
-Layouts read (``../shared/docs/formats.md``; ``data_root`` is the directory holding the unpacked
+Layouts read (``docs/formats.md``; ``data_root`` is the directory holding the unpacked
 tarballs, never written to)::
 
     1.3.1 (version=1)

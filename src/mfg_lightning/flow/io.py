@@ -8,7 +8,7 @@ Every reader returns numpy arrays in one layout, whatever the file format:
 * depth: ``(H, W)`` float32 metres along the camera z axis;
 * RGB images: ``(H, W, 3)`` uint8 in R, G, B order.
 
-Formats (``../shared/docs/formats.md``):
+Formats (``docs/formats.md``):
 
 ==========================  ===============================================================
 Middlebury ``.flo``         float32 magic 202021.25, int32 width, int32 height, then

@@ -1,6 +1,6 @@
 """Evaluation metrics, each a :class:`torchmetrics.Metric` with a functional twin.
 
-Trajectory metrics (``../shared/docs/protocols.md``):
+Trajectory metrics (``docs/protocols.md``):
 
 * :mod:`.ate`: ATE over 5-frame snippets (Zhou et al. 2017; the paper's Table 1);
 * :mod:`.ate_traj`: whole-trajectory ATE after an alignment (``evo_ape``, kitti-odom-eval);

@@ -1,6 +1,6 @@
 """Absolute trajectory error over short snippets (Zhou et al. 2017; the paper's Table 1).
 
-Definition (``../shared/docs/protocols.md``, "ATE over 5-frame snippets"), for one snippet of
+Definition (``docs/protocols.md``, "ATE over 5-frame snippets"), for one snippet of
 ``L`` frames with ground-truth positions ``g_k`` and predicted positions ``p_k``, both expressed in
 the camera of the snippet's first frame (so the first position is the origin):
 

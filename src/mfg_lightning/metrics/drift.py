@@ -1,6 +1,6 @@
 """KITTI odometry drift (Geiger et al. 2012, the KITTI odometry devkit's ``evaluate_odometry``).
 
-Definition (``../shared/docs/protocols.md``, "KITTI odometry drift", as computed by the devkit's
+Definition (``docs/protocols.md``, "KITTI odometry drift", as computed by the devkit's
 ``calcSequenceErrors``), for ground-truth poses ``Q`` and estimated poses ``P`` of one sequence:
 
 * ``dist[k]``: the ground-truth path length from frame 0 to frame k (sum of the distances between
@@ -242,8 +242,8 @@ def kitti_drift(pred: Tensor, target: Tensor, **options: Any) -> MetricValues:
     Returns:
         ``{"drift_t_err", "drift_r_err"}`` (:data:`DRIFT_NAMES`): float64 scalars, the mean
         translational error in % of the distance travelled and the mean rotational error in
-        degrees per 100 m; NaN without segments. ``"t_err"``, ``"r_err"`` (the names before
-        issue 15) still read.
+        degrees per 100 m; NaN without segments. ``"t_err"``, ``"r_err"`` (the names the function
+        returned before it took the logged ones) still read.
     """
     t_err, r_err, _ = kitti_segment_errors(pred, target, **options)
     return _drift(t_err, r_err)

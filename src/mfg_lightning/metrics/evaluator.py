@@ -4,7 +4,7 @@ The network predicts one relative motion per sample; the published metrics compa
 :class:`TrajectoryEvaluator` collects the predictions of a validation or test epoch (across
 processes under DDP), orders them by sequence and frame, forms snippets and full trajectories with
 :mod:`mfg_lightning.trajectory.trajectories` and feeds them to the metrics of this package
-(``../shared/docs/protocols.md``), one instance per sequence and one pooled over all of them:
+(``docs/protocols.md``), one instance per sequence and one pooled over all of them:
 
 * ``ate`` / ``ate_std`` / ``ate_rmse`` (:class:`~.ate.SnippetATE`): frame-by-frame snippets
   (Table 1's †) from the motions ``k → k+1``;

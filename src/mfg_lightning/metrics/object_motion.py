@@ -1,7 +1,7 @@
 """Object-motion scores: mask IoU, precision, recall and object-field end-point error.
 
 The paper reports object motion qualitatively only (§5.4, Figure 4); these scores are this
-project's addition (``shared/docs/protocols.md``, "Object motion"). They compare a predicted object
+project's addition (``docs/protocols.md``, "Object motion"). They compare a predicted object
 mask and object motion field (:func:`mfg_lightning.motion.object_motion.extract_object_motion`)
 with a
 sample's ground-truth ``object_mask`` and ``object_flow`` (:mod:`mfg_lightning.data.sample`).

@@ -1,6 +1,6 @@
 """Relative pose error (Sturm et al. 2012, the TUM RGB-D benchmark; the paper's Table 2).
 
-Definition (``../shared/docs/protocols.md``, "RPE"): for ground-truth poses ``Q`` and estimated
+Definition (``docs/protocols.md``, "RPE"): for ground-truth poses ``Q`` and estimated
 poses ``P`` of one sequence and a frame gap ``Δ``,
 
     E_i = (Q_i^-1 · Q_i+Δ)^-1 · (P_i^-1 · P_i+Δ),   i = 0 … N − 1 − Δ,
@@ -97,8 +97,8 @@ def relative_pose_error(pred: Tensor, target: Tensor, delta: int = 1) -> MetricV
     Returns:
         ``{"rpe_trans", "rpe_trans_std", "rpe_trans_rmse", "rpe_rot", "rpe_rot_std",
         "rpe_rot_rmse"}`` (:data:`RPE_NAMES`): float64 scalars, translations in pose units,
-        rotations in radians; NaN when ``N <= Δ``. The names before issue 15 (``"trans"``, …)
-        still read (:class:`~mfg_lightning.metrics.stats.MetricValues`).
+        rotations in radians; NaN when ``N <= Δ``. The names returned before the logged ones
+        (``"trans"``, …) still read (:class:`~mfg_lightning.metrics.stats.MetricValues`).
     """
     return _summary(*relative_pose_errors(pred, target, delta))
 

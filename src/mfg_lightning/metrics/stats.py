@@ -5,8 +5,8 @@
   for each when the set is empty (an undefined metric, e.g. a path shorter than a drift segment),
   never an exception.
 * :func:`cat_state`: a torchmetrics list state as one tensor (a tensor already after a DDP sync).
-* :class:`MetricValues`: a metric's results under their published names (the README's metric
-  table), which also answers to the names used before them.
+* :class:`MetricValues`: a metric's results under their published names (``docs/protocols.md``),
+  which also answers to the names used before them.
 """
 
 from __future__ import annotations
@@ -50,7 +50,8 @@ def cat_state(state: list[Tensor] | Tensor) -> Tensor:
     return dim_zero_cat(state)
 
 
-#: Names the metric functions returned before issue 15 → the published name of the same quantity.
+#: Names the metric functions returned before they took the published (logged) names → the
+#: published name of the same quantity; results written with the old names still read.
 RENAMED: dict[str, str] = {
     **{
         f"{part}{stat}": f"rpe_{part}{stat}"

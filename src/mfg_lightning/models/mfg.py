@@ -7,7 +7,8 @@ upsampled bilinearly to the input resolution. Each decoder column is one unit's 
 
 Precision: under autocast (``trainer.precision=bf16-mixed`` / ``16-mixed``) the encoder runs in
 the low precision; the decoders and the upsampling always run in float32, so the fields come out
-in float32 (a recovery from bf16-rounded fields errs by up to 5e-4 m, issue 22).
+in float32: recovering (t, ω) from exact 48 × 128 fields rounded to bfloat16 errs by up to
+4.7e-4 m, against 3e-6 m from the float32 fields (the 64 motions of ``tests/test_precision.py``).
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Object motion: compensate the predicted egomotion field, then mask the residual (paper §4).
 
 The definitions come from the paper's section 4 ("Object motion extraction", Filters 1 and 2) and
-section 5.4 (parameter values), as restated in ``shared/docs/protocols.md`` ("Object motion"):
+section 5.4 (parameter values), as restated in ``docs/protocols.md`` ("Object motion"):
 
 * egomotion field ``ṽ = ρ ṽ_t + ṽ_ω`` with ``ρ = 1/depth`` (:func:`egomotion_field`);
 * residual ``r = v̂ − ṽ`` (:func:`residual`);
