@@ -89,17 +89,18 @@ def test_tiny_study_runs_resumes_and_rebuilds_from_committed_results(tmp_path: P
         assert f"| {name} |" in conv, name
     assert str(tmp_path) not in text
     checkpoints = {p: p.stat().st_mtime_ns for p in work.glob("models/*/checkpoints/*.ckpt")}
-    # main, table2, 4 sparsity models (w_s 0, 100, input scale, low rate), balance, 2 recipes:
-    # the tiny main model runs past the other models' 2-step cap, so no model reuses its run
+    # main, its second seed, table2, 4 sparsity models (w_s 0, 100, input scale, low rate),
+    # balance, 2 recipes: the tiny main model runs past the other models' 2-step cap, so no
+    # model reuses its run
     assert {p.parts[-3] for p in checkpoints} == {
-        "main", "table2", "ws0", "ws100", "ws100_scale0.2", "ws100_lr0.0001", "balance_squared",
-        "recipe_cpu", "recipe_paper",
+        "main", "seed1", "table2", "ws0", "ws100", "ws100_scale0.2", "ws100_lr0.0001",
+        "balance_squared", "recipe_cpu", "recipe_paper",
     }  # fmt: skip
     recipe = json.loads((results / "recipe.json").read_text())
     assert "same_as" not in recipe["cpu"] and recipe["cpu"]["epochs"] >= 0.5
     assert recipe["paper"]["epochs"] >= 0.5 and recipe["paper"]["batch_size"] == 1
     stage_files = sorted(p.relative_to(results) for p in results.glob("**/*.json"))
-    assert len(stage_files) == 13
+    assert len(stage_files) == 14
     for f in stage_files:
         assert str(tmp_path) not in (results / f).read_text(), f
 

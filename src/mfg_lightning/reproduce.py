@@ -31,7 +31,8 @@ def reproduce(cfg: DictConfig, trainer_choice: str = "default") -> Path:
         for d in (study.work, study.results):
             if d.exists():
                 shutil.rmtree(d)
-    (study.results / "sparsity").mkdir(parents=True, exist_ok=True)
+    for group in ("sparsity", "seeds"):
+        (study.results / group).mkdir(parents=True, exist_ok=True)
     return run(study, Path(cfg.report))
 
 

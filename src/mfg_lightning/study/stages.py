@@ -163,9 +163,16 @@ class Study:
         curve = logged_curve(out)
         for p in curve:
             p["samples"] = int(p["step"]) * batch
+        from mfg_lightning.run.runs import cpu_kind
+
+        # the precision the run trained in (``auto`` made concrete in its config.yaml) and the
+        # CPU kind: seeds trained on different machines differ in both, and the report says so
+        precision = str(OmegaConf.load(out / "config.yaml").trainer.get("precision", "32-true"))
         return {
             "name": name,
             "overrides": list(extra),
+            "precision": precision,
+            "cpu_kind": cpu_kind() if not torch.cuda.is_available() else "cuda",
             "steps": ran,
             "step_cap": int(steps),
             "time_cap": max_time,
