@@ -85,13 +85,15 @@ def pose_results_table(
     results: Mapping[str, Mapping[str, float | int | None]], title: str
 ) -> Table:
     """``mfg-eval-poses``: one row per method of the flat metrics of
-    :func:`mfg_lightning.evaluate_poses.summarise` (whole-trajectory ATE with its fitted scale,
-    5-frame snippet ATE, RPE, KITTI drift)."""
+    :func:`mfg_lightning.metrics.pose_evaluation.summarise` (whole-trajectory ATE with its fitted
+    scale, snippet ATE, RPE, KITTI drift). Each heading names its statistic (RMSE, mean, std)
+    and its elements (``traj``: over poses; ``snippet``: over snippets; RPE: over pairs; the
+    drift over KITTI's segments), so no two columns use one word for two things."""
     table = Table([
         Column("method"), Column("ATE traj RMSE", "m"), Column("ATE traj mean", "m"),
-        Column("ATE traj std", "m"), Column("scale"), Column("ATE 5-frame", "m"),
-        Column("ATE 5-frame std", "m"), Column("RPE trans", "m"), Column("RPE rot", "rad", 5),
-        Column("t_err", "%", 2), Column("r_err", "deg/100m", 2),
+        Column("ATE traj std", "m"), Column("scale"), Column("ATE snippet mean", "m"),
+        Column("ATE snippet std", "m"), Column("RPE trans mean", "m"),
+        Column("RPE rot mean", "rad", 5), Column("t_err", "%", 2), Column("r_err", "deg/100m", 2),
     ], title=title)  # fmt: skip
     keys = ("ate_traj", "ate_traj_mean", "ate_traj_std", "ate_traj_scale", "ate", "ate_std",
             "rpe_trans", "rpe_rot", "drift_t_err", "drift_r_err")  # fmt: skip

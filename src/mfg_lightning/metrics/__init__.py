@@ -55,7 +55,7 @@ from mfg_lightning.metrics.rpe import (
     relative_pose_error,
     relative_pose_errors,
 )
-from mfg_lightning.metrics.stats import MetricValues, summary
+from mfg_lightning.metrics.stats import STATISTICS, MetricValues, statistics, summary
 
 __all__ = [
     "ALIGN_MODES",
@@ -63,6 +63,7 @@ __all__ = [
     "ATE_TRAJ_NAMES",
     "DRIFT_NAMES",
     "RPE_NAMES",
+    "STATISTICS",
     "Alignment",
     "EvaluationResult",
     "KittiDrift",
@@ -85,6 +86,7 @@ __all__ = [
     "snippet_ate",
     "snippet_ate_errors",
     "snippet_ate_from_errors",
+    "statistics",
     "summary",
     "umeyama",
 ]

@@ -18,9 +18,14 @@ estimated and ``g_k`` the ground-truth positions (translation columns of camera-
   for ``scale``, then Umeyama's similarity is fitted but only its scale ``s`` is applied to the
   estimated positions (no rotation, no translation).
 
+* ``sim3_scale``: ``evo_ape -s`` without ``-a``: Umeyama's similarity is fitted to the positions
+  as they are, and only its scale is applied, ``p_k ← s p_k`` (about the world origin); with
+  ``align_origin`` the first poses are made equal after the scaling, as evo does.
+
 ``n_to_align`` fits the alignment on the first ``n`` poses only and applies it to all (evo's
-``--n_to_align``; the first ``min(n, N)`` poses, as evo slices); ``se3``, ``sim3`` and
-``scale_7dof`` need at least 3 of them. The fitted scale is reported (1 for ``none`` and ``se3``).
+``--n_to_align``; the first ``min(n, N)`` poses, as evo slices); ``se3``, ``sim3``,
+``sim3_scale`` and ``scale_7dof`` need at least 3 of them. The fitted scale is reported (1 for
+``none`` and ``se3``).
 
 ``align_origin`` (evo's ``--align_origin``) first moves the estimate so that its first pose is the
 ground truth's, ``P_k ← Q_0 · P_0^-1 · P_k``. Position errors are then those of both trajectories
@@ -67,9 +72,9 @@ __all__ = [
     "umeyama",
 ]
 
-AlignMode = Literal["none", "se3", "sim3", "scale", "scale_7dof"]
+AlignMode = Literal["none", "se3", "sim3", "scale", "scale_7dof", "sim3_scale"]
 #: The alignment modes, in the order the command line lists them.
-ALIGN_MODES: tuple[str, ...] = ("none", "se3", "sim3", "scale", "scale_7dof")
+ALIGN_MODES: tuple[str, ...] = ("none", "se3", "sim3", "scale", "scale_7dof", "sim3_scale")
 #: kitti-odom-eval's ``--align`` name of each mode (its default, no ``--align``, is ``none`` with
 #: ``align_origin``).
 KITTI_ODOM_EVAL_NAMES: dict[str, str] = {
@@ -175,7 +180,7 @@ def align_trajectory(
     Args:
         pred: ``(N, 4, 4)`` estimated camera-to-world poses, in frame order, any world frame.
         target: ``(N, 4, 4)`` ground-truth camera-to-world poses of the same frames (metres).
-        mode: ``"none"``, ``"se3"``, ``"sim3"``, ``"scale"`` or ``"scale_7dof"``.
+        mode: one of :data:`ALIGN_MODES` (module docstring).
         n_to_align: fit on the first ``min(n_to_align, N)`` poses; ``None``: all of them.
         align_origin: first put the estimate's first pose on the ground truth's (evo's
             ``--align_origin``; kitti-odom-eval's expression relative to the first frame).
@@ -196,6 +201,15 @@ def align_trajectory(
     eye = torch.eye(3, dtype=P.dtype, device=P.device)
     zero = torch.zeros(3, dtype=P.dtype, device=P.device)
     one = torch.ones((), dtype=P.dtype, device=P.device)
+    if mode == "sim3_scale":
+        if n < 3:
+            raise ValueError(f"{mode} alignment needs at least 3 poses to fit a rotation, got {n}")
+        s = umeyama(P[:n, :3, 3], Q[:n, :3, 3])[2]
+        P = P.clone()
+        P[:, :3, 3] = s * P[:, :3, 3]
+        if align_origin:  # evo scales first, then moves the first pose onto the ground truth's
+            P = Q[:1] @ relative_poses(P[:1], P, project)
+        return Alignment(P, Q, eye, zero, s, mode, n)
     if align_origin:
         P = Q[:1] @ relative_poses(P[:1], P, project)
     if mode == "none":

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import torch
 from torch import Tensor
 from torchmetrics import Metric
 
@@ -36,7 +37,13 @@ from mfg_lightning.trajectory.trajectories import (
     relative_poses,
 )
 
-__all__ = ["RPE_NAMES", "RelativePoseError", "relative_pose_error", "relative_pose_errors"]
+__all__ = [
+    "RPE_NAMES",
+    "RelativePoseError",
+    "relative_error_poses",
+    "relative_pose_error",
+    "relative_pose_errors",
+]
 
 
 def _check_sequence(pred: Tensor, target: Tensor, delta: int) -> None:
@@ -62,12 +69,30 @@ def relative_pose_errors(
         and the rotation angle of ``E_i`` in radians.
     """
     _check_sequence(pred, target, delta)
+    first = torch.arange(max(pred.shape[0] - delta, 0), device=pred.device)
+    error = relative_error_poses(pred, target, first, first + delta, project)
+    return error[:, :3, 3].norm(dim=-1), geometry.rotation_angle(error[:, :3, :3])
+
+
+def relative_error_poses(
+    pred: Tensor, target: Tensor, first: Tensor, second: Tensor, project: bool = True
+) -> Tensor:
+    """The RPE's error poses ``E = (Q_i^-1 · Q_j)^-1 · (P_i^-1 · P_j)`` of the pairs ``(i, j)``.
+
+    Args:
+        pred, target: ``(N, 4, 4)`` estimated and ground-truth camera-to-world poses.
+        first, second: ``(K,)`` int64 rows ``i`` and ``j`` of each pair.
+        project: as :func:`relative_pose_errors`.
+
+    Returns:
+        ``(K, 4, 4)`` float64 error poses (translation in pose units).
+    """
     P = evaluation_poses(pred, project)
     Q = evaluation_poses(target, project).to(P.device)
-    motion_est = relative_poses(P[:-delta], P[delta:], project)
-    motion_gt = relative_poses(Q[:-delta], Q[delta:], project)
-    error = relative_poses(motion_gt, motion_est, project)
-    return error[:, :3, 3].norm(dim=-1), geometry.rotation_angle(error[:, :3, :3])
+    first, second = first.to(P.device), second.to(P.device)
+    motion_est = relative_poses(P[first], P[second], project)
+    motion_gt = relative_poses(Q[first], Q[second], project)
+    return relative_poses(motion_gt, motion_est, project)
 
 
 #: The published names of :func:`relative_pose_error` and :class:`RelativePoseError`.

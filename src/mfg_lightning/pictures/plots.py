@@ -30,6 +30,7 @@ if TYPE_CHECKING:
     from mfg_lightning.metrics import Alignment
 
 __all__ = [
+    "PLOT_MODES",
     "TrajectoryCurves",
     "bar_figure",
     "curves_from_alignment",
@@ -161,27 +162,37 @@ def _new_figure(width: float, height: float) -> Figure:
     return Figure(figsize=(width, height), dpi=_DPI, layout="constrained")
 
 
+#: evo's ``--plot_mode`` values: the axes a trajectory is drawn on (``xyz``: in 3D).
+PLOT_MODES: tuple[str, ...] = ("xz", "xy", "yx", "yz", "zx", "zy", "xyz")
+
+
 def trajectory_figure(
-    gt_xz: np.ndarray, methods: Mapping[str, np.ndarray], title: str = ""
+    gt_xz: np.ndarray, methods: Mapping[str, np.ndarray], title: str = "", axes: str = "xz"
 ) -> Figure:
-    """Top-down view (x–z plane, KITTI's ground plane) of every method over the ground truth.
+    """Every method over the ground truth, seen along ``axes`` (default the x–z plane, KITTI's
+    ground plane, top-down; ``xy`` for z-up data such as TUM and EuRoC; ``xyz`` in 3D).
 
     Args:
-        gt_xz: ``(N, 2)`` ground-truth (x, z) positions in metres.
-        methods: method name → ``(N_m, 2)`` its (x, z) positions in metres, in colour order.
+        gt_xz: ``(N, len(axes))`` ground-truth positions on ``axes`` in metres.
+        methods: method name → ``(N_m, len(axes))`` its positions, in colour order.
         title: the figure title.
+        axes: one of :data:`PLOT_MODES`.
     """
     fig = _new_figure(6.4, 6.0)
-    ax = fig.add_subplot()
-    ax.plot(gt_xz[:, 0], gt_xz[:, 1], color=GT_COLOUR, lw=2.2, label="ground truth")
+    ax = fig.add_subplot(projection="3d" if len(axes) == 3 else None)
+    ax.plot(*gt_xz.T, color=GT_COLOUR, lw=2.2, label="ground truth")
     for i, (name, xz) in enumerate(methods.items()):
-        ax.plot(xz[:, 0], xz[:, 1], color=method_colour(i), lw=1.3, label=name)
+        ax.plot(*xz.T, color=method_colour(i), lw=1.3, label=name)
     # Hollow and on top: a method that barely moves stays visible inside it.
-    ax.plot(gt_xz[0, 0], gt_xz[0, 1], "o", color=GT_COLOUR, mfc="none", ms=9, mew=1.5,
+    ax.plot(*gt_xz[:1].T, "o", color=GT_COLOUR, mfc="none", ms=9, mew=1.5,
             label="start", zorder=5)  # fmt: skip
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("z (m)")
+    if len(axes) == 2:
+        ax.set_aspect("equal", adjustable="datalim")
+    else:  # equal scales on the three axes (matplotlib's 3D "equal")
+        ax.set_box_aspect(np.ptp(np.concatenate([gt_xz, *methods.values()]), axis=0) + 1e-9)
+        ax.set_zlabel(f"{axes[2]} (m)")
+    ax.set_xlabel(f"{axes[0]} (m)")
+    ax.set_ylabel(f"{axes[1]} (m)")
     ax.grid(True, alpha=0.3)
     ax.legend(loc="best", fontsize="small")
     ax.set_title(title, fontsize="medium")
