@@ -10,7 +10,7 @@ Adam), the same samples already in memory (pre-collated batches, cycled) and bat
    Trainer (``MFGLitModule.training_step``) and a bare PyTorch loop written here (the same
    fields, forward, loss, backward and optimiser step; bf16: the encoder under CPU autocast, the
    decoders in float32, as the module runs it), all four interleaved; Lightning / bare (target
-   ≥ 0.95×), bf16 / float32 (issue 22: ≥ 2.2× at batch 32, ≥ 1.8× at 16), each rate as a
+   ≥ 0.95×), bf16 / float32 (target ≥ 2.2× at batch 32, ≥ 1.8× at 16), each rate as a
    fraction of its own dtype's GEMM peak.
 2. inference from flow to (t, ω) (``predict_motion``) against the bare forward. Target ≤ +10 %.
 3. loader-only samples per second (the exact-flow generator in the training process and in one

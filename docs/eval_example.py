@@ -1,4 +1,5 @@
-"""Regenerate the README's pose-evaluation example (``docs/img/eval_*.png`` and its table).
+"""Regenerate the pose-evaluation example of ``docs/evaluate_poses.md`` (``docs/img/eval_*.png``
+and its table).
 
 Two made-up "methods" on the real KITTI ground truth of sequences 09 and 10: ``stereo`` composes
 the true frame-to-frame motions with small errors (metric scale, slow drift); ``mono`` has larger

@@ -271,8 +271,8 @@ def test_drift_by_length_is_the_mean_of_each_length() -> None:
 
 
 def test_published_names_and_the_earlier_ones() -> None:
-    """``drift_t_err`` / ``drift_r_err`` (the README's names) from every drift function; the
-    names before them (``"t_err"``) still read the same values."""
+    """``drift_t_err`` / ``drift_r_err`` (the names logged and defined in docs/protocols.md) from
+    every drift function; the names before them (``"t_err"``) still read the same values."""
     gt = _drive(300, 8)
     P, Q = torch.from_numpy(_perturbed_estimate(gt, 9)), torch.from_numpy(gt)
     metric = KittiDrift()

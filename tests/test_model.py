@@ -137,7 +137,7 @@ def test_input_scale_multiplies_the_flow_before_the_encoder() -> None:
 
 def test_config_defaults_are_the_released_codes_and_match_the_code() -> None:
     """One default per setting: conf/model/mfg.yaml and the constructors agree, and both follow
-    the authors' released code where the paper is silent or ambiguous (README)."""
+    the authors' released code where the paper is silent or ambiguous (docs/configuration.md)."""
     import inspect
 
     from mfg_lightning.core.config import compose

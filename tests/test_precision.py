@@ -1,4 +1,4 @@
-"""Precision as a setting (issue 22): float32 geometry, losses, object motion and metrics under
+"""Precision as a setting: float32 geometry, losses, object motion and metrics under
 any autocast; ``*-true`` refused; ``16-mixed`` from its first step; no host synchronisation in a
 training step outside the logging steps; the GPU configs and ``bench/gpu_check.py`` on a CPU.
 """
@@ -61,8 +61,9 @@ def _motions(n: int = 64, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, to
 
 @pytest.mark.parametrize("precision", sorted(LOW))
 def test_recovering_exact_fields_under_autocast_gives_float32_answer(precision: str) -> None:
-    """The issue's measurement: in bf16 the recovery erred by up to 2.2e-3 m / 8.5e-5 rad (fx
-    74.145 cast to 74.0); under autocast it now gives float32's answer."""
+    """Measured before the geometry widened its arguments: in bf16 the recovery erred by up to
+    2.2e-3 m / 8.5e-5 rad (fx 74.145 cast to 74.0); under autocast it now gives float32's
+    answer."""
     t, w, K = _motions()
     v_t = G.translational_field(t, K, H, W)
     v_w = G.rotational_field(w, K, H, W)

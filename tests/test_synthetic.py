@@ -139,8 +139,8 @@ class _RecordOffsets(L.Callback):
 @pytest.mark.slow
 @pytest.mark.parametrize("flow", [["flow=exact"], ["flow=dis", "flow.height=64", "flow.width=128"]])
 def test_training_on_plus_minus_one_and_two_offsets(tmp_path: Path, flow: list[str]) -> None:
-    """Issue 13's synthetic training on ±1, ±2 offsets, with exact and with DIS flow: a short
-    real training whose training samples carry those offsets."""
+    """The reproduction study's synthetic training on ±1, ±2 offsets, with exact and with DIS
+    flow: a short real training whose training samples carry those offsets."""
     cfg = compose(
         "train",
         ["debug=tiny", "dataset.offsets=[-2,-1,1,2]", "logger=none", "callbacks=none", *flow,

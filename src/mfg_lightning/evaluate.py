@@ -13,7 +13,7 @@ trajectory before the figures are drawn (their titles name it) and before the wh
 metrics are computed: ``ate_traj*``, RPE and drift are then those of the aligned trajectory of each
 sequence (:func:`~mfg_lightning.metrics.aligned_trajectory_metrics`, as ``mfg-eval-poses
 --align``), the snippet ATE (which aligns each snippet itself) and the pose files are unchanged.
-The README's "Evaluation" lists the files. Trainer and loggers are configured as in training."""
+``docs/evaluation.md`` lists the files. Trainer and loggers are configured as in training."""
 
 from __future__ import annotations
 
