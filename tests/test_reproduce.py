@@ -171,8 +171,8 @@ def test_a_run_whose_val_ate_was_never_defined_is_evaluated_at_its_last_checkpoi
 
 
 def test_verdict_rules_on_hand_made_results() -> None:
-    """The rules of the issue on numbers a reader can check: a rotation 60 % worse than the
-    best classical method fails claim 3's rotation part; the paper's * / † ratio missed by
+    """The verdict rules (claims.RULES) on numbers a reader can check: a rotation 60 % worse than
+    the best classical method fails claim 3's rotation part; the paper's * / † ratio missed by
     5.4 % is partly; a recipe shorter than one epoch is not judged; a collapsed sweep model is
     reported as collapsed, outside claim 2's verdict."""
     from mfg_lightning.study import claims as C
