@@ -30,7 +30,25 @@ def flow_to_rgb(flow: torch.Tensor | np.ndarray, max_norm: float | None = None) 
     if max_norm is None:
         max_norm = float(np.sqrt((uv**2).sum(-1)).max())
     uv = uv / max(max_norm, 1e-9)
-    return flow_vis.flow_to_color(uv.clip(-1, 1), convert_to_bgr=False)
+    # Saturate at the rim instead of flow_vis's dimmed "out of range" colours; and call its
+    # wheel directly: flow_vis.flow_to_color normalises every field by its own maximum again,
+    # which would undo a shared max_norm (ground truth and prediction drawn alike).
+    uv = uv / np.maximum(np.sqrt((uv**2).sum(-1, keepdims=True)), 1.0)
+    return flow_vis.flow_uv_to_colors(uv[..., 0], uv[..., 1], convert_to_bgr=False)
+
+
+def colour_wheel(size: int = 65) -> np.ndarray:
+    """The colour key of :func:`flow_to_rgb`: ``(size, size, 4)`` uint8 RGBA, a disc whose
+    centre is no motion and whose rim is a motion of ``max_norm`` in the direction from the
+    centre (image axes: x right, y down, as the fields are drawn); transparent outside."""
+    c = (size - 1) / 2
+    y, x = np.mgrid[0:size, 0:size].astype(np.float64)
+    uv = np.stack([(x - c) / c, (y - c) / c])
+    inside = (uv**2).sum(0) <= 1.0
+    rgba = np.zeros((size, size, 4), dtype=np.uint8)
+    rgba[..., :3] = flow_to_rgb(uv, max_norm=1.0)
+    rgba[..., 3] = np.where(inside, 255, 0)
+    return rgba
 
 
 def flows_to_rgb(flows: torch.Tensor, shared_norm: bool = True) -> torch.Tensor:

@@ -31,6 +31,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "PLOT_MODES",
+    "SEQUENCE_FIGURES",
     "TrajectoryCurves",
     "bar_figure",
     "curves_from_alignment",
@@ -262,35 +263,50 @@ def error_along_trajectory_figure(
     return fig
 
 
+#: The figures of :func:`sequence_figures`, in their order.
+SEQUENCE_FIGURES = ("trajectory", "drift", "error")
+
+
 def sequence_figures(
-    sequence: str, curves: Mapping[str, TrajectoryCurves], align: str = "none"
+    sequence: str,
+    curves: Mapping[str, TrajectoryCurves],
+    align: str = "none",
+    kinds: Sequence[str] = SEQUENCE_FIGURES,
 ) -> dict[str, Figure]:
-    """The three figures of one sequence: ``trajectory``, ``drift`` and ``error``.
+    """The figures of one sequence: ``trajectory``, ``drift`` and ``error``.
+
+    What ``evaluate`` writes, and what training logs at each validation
+    (:class:`mfg_lightning.run.figures.TensorBoardFigures`).
 
     Args:
         sequence: its name, for the titles.
         curves: method name → its :class:`TrajectoryCurves` on this sequence (colour order).
         align: the alignment used, for the titles (``origin``: the first poses made equal).
+        kinds: the figures to draw, of :data:`SEQUENCE_FIGURES`.
     """
     if not curves:
         raise ValueError(f"no method to draw for sequence {sequence}")
+    unknown = set(kinds) - set(SEQUENCE_FIGURES)
+    if unknown:
+        raise ValueError(f"unknown sequence figures {sorted(unknown)}: use {SEQUENCE_FIGURES}")
     aligned = "not aligned" if align == "none" else f"{align}-aligned"
     first = next(iter(curves.values()))
-    return {
-        "trajectory": trajectory_figure(
+    draw = {
+        "trajectory": lambda: trajectory_figure(
             first.gt_xyz[:, [0, 2]],
             {name: c.pred_xyz[:, [0, 2]] for name, c in curves.items()},
             f"sequence {sequence}: top-down (x–z), {aligned}",
         ),
-        "drift": drift_by_length_figure(
+        "drift": lambda: drift_by_length_figure(
             {name: c.drift for name, c in curves.items()},
             f"sequence {sequence}: KITTI drift per segment length, {aligned}",
         ),
-        "error": error_along_trajectory_figure(
+        "error": lambda: error_along_trajectory_figure(
             {name: (c.distance, c.error) for name, c in curves.items()},
             f"sequence {sequence}: position error along the trajectory, {aligned}",
         ),
     }
+    return {kind: draw[kind]() for kind in SEQUENCE_FIGURES if kind in kinds}
 
 
 def save_figures(figures: Mapping[str, Figure], directory: str | Path, prefix: str) -> list[Path]:
