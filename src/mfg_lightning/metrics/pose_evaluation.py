@@ -54,6 +54,7 @@ __all__ = [
     "element_statistics",
     "evaluate_trajectory",
     "pose_relation_errors",
+    "rotation_angle_atan2",
     "rpe_pairs",
     "sequence_errors",
     "summarise",
@@ -177,8 +178,23 @@ def pose_relation_errors(E: Tensor, relation: str) -> Tensor:
     if relation == "full":
         eye = torch.eye(4, dtype=E.dtype, device=E.device)
         return (E - eye).flatten(1).norm(dim=-1)
-    angle = geometry.rotation_angle(E[:, :3, :3])
+    angle = rotation_angle_atan2(E[:, :3, :3])
     return torch.rad2deg(angle) if relation == "angle_deg" else angle
+
+
+def rotation_angle_atan2(R: Tensor) -> Tensor:
+    """Angle of rotation matrices ``(..., 3, 3)`` in radians, ``atan2(sin θ, cos θ)`` with
+    ``sin θ = ‖vee(R − Rᵀ)‖ / 2`` and ``cos θ = (tr R − 1) / 2``.
+
+    evo's angle (scipy's rotation vector): accurate down to 0, where the arccos of the trace
+    (:func:`mfg_lightning.core.geometry.rotation_angle`, kitti-odom-eval's) has a floor of
+    ~1e-8 rad from float64 rounding. Used for evo's ``angle_rad`` / ``angle_deg`` relations.
+    """
+    axis = torch.stack(
+        [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1
+    )
+    cos = (R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1) / 2
+    return torch.atan2(axis.norm(dim=-1) / 2, cos)
 
 
 @dataclass(frozen=True)
