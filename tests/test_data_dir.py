@@ -90,7 +90,7 @@ def test_conf_local_is_optional_git_ignored_and_overrides(tmp_path: Path) -> Non
         "# @package _global_\npaths:\n  data_dir: /mnt/datasets\n"
     )
     with initialize_config_dir(version_base="1.3", config_dir=str(conf)):
-        for name in ("train", "evaluate", "predict"):
+        for name in ("train", "check", "evaluate", "predict"):
             cfg = hydra_compose(config_name=name, overrides=["dataset=kitti", "ckpt_path=x"])
             assert cfg.dataset.data_root == "/mnt/datasets/kitti", name
         for name in ("analyze_basis", "export"):
