@@ -83,16 +83,10 @@ class EvalOptions:
 
     def json(self) -> dict[str, Any]:
         """The options as the JSON object reports them."""
-        return {
-            "align": self.align,
-            "n_to_align": self.n_to_align,
-            "align_origin": self.align_origin,
-            "raw_rotations": self.raw_rotations,
-            "snippet_length": self.snippet_length,
-            **asdict(self.rpe),
-            "t_max_diff": self.match.max_diff,
-            "t_offset": self.match.offset,
-        }
+        own = asdict(self)
+        keys = ("align", "n_to_align", "align_origin", "raw_rotations", "snippet_length")
+        return {**{k: own[k] for k in keys}, **own["rpe"], "t_max_diff": self.match.max_diff,
+                "t_offset": self.match.offset}  # fmt: skip
 
 
 @dataclass(frozen=True)

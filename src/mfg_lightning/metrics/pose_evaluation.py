@@ -313,22 +313,10 @@ def sequence_errors(
         snippets_from_poses(P, snippet_length)[windows],
         snippets_from_poses(Q, snippet_length)[windows],
     )
-    return SequenceErrors(
-        snippet_ate=ate,
-        snippet_ate_rmse=ate_rmse,
-        rpe_trans=rpe_trans,
-        rpe_rot=rpe_rot,
-        ape=ape,
-        rpe=rpe_errors,
-        pairs=pairs,
-        drift_t=drift_t,
-        drift_r=drift_r,
-        drift_length=drift_length,
-        traj=ate_traj_errors(aligned),
-        aligned=aligned,
-        frames=rows,
-        reference=Q_all,
-    )
+    # Positional, in the order of the fields (SequenceErrors' docstring).
+    return SequenceErrors(ate, ate_rmse, rpe_trans, rpe_rot, ape, rpe_errors, pairs, drift_t,
+                          drift_r, drift_length, ate_traj_errors(aligned), aligned, rows,
+                          Q_all)  # fmt: skip
 
 
 def _cat(errors: Sequence[SequenceErrors], name: str) -> Tensor:
