@@ -1,0 +1,161 @@
+"""The seed spread of the study's measurements, and the tolerance of every verdict drawn from it.
+
+The main model is trained at several seeds (seed 0 is stage ``main``, the others stage
+``seeds/seed<n>``: the same pairs, convergence rule and step cap; the seed sets the
+initialisation and the data order). Every measurement a verdict uses is taken from each seed's
+model, so each has a mean and a spread over seeds (:class:`Spread`).
+
+A verdict compares a measurement with a bound in one direction (:func:`bounded_verdict`). Its
+tolerance (:class:`Tolerance`) is the larger of
+
+* the paper's print precision: a number printed as 0.012 stands for anything in [0.0115,
+  0.0125), so a ratio of two printed numbers is known to within the sum of their relative
+  half-units (:func:`print_precision`; 0.012 / 0.012 is known to ±8.3 %), and
+* our seed spread: two sample standard deviations over the seeds, relative to their mean (a
+  difference smaller than that cannot be told from the seed's effect with this many seeds).
+
+Nothing here reads files: the views of each seed's results are built by
+:func:`mfg_lightning.study.sentences.seed_views`.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
+from decimal import Decimal
+from typing import Any
+
+from mfg_lightning.core.tables import fmt
+
+__all__ = [
+    "SEED_SIGMAS",
+    "Spread",
+    "Tolerance",
+    "bounded_verdict",
+    "print_precision",
+    "spread_of",
+    "tolerance",
+]
+
+#: Standard deviations of the seed spread that a verdict tolerates.
+SEED_SIGMAS = 2.0
+
+HOLDS, NOT_HOLD, NOT_MEASURED = "holds", "does not hold", "not measured"
+
+
+@dataclass(frozen=True)
+class Spread:
+    """One measurement over the seeds that have it: ``values`` in seed order, ``seeds`` their
+    seeds."""
+
+    values: tuple[float, ...]
+    seeds: tuple[int, ...] = ()
+
+    @property
+    def n(self) -> int:
+        return len(self.values)
+
+    @property
+    def mean(self) -> float | None:
+        return statistics.fmean(self.values) if self.values else None
+
+    @property
+    def std(self) -> float | None:
+        """The sample standard deviation (None with fewer than two seeds)."""
+        return statistics.stdev(self.values) if self.n >= 2 else None
+
+    @property
+    def relative_std(self) -> float | None:
+        """``std / |mean|`` (None when undefined)."""
+        if self.std is None or not self.mean:
+            return None
+        return self.std / abs(self.mean)
+
+    def text(self, digits: int = 4) -> str:
+        """``mean ± std (n seeds)``, or the single value with ``(1 seed)``."""
+        if not self.values:
+            return "–"
+        if self.n == 1:
+            return f"{fmt(self.mean, digits)} (1 seed)"
+        return f"{fmt(self.mean, digits)} ± {fmt(self.std, digits)} ({self.n} seeds)"
+
+
+def spread_of(
+    views: Mapping[int, Mapping[str, Any]], measure: Callable[[Mapping[str, Any]], float | None]
+) -> Spread:
+    """``measure`` of every seed's view where it is defined and finite, in seed order."""
+    vals, seeds = [], []
+    for seed in sorted(views):
+        try:
+            v = measure(views[seed])
+        except (KeyError, TypeError, ZeroDivisionError):
+            v = None
+        if v is not None and math.isfinite(v):
+            vals.append(float(v))
+            seeds.append(seed)
+    return Spread(tuple(vals), tuple(seeds))
+
+
+def print_precision(*printed: str) -> float:
+    """The relative uncertainty that rounding leaves in a product or ratio of numbers printed
+    as ``printed`` (decimal strings as the paper prints them): the sum over them of half a unit
+    in the last printed place over the value. ``print_precision("0.012", "0.012")`` is
+    0.0005/0.012 · 2 = 0.0833."""
+    total = 0.0
+    for p in printed:
+        d = Decimal(p)
+        if d == 0:
+            raise ValueError(f"print_precision: a printed zero has no relative precision ({p!r})")
+        half_unit = Decimal(5) * Decimal(10) ** (d.as_tuple().exponent - 1)
+        total += float(half_unit / abs(d))
+    return total
+
+
+@dataclass(frozen=True)
+class Tolerance:
+    """A verdict's relative tolerance and where it comes from."""
+
+    value: float
+    printed: float
+    seeds: float | None
+    n_seeds: int
+
+    @property
+    def source(self) -> str:
+        if self.seeds is not None and self.seeds >= self.printed:
+            return f"{SEED_SIGMAS:g} sd of {self.n_seeds} seeds"
+        if self.printed > 0:
+            return "the paper's print precision"
+        return "none measured" if self.seeds is None else f"{self.n_seeds} seeds agree exactly"
+
+    def text(self) -> str:
+        return f"±{100 * self.value:.1f} % ({self.source})"
+
+
+def tolerance(spread: Spread | None, printed: float = 0.0) -> Tolerance:
+    """The larger of ``printed`` (relative) and :data:`SEED_SIGMAS` relative standard
+    deviations of ``spread`` (which may be the spread of another, analogous measurement: the
+    caller says so)."""
+    rel = spread.relative_std if spread is not None else None
+    seeds = None if rel is None else SEED_SIGMAS * rel
+    return Tolerance(max(printed, seeds or 0.0), printed, seeds, spread.n if spread else 0)
+
+
+def bounded_verdict(value: float | None, bound: float, direction: str, tol: Tolerance) -> str:
+    """Whether ``value`` is on the claimed side of ``bound`` or within the tolerance:
+    ``direction`` ``"<="`` holds when ``value ≤ bound · (1 + tol)``, ``">="`` when ``value ≥
+    bound · (1 − tol)``; an undefined value is not measured."""
+    if value is None or not math.isfinite(value):
+        return NOT_MEASURED
+    if direction == "<=":
+        return HOLDS if value <= bound * (1 + tol.value) + 1e-15 else NOT_HOLD
+    if direction == ">=":
+        return HOLDS if value >= bound * (1 - tol.value) - 1e-15 else NOT_HOLD
+    raise ValueError(f"direction must be '<=' or '>=', got {direction!r}")
+
+
+def values_text(values: Iterable[float], digits: int = 4) -> str:
+    """The per-seed values, comma separated."""
+    return ", ".join(fmt(v, digits) for v in values)

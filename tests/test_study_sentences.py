@@ -1,0 +1,144 @@
+"""The reproduction's verdicts per sentence of the paper: print precision, the seed spread's
+tolerance, bounded verdicts on hand-made results, the input-scale decision, and the generated
+prose following a changed stage result (in the report written from the committed results)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from mfg_lightning.study.noise import Spread, bounded_verdict, print_precision, tolerance
+from mfg_lightning.study.prose import input_scale_decision, para_run, reading
+from mfg_lightning.study.sentences import judge_all
+
+REPO = Path(__file__).resolve().parents[1]
+RESULTS = REPO / "bench" / "results" / "reproduction"
+POSES = REPO.parent / "shared" / "data" / "kitti_odometry" / "poses"
+
+
+def test_print_precision_and_tolerance_by_hand() -> None:
+    # 0.012 / 0.012: half a unit (0.0005) over 0.012, twice
+    assert print_precision("0.012", "0.012") == pytest.approx(2 * 0.0005 / 0.012)
+    assert print_precision("0.0011", "0.0014") == pytest.approx(0.00005 / 0.0011 + 0.00005 / 0.0014)
+    with pytest.raises(ValueError, match="zero"):
+        print_precision("0.000")
+    sp = Spread((0.0200, 0.0210, 0.0190), (0, 1, 2))
+    assert sp.mean == pytest.approx(0.02) and sp.std == pytest.approx(0.001)
+    tol = tolerance(sp, printed=0.083)
+    assert tol.value == pytest.approx(0.10) and "3 seeds" in tol.source  # 2 sd beat print
+    assert tolerance(sp, printed=0.2).source == "the paper's print precision"
+    one = tolerance(Spread((0.02,), (0,)))
+    assert one.value == 0.0 and one.source == "none measured"
+    assert bounded_verdict(1.09, 1.0, "<=", tol) == "holds"
+    assert bounded_verdict(1.11, 1.0, "<=", tol) == "does not hold"
+    assert bounded_verdict(0.91, 1.0, ">=", tol) == "holds"
+    assert bounded_verdict(0.89, 1.0, ">=", tol) == "does not hold"
+    assert bounded_verdict(None, 1.0, ">=", tol) == "not measured"
+
+
+def _view(ate09_5: float, growth_t: float = 1.0) -> dict:
+    """A seed's results with the keys the sentences read (Table 1 at 100 %, 5 %, 2 %)."""
+    full = {"09/ate": 0.010, "10/ate": 0.010, "rpe_trans": 0.1, "rpe_rot": 0.001}
+    at5 = {"09/ate": ate09_5, "10/ate": 0.010, "rpe_trans": 0.1, "rpe_rot": 0.001}
+    at2 = {"09/ate": 0.014, "10/ate": 0.012, "rpe_trans": 0.2, "rpe_rot": 0.002}
+    val = {"1": {"ate": 0.02}, "0.05": {"ate": 0.0201}, "0.02": {"ate": 0.03}}
+    bins = [{"n": 10, "mean": 1.0}, {"n": 5, "mean": growth_t}]
+    return {
+        "trained": {},
+        "table1": {"test": {"1": full, "0.05": at5, "0.02": at2}, "val": val},
+        "methods": {"bins": {"MFG (all units)": {"rot_bins": bins, "trans_bins": bins}}},
+        "basis": None,
+        "object_motion": None,
+    }
+
+
+def test_sentences_on_hand_made_seeds() -> None:
+    """S1 holds when 5 % keeps ATE † within the print precision on every seed's mean; a mean
+    above the tolerance fails it; S7 follows MFG's own growth; unmeasured sentences read not
+    run yet."""
+    views = {0: _view(0.0100), 1: _view(0.0102), 2: _view(0.0101)}
+    judged = {j.sentence.key: j for j in judge_all(views, None, 0.1, 0.8, 0.05)}
+    s1 = judged["S1"]
+    assert [p.verdict for p in s1.parts] == ["holds"] * 4 and s1.verdict == "holds"
+    assert s1.parts[0].spread.n == 3 and s1.parts[0].value == pytest.approx(1.01)
+    assert judged["S2"].verdict == "holds"  # ×1.4 ≤ 1.5 on 09, ×1.2 ≤ 1.31 on 10
+    assert judged["S3"].verdict == "holds"  # 5 % within 5 % on validation
+    assert judged["S7"].verdict == "holds"
+    for key in ("S4", "S5", "S6", "S8", "S9", "S10"):
+        assert judged[key].verdict == "not run yet", key
+    worse = {s: _view(0.0112 + 0.0001 * (s == 1), growth_t=1.5) for s in range(3)}
+    judged = {j.sentence.key: j for j in judge_all(worse, None, 0.1, 0.8, 0.05)}
+    assert judged["S1"].parts[0].verdict == "does not hold"  # ×1.12 > 1 + 8.3 %
+    assert judged["S1"].verdict == "partly"
+    assert judged["S7"].parts[1].verdict == "does not hold"
+
+
+def test_input_scale_is_adopted_only_beyond_the_seed_spread() -> None:
+    views = {s: _view(0.01) for s in range(3)}
+    for s, v in zip(range(3), (0.0200, 0.0202, 0.0198), strict=True):
+        views[s]["table1"]["val"]["1"]["ate"] = v
+    text, adopt = input_scale_decision(views, {"val": {"1": {"ate": 0.0190}}}, 0.2)
+    assert adopt is True and "becomes the default" in text  # 5 % lower, tolerance 2 %
+    text, adopt = input_scale_decision(views, {"val": {"1": {"ate": 0.0199}}}, 0.2)
+    assert adopt is False and "stays 1.0" in text
+    text, adopt = input_scale_decision({0: views[0]}, {"val": {"1": {"ate": 0.0190}}}, 0.2)
+    assert adopt is None and "not measured yet" in text
+
+
+def test_prose_numbers_come_from_the_stage_results() -> None:
+    data = {
+        "main": {"train_pairs": 25838, "val_pairs": 4075, "test_pairs": 1},
+        "central_test": {"test_pairs": 11156},
+        "seconds": 2042.8,
+    }
+    main = {"convergence": {"decay_start": 7000}, "steps": 8000, "samples_seen": 128000,
+            "train_seconds": 1157.7, "checkpoint": "models/main/checkpoints/best-005000.ckpt",
+            "selected_on": "val/ate"}  # fmt: skip
+    results = {"data": data, "main": main}
+    text = para_run(results.get, {})
+    assert "25\u202f838 training pairs" in text and "step 7\u202f000" in text
+    data["main"]["train_pairs"] = 12345
+    assert "12\u202f345 training pairs" in para_run(results.get, {})
+    assert reading(results.get, {}, [], 0.1, 1.5, "")[0].startswith("**What this run is.**")
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not POSES.is_dir(), reason="KITTI poses not found beside the repository")
+def test_report_text_follows_a_changed_stage_result(tmp_path: Path) -> None:
+    """The report written from the committed stage results; a stage result changed by hand
+    changes the verdict table's number and the generated prose, with no training."""
+    from mfg_lightning.core.config import compose
+    from mfg_lightning.study.report import write_report
+    from mfg_lightning.study.stages import Study
+    from mfg_lightning.study.verdicts import Thresholds
+
+    results = tmp_path / "results"
+    shutil.copytree(RESULTS, results)
+    report = tmp_path / "out" / "reproduction.md"
+    cfg = compose(
+        "reproduce",
+        [f"poses_dir={POSES}", f"results_dir={results}", f"report={report}",
+         f"work_dir={tmp_path / 'work'}"],
+    )  # fmt: skip
+    study = Study(cfg)
+    stale = report.with_suffix("") / "claim7.png"
+    stale.parent.mkdir(parents=True)
+    stale.write_bytes(b"\x89PNG")
+    before = write_report(study, report, Thresholds()).read_text()
+    assert "## Verdicts, one per sentence of the paper" in before
+    t1 = json.loads((results / "table1.json").read_text())
+    t1["test"]["0.05"]["09/ate"] = 2 * t1["test"]["1"]["09/ate"]
+    (results / "table1.json").write_text(json.dumps(t1))
+    data = json.loads((results / "data.json").read_text())
+    data["main"]["train_pairs"] = 4321
+    (results / "data.json").write_text(json.dumps(data))
+    after = write_report(study, report, Thresholds()).read_text()
+    s1 = next(line for line in after.splitlines() if line.startswith("| S1 |"))
+    assert "ATE † 09: 2.000 (1 seed)" in s1 and "does not hold" in s1
+    assert "4\u202f321 training pairs" in after and "4\u202f321 training pairs" not in before
+    # no figure of an earlier report layout is left beside it
+    assert not stale.exists() and (report.with_suffix("") / "verdicts.png").is_file()
+    assert not any(p.is_dir() for p in (tmp_path / "work").glob("models/*"))
