@@ -414,9 +414,11 @@ def claim_object_motion(om: dict | None) -> tuple[Row, Any]:
     texts = []
     for name, r in om.items():
         sc = r["scores"]
+        fc = r.get("filters_choice")
+        filters = f"filters θ_d {fc['theta_d']:g}, θ_p {fc['theta_p']:g}, " if fc else ""
         texts.append(
-            f"{name} flow (threshold {r['threshold']['threshold']:g} px, chosen on validation), "
-            "filters / threshold: "
+            f"{name} flow ({filters}threshold {r['threshold']['threshold']:g} px, chosen on "
+            "validation), filters / threshold: "
             + "; ".join(
                 f"{_label(g, k)} {fmt(get(sc, 'filters', g, k), 3)} / "
                 f"{fmt(get(sc, 'threshold', g, k), 3)}"

@@ -340,6 +340,7 @@ def stage_object_motion(study: S.Study, main: dict, main_extra: list[str]) -> di
         instantiate(child.object_motion),
         [float(x) for x in cfg.object_motion.thresholds],
         float(cfg.object_motion.slow_px),
+        S.to_container(cfg.object_motion.get("filter_grid")),
     )
 
 
