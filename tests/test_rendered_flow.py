@@ -138,6 +138,14 @@ def test_samples_carry_estimated_and_exact_flow_and_the_quality_is_stored(
     assert sum(parts) == total["pixels"]
     assert 0 < total["epe"] < 5 and 0 <= total["fl"] < 50
     assert quality["nonfinite_pixels"] == 0
+    # by offset: the pairs and pixels of every offset add up to the split's pooled quality
+    by = ds.quality_by_offset()
+    offsets = {str(t - s) for _, s, t in ds.samples}
+    assert set(by) == offsets
+    assert sum(q["pairs"] for q in by.values()) == len(ds)
+    assert sum(q["regions"]["all"]["pixels"] for q in by.values()) == total["pixels"]
+    pooled = sum(q["regions"]["all"]["epe"] * q["regions"]["all"]["pixels"] for q in by.values())
+    assert pooled / total["pixels"] == pytest.approx(total["epe"])
 
 
 def test_flow_quality_is_the_kitti_outlier_definition() -> None:

@@ -443,18 +443,39 @@ class RenderedDrivingDataset(TrajectoryDataset):
         pair = self.compute_pair(seq, src, tgt, self.render(seq, src), self.render(seq, tgt))
         return flow_picture(pair["full"])
 
+    def _pair_stats(self, i: int) -> np.ndarray:
+        """Pair ``i``'s cached quality sums (:func:`flow_quality`, then its non-finite pixels)."""
+        arrays = self.cache.load_arrays(self.pair_path(i), ("stats",))
+        if arrays is None:
+            raise FileNotFoundError(f"{self.pair_path(i)}: pair not cached yet")
+        return arrays["stats"]
+
     def quality(self) -> dict[str, Any]:
         """The flow quality of this split (pooled over its pairs) and its non-finite pixels,
         from the cache (every pair must be cached)."""
         stats = np.zeros((len(QUALITY_REGIONS), 3))
         nonfinite = 0
         for i in range(len(self.samples)):
-            arrays = self.cache.load_arrays(self.pair_path(i), ("stats",))
-            if arrays is None:
-                raise FileNotFoundError(f"{self.pair_path(i)}: pair not cached yet")
-            stats += arrays["stats"][:-1].reshape(stats.shape)
-            nonfinite += int(arrays["stats"][-1])
+            pair = self._pair_stats(i)
+            stats += pair[:-1].reshape(stats.shape)
+            nonfinite += int(pair[-1])
         return {"regions": summarize_quality(stats), "nonfinite_pixels": nonfinite}
+
+    def quality_by_offset(self) -> dict[str, dict[str, Any]]:
+        """The flow quality pooled per frame offset (target − source), from the cache:
+        ``{"-2": {"regions": ..., "pairs": n}, "-1": ..., "1": ..., "2": ...}`` (the estimate's
+        error grows with the motion it has to find, which the offset scales)."""
+        stats: dict[int, np.ndarray] = {}
+        pairs: dict[int, int] = {}
+        for i, (_, src, tgt) in enumerate(self.samples):
+            off = int(tgt) - int(src)
+            pooled = stats.setdefault(off, np.zeros((len(QUALITY_REGIONS), 3)))
+            pooled += self._pair_stats(i)[:-1].reshape(pooled.shape)
+            pairs[off] = pairs.get(off, 0) + 1
+        return {
+            str(o): {"regions": summarize_quality(stats[o]), "pairs": pairs[o]}
+            for o in sorted(stats)
+        }
 
     # -- samples -----------------------------------------------------------------------------
 

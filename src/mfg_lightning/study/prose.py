@@ -115,8 +115,9 @@ def para_central(cached: Cached, views: Mapping[int, View]) -> str | None:
         ranges.append(f"{s} ×{fmt(min(rs), 2)}–×{fmt(max(rs), 2)}" if rs else f"{s} –")
     flow = cached("flow_error")
     dis = (
-        " DIS's error by offset: " + "; ".join(
-            f"offset {o}: mean end-point error {fmt(e['epe'], 3)} px"
+        " DIS's mean end-point error on the test pairs, by offset: " + "; ".join(
+            f"{int(o):+d}: {fmt(e['regions']['all']['epe'], 2)} px "
+            f"(Fl {fmt(e['regions']['all']['fl'], 1)} %)"
             for o, e in sorted(flow["test"].items(), key=lambda kv: int(kv[0]))
         ) + "."
         if flow else " DIS's error by offset has not been measured yet."

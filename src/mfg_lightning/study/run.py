@@ -50,6 +50,7 @@ def check(cfg: DictConfig) -> None:
 
 STAGES = (
     "data",
+    "flow_error",
     "main",
     "table1",
     "basis",
@@ -80,6 +81,8 @@ def run(study: S.Study, report: Path) -> Path:
         return write_report(study, report, th)
 
     study.stage("data", lambda: stage_data(study, main_extra))
+    write()
+    study.stage("flow_error", lambda: stage_flow_error(study, main_extra))
     write()
     main = study.stage(
         "main",
@@ -135,6 +138,18 @@ def stage_data(study: S.Study, main_extra: list[str]) -> dict:
         "test_pairs": len(central.dataset("test")),
     }
     return out
+
+
+def stage_flow_error(study: S.Study, main_extra: list[str]) -> dict | None:
+    """``flow_error``: the estimated flow's error against the rendered worlds' exact flow, per
+    frame offset, on the central test pairs and on validation (from the flow cache: no model).
+    None when the study's flow is exact (there is no estimate to measure)."""
+    central = study.test_datamodule(main_extra)
+    test = central.dataset("test")
+    if not hasattr(test, "quality_by_offset"):
+        return None
+    dm = study.datamodule(study.train_config("main", main_extra, 1))
+    return {"test": test.quality_by_offset(), "val": dm.dataset("val").quality_by_offset()}
 
 
 def stage_seed(study: S.Study, seed: int, main_extra: list[str]) -> dict:
