@@ -210,8 +210,9 @@ def claim_sparsity(
     for name, m in models.items():
         af = m.get("active_fraction")
         state = "collapsed (no unit active on the average input)" if m.get("collapsed") else ""
+        scale = "" if "input_scale" in name else " (input_scale=1)"
         sweep.append(
-            f"{name}: active {fmt(None if af is None else 100 * af, 2)} %, smallest k "
+            f"{name}{scale}: active {fmt(None if af is None else 100 * af, 2)} %, smallest k "
             f"{fmt(None if m['k_star'] is None else 100 * m['k_star'], 1)} % (val), test ATE "
             f"{fmt(m['test_full'])} → {fmt(m['test_k_star'])} at that k"
             + (f"; {state}" if state else "")
@@ -257,7 +258,7 @@ def _sweep_figure(models: dict[str, dict], main_val: dict | None) -> Any:
     )
 
 
-def claim_table2(t2: dict | None) -> tuple[Row, Any]:
+def claim_table2(t2: dict | None, offsets: list[int] | None = None) -> tuple[Row, Any]:
     """Table 2's shape on the Table-2-sized model: RPE translation against k beside the
     paper's ratios, and every method's rotation error."""
     row = Row.of("3")
@@ -274,7 +275,8 @@ def claim_table2(t2: dict | None) -> tuple[Row, Any]:
     rots = "; ".join(f"{c['name']} {fmt(c['metrics'].get('rpe_rot'), 5)}" for c in others)
     row.ours = (
         f"{t2['train_pairs']} training / {t2['test_pairs']} test pairs"
-        f"{_flow_label(t2)}; RPE trans {fmt(full.get('rpe_trans'))} at 100 %, ratios (paper's, "
+        + (f" (offsets {', '.join(f'{o:+d}' for o in offsets)} only)" if offsets else "")
+        + f"{_flow_label(t2)}; RPE trans {fmt(full.get('rpe_trans'))} at 100 %, ratios (paper's, "
         "deviation) " + ", ".join(ratios)
         + f"; RPE rot MFG {fmt(full.get('rpe_rot'), 5)}, {rots}"
     )  # fmt: skip

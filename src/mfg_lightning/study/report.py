@@ -133,7 +133,7 @@ def write_report(study: S.Study, report: Path, th: Thresholds) -> Path:
     built = [
         (C.claim_table1(t1), "table1.png"),
         ((row2, fig2), "sparsity.png"),
-        (C.claim_table2(study.cached("table2")), "table2.png"),
+        (C.claim_table2(study.cached("table2"), _offsets(study, "table2")), "table2.png"),
         (C.claim_robustness(study.cached("methods")), "robustness.png"),
         (C.claim_basis(study.cached("basis"), float(cfg.basis.residual)), "basis.png"),
         (C.claim_object_motion(study.cached("object_motion")), "object_motion.png"),
@@ -247,7 +247,58 @@ def write_report(study: S.Study, report: Path, th: Thresholds) -> Path:
     ]  # fmt: skip
     path = atomic_write_text(report, "\n".join(text))
     print(f"wrote {path}", flush=True)
+    if cfg.get("readme"):
+        write_readme_table(Path(cfg.readme), judged, views, report)
     return path
+
+
+README_START, README_END = "<!-- reproduction-table:start -->", "<!-- reproduction-table:end -->"
+
+
+def readme_table(judged: list[Judged], views: dict, report: str) -> list[str]:
+    """The README's quoted table: every sentence's short name, our values and the verdict."""
+    rows = [
+        [j.sentence.key, j.sentence.short,
+         "; ".join(f"{p.label} {fmt(p.value, 3)}" for p in j.parts) or "–", j.verdict]
+        for j in judged
+    ]  # fmt: skip
+    seeds = len(views)
+    return [
+        f"Latest report ([{report}]({report})): one verdict per quoted sentence of the paper, "
+        f"each part's value the mean over {seeds} seed{'s' if seeds != 1 else ''} of the main "
+        "model, judged within the larger of the paper's print precision and two standard "
+        "deviations of the seeds (the report quotes each sentence and gives every bound):",
+        "",
+        Table(
+            [Column(h) for h in ("#", "the paper says", "ours (parts)", "verdict")], rows
+        ).markdown(),
+    ]
+
+
+def write_readme_table(readme: Path, judged: list[Judged], views: dict, report: Path) -> None:
+    """Replace the README's text between :data:`README_START` and :data:`README_END` with
+    :func:`readme_table` (the report linked relative to the README); a README without both
+    markers is left alone, with a warning."""
+    if not readme.is_file():
+        return
+    text = readme.read_text()
+    if README_START not in text or README_END not in text:
+        print(f"warning: {readme} has no {README_START} … {README_END}: not updated", flush=True)
+        return
+    head, rest = text.split(README_START, 1)
+    _, tail = rest.split(README_END, 1)
+    rel = os.path.relpath(report.resolve(), readme.resolve().parent)
+    block = "\n".join(readme_table(judged, views, rel.replace(os.sep, "/")))
+    atomic_write_text(readme, f"{head}{README_START}\n{block}\n{README_END}{tail}")
+
+
+def _offsets(study: S.Study, stage: str) -> list[int] | None:
+    """The frame offsets a trained model's pairs use (its overrides on the study's data)."""
+    r = study.cached(stage)
+    if r is None:
+        return None
+    cfg = study.train_config(stage, list(r.get("overrides", [])), 1)
+    return [int(o) for o in cfg.dataset.get("offsets", [1])]
 
 
 def _object_motion_theta_d() -> float:
