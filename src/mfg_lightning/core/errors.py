@@ -2,11 +2,18 @@
 
 Imports the standard library only; Hydra is imported inside the functions that need it, so quick
 command-line tools (``evaluate_poses``, ``data.check``) use this without loading Lightning.
+
+Every Hydra entry point is ``@exit_on_unknown_choice @hydra.main(...) @exit_on_user_error``: the
+first checks the command line before anything runs; the last turns a user error raised while
+running into the one line and, for any failure, leaves the run directory as
+:mod:`mfg_lightning.core.failed_runs` says (removed when nothing was done yet, else marked
+``FAILED``).
 """
 
 from __future__ import annotations
 
 import functools
+import inspect
 import logging
 import sys
 from collections.abc import Callable
@@ -44,6 +51,12 @@ def user_error_message(err: BaseException) -> str | None:
 
         if isinstance(err, InstantiationException) and err.__cause__ is not None:
             return user_error_message(err.__cause__)
+    if "omegaconf" in sys.modules:  # a mandatory value (???) read while running
+        from omegaconf.errors import MissingMandatoryValue
+
+        if isinstance(err, MissingMandatoryValue):
+            key = getattr(err, "full_key", None) or "a mandatory key"
+            return f"{key} is not set: give {key}=<value> on the command line"
     if isinstance(err, (ValueError, FileNotFoundError, UserError)):
         return (
             " ".join(str(err).split("\n")[:1]) if isinstance(err, FileNotFoundError) else str(err)
@@ -90,6 +103,7 @@ def exit_on_user_error(fn: F) -> F:
             return fn(*args, **kwargs)
         except Exception as err:
             message = user_error_message(err)
+            _settle_run(err, message)
             if message is None:
                 if in_multirun():
                     log.exception("job failed: %s: %s", type(err).__name__, err)
@@ -101,6 +115,30 @@ def exit_on_user_error(fn: F) -> F:
             sys.exit(2)
 
     return wrapper  # type: ignore[return-value]
+
+
+def _run_dir() -> Path | None:
+    """The running Hydra job's output directory, or None outside a Hydra job."""
+    if "hydra" not in sys.modules:
+        return None
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized():
+        return None
+    return Path(HydraConfig.get().runtime.output_dir)
+
+
+def _settle_run(err: BaseException, message: str | None) -> None:
+    """Leave the failed job's directory as :func:`~mfg_lightning.core.failed_runs.
+    settle_failed_run` says: removed after a user error before any work, else marked ``FAILED``
+    with the error in its log and no empty event files. Never raises (the error at hand wins)."""
+    from mfg_lightning.core.failed_runs import settle_failed_run
+
+    line = f"error: {message}" if message is not None else f"{type(err).__name__}: {err}"
+    try:
+        settle_failed_run(_run_dir(), line, err, user=message is not None, keep=in_multirun())
+    except OSError as cleanup:  # e.g. a full disk: say so in the log, keep the real error
+        log.warning("could not mark the failed run: %s", cleanup)
 
 
 def unknown_choice(config_dir: str | Path, overrides: list[str]) -> str | None:
@@ -130,14 +168,31 @@ def unknown_choice(config_dir: str | Path, overrides: list[str]) -> str | None:
 
 
 def exit_on_unknown_choice(fn):
-    """Decorator for ``@hydra.main`` entry points (put it outside): an override naming an option
-    a config group does not have is one ``error: …`` line and exit status 2, as other input
-    errors (Hydra itself prints its search path and exits with 1)."""
+    """Decorator for ``@hydra.main`` entry points (put it outside): the command line is checked
+    before Hydra runs it (:mod:`mfg_lightning.core.command_line`). An option a config group does
+    not have, a key the config does not have ("did you mean …?"), a mandatory key left unset or a
+    fraction for an integer setting is one ``error: …`` line and exit status 2, and nothing is
+    written (Hydra itself prints a traceback or its search path and exits with 1). ``--help``
+    prints this entry point's own help."""
+    from mfg_lightning.core.command_line import check_command_line, main_module
     from mfg_lightning.core.config import CONFIG_DIR
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
         message = unknown_choice(CONFIG_DIR, sys.argv[1:])
+        if message is None:
+            # The config name of the @hydra.main inside (its closure: hydra.main keeps no
+            # attribute for it; tests/test_errors.py checks every entry point finds its own).
+            name = inspect.getclosurevars(fn).nonlocals.get("config_name")
+            module = main_module(fn)
+            line = check_command_line(
+                name, sys.argv[1:], module, sys.modules[fn.__module__].__doc__
+            )
+            if line.help is not None:
+                print(line.help)
+                sys.exit(0)
+            message = line.error
+            sys.argv[1:] = line.argv  # e.g. trainer.max_steps=1e3 as trainer.max_steps=1000
         if message is not None:
             print(f"error: {message}", file=sys.stderr)
             sys.exit(2)
