@@ -18,7 +18,7 @@ import torch
 BENCH = Path(__file__).resolve().parent
 SCRIPTS = ("accuracy.py", "throughput.py", "scaleout.py", "flow_cache.py")
 #: Scripts that need a CUDA device: run only where one is (gpu_check.py's CPU form is a test,
-#: tests/test_precision.py).
+#: tests/test_gpu_path.py; `make gpu-check` installs what it needs and runs it).
 GPU_SCRIPTS = ("gpu_check.py",)
 
 

@@ -14,6 +14,29 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 # Two test workers share two cores: one thread each keeps them from fighting.
 torch.set_num_threads(1)
 
+# Every test runs on the CPU unless it is about CUDA (marked `cuda`, run in a subprocess with
+# cuda_env()): fixtures and entry points leave trainer.accelerator=auto, and several tests expect
+# the CPU's exact results, so `make test` must not move them to a GPU where there is one. Hidden
+# here, before anything initialises CUDA (importing torch does not), for this process and the
+# processes it starts; the machine's own setting is kept for cuda_env() in an environment
+# variable, which pytest-xdist's workers inherit along with the hidden one.
+_VISIBLE_KEPT = "MFG_TESTS_CUDA_VISIBLE_DEVICES"
+_UNSET = "<unset>"
+os.environ.setdefault(_VISIBLE_KEPT, os.environ.get("CUDA_VISIBLE_DEVICES", _UNSET))
+os.environ["CUDA_VISIBLE_DEVICES"] = ""
+
+
+def cuda_env(**extra: str) -> dict[str, str]:
+    """The environment for a subprocess of a test about CUDA: the machine's GPUs visible again
+    (as they were before the tests hid them), plus ``extra``."""
+    env = dict(os.environ, **extra)
+    kept = env.pop(_VISIBLE_KEPT, _UNSET)
+    if kept == _UNSET:
+        env.pop("CUDA_VISIBLE_DEVICES", None)
+    else:
+        env["CUDA_VISIBLE_DEVICES"] = kept
+    return env
+
 
 @pytest.fixture(autouse=True)
 def _seed_global_generators() -> None:
@@ -72,11 +95,13 @@ def run_module(module: str, *args: str, cwd: Path, timeout: int = 300, check: bo
 
 
 def quiet_trainer(**options: Any):
-    """An in-process ``lightning.Trainer`` that writes and prints nothing of its own (no logger,
-    checkpoints, progress bar or model summary); ``options`` are the test's own settings."""
+    """An in-process ``lightning.Trainer`` on the CPU that writes and prints nothing of its own
+    (no logger, checkpoints, progress bar or model summary); ``options`` are the test's own
+    settings."""
     import lightning as L
 
     quiet = dict(
+        accelerator="cpu",
         logger=False,
         enable_checkpointing=False,
         enable_progress_bar=False,

@@ -1,6 +1,7 @@
 """Precision as a setting: float32 geometry, losses, object motion and metrics under
 any autocast; ``*-true`` refused; ``16-mixed`` from its first step; no host synchronisation in a
-training step outside the logging steps; the GPU configs and ``bench/gpu_check.py`` on a CPU.
+training step outside the logging steps; the GPU configs (``bench/gpu_check.py`` on a CPU:
+tests/test_gpu_path.py).
 """
 
 from __future__ import annotations
@@ -8,9 +9,6 @@ from __future__ import annotations
 import contextlib
 import functools
 import math
-import os
-import subprocess
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -22,7 +20,7 @@ from hydra.utils import instantiate
 from lightning.pytorch.plugins.precision import MixedPrecision
 from torchmetrics import MeanMetric
 
-from conftest import REPO, quiet_trainer
+from conftest import quiet_trainer
 from mfg_lightning.core import geometry as G
 from mfg_lightning.core.config import compose
 from mfg_lightning.core.errors import user_error_message
@@ -483,31 +481,6 @@ def test_gpu_trainer_configs() -> None:
     det = compose("train", ["trainer=gpu", "trainer.deterministic=true", "paths.output_dir=/tmp/u"])
     check_trainer_settings(det)
     assert det.trainer.benchmark is False
-
-
-@pytest.mark.slow
-def test_gpu_check_runs_on_a_cpu(tmp_path: Path) -> None:
-    """bench/gpu_check.py in its tiny setting on the CPU (seconds): it trains under both
-    precisions, evaluates the checkpoint on both devices and writes its report."""
-    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", MFG_CACHE_DIR=str(tmp_path))
-    command = [
-        sys.executable,
-        str(REPO / "bench" / "gpu_check.py"),
-        "--tiny",
-        "--accelerator",
-        "cpu",
-        "--out",
-        str(tmp_path),
-    ]
-    proc = subprocess.run(
-        command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300
-    )
-    assert proc.returncode == 0, f"{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
-    text = (tmp_path / "gpu_check.md").read_text()
-    for needle in ("samples/s", "32-true", "bf16-mixed", "## Environment", "deterministic"):
-        assert needle in text, needle
-    assert "| no |" not in text  # every comparison within its tolerance
-    assert "samples/s" in proc.stdout
 
 
 def test_auto_precision_is_bf16_on_a_cpu_with_native_bf16_and_float32_elsewhere(

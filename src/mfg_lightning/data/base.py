@@ -309,6 +309,11 @@ class UnpaddedDistributedSampler(DistributedSampler):
     differ from a single process's. Evaluation needs no equal shards (no gradients are
     synchronised), so this sampler gives every sample to exactly one rank. Being a
     ``DistributedSampler``, Lightning keeps it instead of injecting its own.
+
+    A rank whose shard is empty (a split smaller than the number of ranks) gets one index
+    :data:`EMPTY_SHARD`, which :class:`EvaluationShard` turns into a batch of None: Lightning
+    skips the whole evaluation loop, epoch-end hooks included, on a rank without batches, and
+    those hooks hold the metrics' collectives that every rank must join.
     """
 
     def __init__(self, dataset: Dataset, num_replicas: int, rank: int) -> None:
@@ -317,10 +322,31 @@ class UnpaddedDistributedSampler(DistributedSampler):
         self.total_size = len(dataset)  # type: ignore[arg-type]
 
     def __iter__(self):
+        if not self.num_samples:
+            return iter([EMPTY_SHARD])
         return iter(range(self.rank, self.total_size, self.num_replicas))
 
     def __len__(self) -> int:
-        return self.num_samples
+        return max(self.num_samples, 1)
+
+
+#: The index :class:`UnpaddedDistributedSampler` gives a rank with no sample.
+EMPTY_SHARD = -1
+
+
+class EvaluationShard(Dataset):
+    """An evaluation dataset seen through :class:`UnpaddedDistributedSampler`: sample ``i`` is
+    the dataset's, :data:`EMPTY_SHARD` is None (dropped by :func:`collate_samples`, so the
+    rank's one batch is None, which the module and the batch checks skip)."""
+
+    def __init__(self, dataset: Dataset) -> None:
+        self.dataset = dataset
+
+    def __len__(self) -> int:
+        return len(self.dataset)  # type: ignore[arg-type]
+
+    def __getitem__(self, index: int) -> Any:
+        return None if index == EMPTY_SHARD else self.dataset[index]
 
 
 class MFGDataModule(L.LightningDataModule):
@@ -402,6 +428,7 @@ class MFGDataModule(L.LightningDataModule):
         if not shuffle and dist.is_available() and dist.is_initialized():
             # Every evaluation sample on exactly one process: DDP metrics equal one process's.
             sampler = UnpaddedDistributedSampler(dataset, dist.get_world_size(), dist.get_rank())
+            dataset = EvaluationShard(dataset)
         return DataLoader(
             dataset,
             batch_size=batch_size,

@@ -61,12 +61,18 @@ class FiniteMean(MeanMetric):
 
     def update(self, value: float | Tensor, weight: float | Tensor | None = None) -> None:
         """Add ``value`` (any shape) with ``weight`` (broadcast to it; default 1)."""
-        value = torch.as_tensor(value, device=self.device)
-        weight = (
-            torch.ones_like(value)
-            if weight is None
-            else torch.as_tensor(weight, dtype=value.dtype, device=self.device)
-        )
+        # A Python number becomes a tensor by a fill on the device, never by torch.as_tensor(x,
+        # device=...), which is a synchronous host-to-device copy on a GPU (the batch size
+        # given as a weight, twice per evaluation batch).
+        if not isinstance(value, Tensor):
+            value = torch.full((), float(value), device=self.device)
+        value = value.to(self.device)
+        if weight is None:
+            weight = torch.ones_like(value)
+        elif isinstance(weight, Tensor):
+            weight = weight.to(device=self.device, dtype=value.dtype)
+        else:
+            weight = torch.full_like(value, float(weight))
         weight = torch.broadcast_to(weight, value.shape)
         nan = torch.isnan(value) | torch.isnan(weight)
         value = value.to(self.dtype)

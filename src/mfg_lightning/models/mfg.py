@@ -79,13 +79,14 @@ def bilinear_matrix(
     Pixel ``i`` of the output samples the input at ``i · (n_in − 1) / (n_out − 1)``
     (``align_corners=True``) or ``(i + 0.5) · n_in / n_out − 0.5`` clamped at 0 (``False``).
     """
-    # In float32, as PyTorch's own kernels compute the source positions and weights.
+    # In float32, as PyTorch's own kernels compute the source positions and weights. The scale
+    # is a Python number: a tensor-scalar product casts it to float32 inside the kernel, where
+    # torch.tensor(scale, device=...) would be a synchronous host-to-device copy on a GPU.
     i = torch.arange(n_out, dtype=torch.float32, device=device)
     if align_corners:
-        scale = torch.tensor((n_in - 1) / (n_out - 1) if n_out > 1 else 0.0, device=device)
-        src = i * scale
+        src = i * ((n_in - 1) / (n_out - 1) if n_out > 1 else 0.0)
     else:
-        src = ((i + 0.5) * torch.tensor(n_in / n_out, device=device) - 0.5).clamp_min(0.0)
+        src = ((i + 0.5) * (n_in / n_out) - 0.5).clamp_min(0.0)
     lo = src.floor().long().clamp_max(n_in - 1)
     hi = (lo + 1).clamp_max(n_in - 1)
     frac = src - lo

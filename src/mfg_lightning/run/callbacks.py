@@ -9,7 +9,8 @@
   is a :class:`~mfg_lightning.run.checkpoints.CheckpointError`, and so is one that holds anything
   but
   tensors and plain data (it is never unpickled: :mod:`mfg_lightning.run.checkpoints`).
-* :class:`LastCheckpoint`: ``checkpoints/last.ckpt`` every N steps, at the end, and on SIGTERM
+* :class:`LastCheckpoint`: ``checkpoints/last.ckpt`` every N minutes and/or every N steps, at the
+  end, and on SIGTERM
   (what SLURM sends at the time limit: the current step finishes, the checkpoint is saved, the
   run stops); ``ckpt_path=last`` or ``resume=true`` continues from it. It is saved where
   Lightning resumes it exactly: after a training step, or after the validation that follows it.
@@ -30,6 +31,7 @@ import logging
 import os
 import re
 import shutil
+import time
 from pathlib import Path
 from typing import Any
 
@@ -182,11 +184,12 @@ def _validation_follows(trainer: L.Trainer) -> bool | None:
 class LastCheckpoint(Checkpoint):
     """Keep ``<dirpath>/last.ckpt`` up to date: the checkpoint a stopped run resumes from.
 
-    Saved every ``every_n_train_steps`` optimiser steps, when training ends, and when SIGTERM
-    stops the fit (Lightning's SIGTERM handler lets the current step finish and then stops the
-    loop; the file is saved just before). Lightning's ``ModelCheckpoint(save_last=True)``
-    refreshes its "last" file only when it saves a top-k one too; this file is always the latest
-    state. Nothing is saved under ``fast_dev_run``.
+    Saved every ``every_minutes`` of wall time and every ``every_n_train_steps`` optimiser steps
+    (whichever comes first), when training ends, and when SIGTERM stops the fit (Lightning's
+    SIGTERM handler lets the current step finish and then stops the loop; the file is saved just
+    before). Lightning's ``ModelCheckpoint(save_last=True)`` refreshes its "last" file only when
+    it saves a top-k one too; this file is always the latest state. Nothing is saved under
+    ``fast_dev_run``.
 
     When to save so that the resumed run is the uninterrupted one: a checkpoint taken at the end
     of a training step is resumed correctly even at the end of an epoch, but Lightning treats the
@@ -195,25 +198,50 @@ class LastCheckpoint(Checkpoint):
     after it, which :func:`mfg_lightning.train` ensures). SIGTERM during a validation lets the
     validation finish first, so its metrics and the best-checkpoint choice see all of it.
 
+    Why wall time as well as steps: the full state (weights and Adam's moments, ~150 MB for
+    the default network) is written with an fsync. A step period that suits a CPU (100 steps,
+    ~15 s) would have a GPU, which takes 100 steps in under a second, spend most of its time
+    saving; a period in minutes costs the same share of any device's time. The time is checked
+    after each step, so a save still lands where a resumed run continues exactly. Under DDP
+    every process must save together (``Trainer.save_checkpoint`` is collective) while their
+    clocks disagree: rank 0's clock decides, broadcast every :attr:`TIME_SYNC_EVERY` steps, so
+    that the other steps have no collective.
+
     Args:
         dirpath: the run's checkpoint directory (``<run dir>/checkpoints``).
-        every_n_train_steps: save period in optimiser steps (0: only at the end and on SIGTERM).
+        every_n_train_steps: save period in optimiser steps (0: none by steps).
         filename: the file written; ``last.ckpt`` is what ``ckpt_path=last`` resumes from.
+        every_minutes: save period in minutes of wall time since the last save or the start of
+            the fit (None: none by time). With both periods 0/None the file is saved only at
+            the end and on SIGTERM.
     """
+
+    #: under DDP, the steps between two broadcasts of rank 0's "the time is up"
+    TIME_SYNC_EVERY = 20
 
     def __init__(
         self,
         dirpath: str | os.PathLike[str],
         every_n_train_steps: int = 100,
         filename: str = "last.ckpt",
+        every_minutes: float | None = None,
     ) -> None:
         if every_n_train_steps < 0:
             raise ValueError(
                 f"callbacks.last_checkpoint.every_n_train_steps must be >= 0, "
                 f"got {every_n_train_steps}"
             )
+        if every_minutes is not None and not every_minutes > 0:
+            raise ValueError(
+                "callbacks.last_checkpoint.every_minutes must be positive (null: no saves by "
+                f"time), got {every_minutes}"
+            )
         self.path = Path(dirpath) / filename
         self.every_n_train_steps = int(every_n_train_steps)
+        self.every_seconds = None if every_minutes is None else 60.0 * float(every_minutes)
+        # time.monotonic, or a test's clock: when the last save (or the fit's start) was
+        self.clock = time.monotonic
+        self._last_save_time: float | None = None
         self._saved_step: int | None = None
         # A step whose save waits for the validation that follows it.
         self._after_validation: int | None = None
@@ -236,6 +264,24 @@ class LastCheckpoint(Checkpoint):
     def _save(self, trainer: L.Trainer) -> None:
         trainer.save_checkpoint(self.path, weights_only=False)  # full state: resumable
         self._saved_step = trainer.global_step
+        self._last_save_time = self.clock()
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        # The time period counts from the start of this fit: a resumed run has just loaded
+        # what it would save.
+        self._last_save_time = self.clock()
+
+    def _time_is_up(self, trainer: L.Trainer) -> bool:
+        """Whether ``every_minutes`` have passed since the last save; the same answer on every
+        process (see the class's notes on DDP)."""
+        if self.every_seconds is None or self._last_save_time is None:
+            return False
+        if trainer.world_size == 1:
+            return self.clock() - self._last_save_time >= self.every_seconds
+        if trainer.global_step % self.TIME_SYNC_EVERY:
+            return False
+        up = self.clock() - self._last_save_time >= self.every_seconds
+        return bool(trainer.strategy.broadcast(up, src=0))
 
     def _fitting(self, trainer: L.Trainer) -> bool:
         return (
@@ -251,7 +297,10 @@ class LastCheckpoint(Checkpoint):
             return
         step, n = trainer.global_step, self.every_n_train_steps
         missed = self._after_validation is not None and self._after_validation != step
-        due = (n and step % n == 0 and step != self._saved_step) or trainer.received_sigterm
+        # Asked at every step on every process alike (under DDP it may be a collective).
+        timed = self._time_is_up(trainer) and step != self._saved_step
+        due = (n and step % n == 0 and step != self._saved_step) or timed
+        due = due or trainer.received_sigterm
         if not (due or missed):
             return
         follows = _validation_follows(trainer)

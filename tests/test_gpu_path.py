@@ -1,0 +1,497 @@
+"""A GPU user's first run (issue 35), tested on a CPU: the install, ``make gpu-check``, no
+collective or host copy per step that a tensor op avoids, ``last.ckpt`` by wall time, and the
+test suite itself pinned to the CPU.
+
+The install is tested without a network: the Makefile's commands through a stand-in Python that
+records its arguments, and pip's choices by ``pip install --dry-run`` on a folder of stand-in
+wheels (metadata only), with none of this machine's pip settings.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import glob
+import importlib.util
+import json
+import math
+import os
+import shlex
+import shutil
+import socket
+import subprocess
+import sys
+import traceback
+import zipfile
+from collections.abc import Iterator
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import lightning as L
+import pytest
+import torch
+
+from conftest import REPO, cuda_env, quiet_trainer
+from mfg_lightning.core.config import compose
+from mfg_lightning.metrics.frame_errors import FiniteMean
+from mfg_lightning.models.mfg import bilinear_matrix
+from mfg_lightning.run.callbacks import LastCheckpoint
+
+BENCH = REPO / "bench"
+TESTS = Path(__file__).resolve().parent
+
+
+def _bench_module(name: str) -> ModuleType:
+    """``bench/<name>.py`` imported as a module (bench/ is not a package)."""
+    if str(BENCH) not in sys.path:
+        sys.path.insert(0, str(BENCH))
+    spec = importlib.util.spec_from_file_location(f"bench_{name}", BENCH / f"{name}.py")
+    assert spec and spec.loader
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+install_gpu = _bench_module("install_gpu")
+
+
+# --------------------------------------------------------------------------------------------
+# The install
+# --------------------------------------------------------------------------------------------
+
+
+def _make(*args: str, cwd: Path = REPO, env: dict[str, str] | None = None, timeout: int = 60):
+    if shutil.which("make") is None:
+        pytest.skip("make is not installed")
+    return subprocess.run(
+        ["make", "--no-print-directory", *args],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        check=False,
+    )
+
+
+def test_make_install_hands_a_torch_spec_with_options_to_pip_as_separate_arguments(
+    tmp_path: Path,
+) -> None:
+    """``TORCH_SPEC="torch==2.5.1 --index-url <URL>"``: pip used to get it as one argument
+    (``Invalid requirement``). A stand-in Python records each call's arguments and has no
+    torch, so the install branch runs."""
+    calls = tmp_path / "calls"
+    fake = tmp_path / "python"
+    fake.write_text(
+        "#!/bin/sh\n"
+        f"printf '%s\\n' \"$@\" >> {shlex.quote(str(calls))}\n"
+        f"echo '<end>' >> {shlex.quote(str(calls))}\n"
+        'if [ "$1" = "-c" ]; then exit 1; fi\n'  # `import torch` fails
+    )
+    fake.chmod(0o755)
+    spec = "torch==2.5.1 --index-url https://example.invalid/whl/cu121"
+    proc = _make("install", f"PYTHON={fake}", f"TORCH_SPEC={spec}")
+    assert proc.returncode == 0, proc.stderr
+    argv = [c.strip("\n").split("\n") for c in calls.read_text().split("<end>\n") if c]
+    assert argv[0] == ["-c", "import torch"]
+    assert argv[1] == ["-m", "pip", "install", *spec.split()]
+    assert argv[2] == ["-m", "pip", "install", "-e", ".[dev]"]  # the CPU set-up as before
+
+
+def test_make_install_gpu_hands_its_spec_to_the_installer_whole() -> None:
+    spec = "torch===2.5.1+cu121 --index-url https://example.invalid/whl/cu121"
+    proc = _make("-n", "install-gpu", f"TORCH_GPU_SPEC={spec}")
+    assert proc.returncode == 0, proc.stderr
+    argv = shlex.split(proc.stdout.strip().splitlines()[-1])
+    assert argv[1:] == ["bench/install_gpu.py", "--torch-spec", spec]
+    commands, _ = install_gpu.plan(install_gpu.Torch("2.13.0+cpu", None), spec, "python")
+    assert commands[0] == ["python", "-m", "pip", "install", *spec.split()]
+    # The default is an exact pin, and no dev extras are installed.
+    default = _make("-n", "install-gpu").stdout
+    assert f"--torch-spec '{install_gpu.DEFAULT_SPEC}'" in default
+    assert install_gpu.DEFAULT_SPEC.startswith("torch===")
+    assert all("[dev]" not in " ".join(c) for c in commands)
+
+
+@pytest.mark.parametrize(
+    ("torch_info", "kept"),
+    [
+        (install_gpu.Torch("2.5.1+cu121", "12.1", True, 1), True),
+        (install_gpu.Torch("2.4.0", "12.4", False, 0), True),  # kept; the check then advises
+        (install_gpu.Torch("2.13.0+cpu", None), False),
+        (install_gpu.Torch("2.3.1+cu121", "12.1", True, 1), False),  # pip would replace it
+        (None, False),
+    ],
+)
+def test_install_gpu_keeps_a_cuda_torch_from_2_4_on_and_installs_one_otherwise(
+    torch_info: Any, kept: bool
+) -> None:
+    commands, why = install_gpu.plan(torch_info, python="py", project_installed=True)
+    torch_install = [c for c in commands if "-e" not in c]
+    assert (not torch_install) == kept, why
+    if not kept:
+        assert torch_install == [["py", "-m", "pip", "install", install_gpu.DEFAULT_SPEC]]
+        assert commands[-1] == ["py", "-m", "pip", "install", "-e", str(REPO)]
+    else:
+        assert commands == []  # this checkout is installed and torch kept: no pip at all
+    assert install_gpu.release("2.10.0a0+git") == (2, 10, 0)
+
+
+def test_install_gpu_says_what_to_do_when_cuda_is_not_available() -> None:
+    cpu = install_gpu.advice(install_gpu.Torch("2.13.0+cpu", None))
+    assert "CPU-only build" in cpu and "TORCH_GPU_SPEC" in cpu
+    no_gpu = install_gpu.advice(install_gpu.Torch("2.13.0", "12.8", False, 0))
+    assert "nvidia-smi" in no_gpu and "12.8" in no_gpu and "--gpus all" in no_gpu
+
+
+def _wheel(folder: Path, version: str) -> None:
+    """A stand-in torch wheel: the metadata pip reads to resolve, nothing else."""
+    name = f"torch-{version}-py3-none-any.whl"
+    info = f"torch-{version}.dist-info"
+    with zipfile.ZipFile(folder / name, "w") as z:
+        z.writestr(f"{info}/METADATA", f"Metadata-Version: 2.1\nName: torch\nVersion: {version}\n")
+        z.writestr(
+            f"{info}/WHEEL", "Wheel-Version: 1.0\nRoot-Is-Purelib: true\nTag: py3-none-any\n"
+        )
+        z.writestr(f"{info}/RECORD", "")
+
+
+def _pip_dry_run(links: Path, report: Path, *requirement: str, ignore_installed: bool = True):
+    """What ``pip install`` would install from ``links`` alone: (returncode, [versions])."""
+    command = [sys.executable, "-m", "pip", "install", "--dry-run", "--no-deps",
+               "--no-index", "--find-links", str(links), "--report", str(report), "--quiet",
+               *(["--ignore-installed"] if ignore_installed else []), *requirement]  # fmt: skip
+    # None of this machine's pip settings (find-links, indexes, constraints): the folder alone.
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PIP_")}
+    env["PIP_CONFIG_FILE"] = os.devnull
+    proc = subprocess.run(command, env=env, capture_output=True, text=True, timeout=120)
+    if proc.returncode:
+        return proc.returncode, proc.stderr
+    installs = json.loads(report.read_text()).get("install", [])
+    return 0, [i["metadata"]["version"] for i in installs]
+
+
+def test_pip_dry_run_the_gpu_spec_refuses_a_cpu_build_and_an_installed_torch_is_kept(
+    tmp_path: Path,
+) -> None:
+    both, cpu_only = tmp_path / "both", tmp_path / "cpu_only"
+    for folder, versions in (
+        (both, ("2.13.0", "2.13.0+cpu", "2.14.1")),
+        (cpu_only, ("2.13.0+cpu",)),
+    ):
+        folder.mkdir()
+        for version in versions:
+            _wheel(folder, version)
+    report = tmp_path / "report.json"
+    code, chosen = _pip_dry_run(both, report, install_gpu.DEFAULT_SPEC)
+    if code:
+        pytest.skip(f"pip cannot resolve from a local folder here: {str(chosen)[-500:]}")
+    assert chosen == ["2.13.0"]  # the release, not the local +cpu build
+    # `==` takes the +cpu build where a find-links folder offers it: why the GPU route pins ===.
+    assert _pip_dry_run(both, report, "torch==2.13.0") == (0, ["2.13.0+cpu"])
+    code, err = _pip_dry_run(cpu_only, report, install_gpu.DEFAULT_SPEC)
+    assert code != 0 and "No matching distribution" in err  # refused, not taken
+    # The project's own `torch>=2.4` keeps the installed torch (a CUDA one on a GPU machine)
+    # though the folder offers a newer one: `pip install -e .` never replaces it.
+    installed = torch.__version__
+    assert install_gpu.release(installed) >= install_gpu.MIN_TORCH
+    assert _pip_dry_run(both, report, "torch>=2.4", ignore_installed=False) == (0, [])
+
+
+# --------------------------------------------------------------------------------------------
+# make gpu-check
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_make_gpu_check_runs_every_part_on_a_cpu(tmp_path: Path) -> None:
+    """``make gpu-check`` in its tiny setting on the CPU (seconds, numbers meaningless), with a
+    precision list without ``32-true`` (it saved no checkpoint for Part 3 before)."""
+    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", MFG_CACHE_DIR=str(tmp_path))
+    env["PYTHON"] = sys.executable
+    args = f"--tiny --precisions bf16-mixed --out {tmp_path}"
+    proc = _make(
+        "gpu-check",
+        f"PYTHON={sys.executable}",
+        "GPU_CHECK_ACCELERATOR=cpu",
+        f"GPU_CHECK_ARGS={args}",
+        env=env,
+        timeout=300,
+    )
+    assert proc.returncode == 0, f"{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
+    assert "install-gpu" not in proc.stdout  # no install on the CPU
+    text = (tmp_path / "gpu_check.md").read_text()
+    for needle in (
+        "## Preparation",
+        "CUBLAS_WORKSPACE_CONFIG=:4096:8",
+        "/dev/shm",
+        "## Training (quick start)",
+        "samples/s, cached batches (device side)",
+        "samples/s, loader alone",
+        "## Determinism",
+        "## One checkpoint on the CPU and on the device",
+        "checkpoint of the `bf16-mixed` run",
+        "provisional, to be set from the first GPU run",
+        "## Environment",
+    ):
+        assert needle in text, needle
+    assert "| no |" not in text  # bit-identical, and every metric within its tolerance
+    # Part 2 turned deterministic algorithms on; Part 3 started with them off again.
+    flags = text.split("## torch's settings at the start of each part", 1)[1]
+    part3 = next(ln for ln in flags.splitlines() if ln.startswith("| Part 3"))
+    assert part3.split("|")[2].strip() == "off"
+    assert not torch.are_deterministic_algorithms_enabled()
+
+
+def test_gpu_check_fits_the_loader_workers_to_dev_shm(tmp_path: Path, monkeypatch) -> None:
+    gpu_check = _bench_module("gpu_check")
+    kb = 154 * 1024  # one sample of the quick start
+    roomy = gpu_check.plan_workers(6, 16, 64, kb, tmp_path)
+    assert roomy.workers == 6 and "enough" in roomy.note
+    Usage = type(shutil.disk_usage(tmp_path))
+    monkeypatch.setattr(gpu_check.shutil, "disk_usage", lambda _: Usage(64 << 20, 0, 64 << 20))
+    small = gpu_check.plan_workers(6, 16, 64, kb, Path("/dev/shm"))  # Docker's default 64 MB
+    assert 0 <= small.workers < 6
+    assert f"dataset.num_workers={small.workers}" in small.note and "--shm-size=" in small.note
+    assert gpu_check.plan_workers(0, 16, 64, kb, Path("/dev/shm")).workers == 0
+    # Lightning's precision aliases are accepted, anything else refused before any work.
+    assert gpu_check.parse_args(["--precisions", "bf16", "32"]).precisions == [
+        "bf16-mixed",
+        "32-true",
+    ]
+    with pytest.raises(SystemExit):
+        gpu_check.parse_args(["--precisions", "bf16-true"])
+
+
+@pytest.mark.cuda
+@pytest.mark.slow
+def test_make_gpu_check_tiny_on_the_gpu(tmp_path: Path) -> None:
+    """On a machine with a GPU: the same check on it, tiny (the GPUs visible again)."""
+    if not glob.glob("/dev/nvidia[0-9]*") or os.environ.get("MFG_TESTS_CUDA_VISIBLE_DEVICES") in (
+        "",
+        "-1",
+    ):
+        pytest.skip("no NVIDIA GPU on this machine")
+    env = cuda_env(OMP_NUM_THREADS="1", MFG_CACHE_DIR=str(tmp_path))
+    command = [sys.executable, str(BENCH / "gpu_check.py"), "--tiny", "--out", str(tmp_path)]
+    proc = subprocess.run(command, env=env, capture_output=True, text=True, timeout=600)
+    if "no CUDA device here" in proc.stderr:
+        pytest.skip("torch sees no GPU here: `make install-gpu` says why")
+    assert proc.returncode == 0, f"{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
+    assert "| no |" not in (tmp_path / "gpu_check.md").read_text()
+
+
+# --------------------------------------------------------------------------------------------
+# No collective or host copy per step that a tensor op avoids
+# --------------------------------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def no_tensor_from_host_values() -> Iterator[None]:
+    """The project's code may not build a tensor on a device from Python values: on a GPU that
+    is a synchronous host-to-device copy (``torch.tensor(4, device=...)``); a fill
+    (``torch.full``) or a tensor-scalar op passes the value as a kernel argument instead."""
+    names = ("tensor", "as_tensor", "scalar_tensor")
+    saved = {name: getattr(torch, name) for name in names}
+
+    def guarded(name: str):
+        original = saved[name]
+
+        def build(data: Any, *args: Any, **kwargs: Any):
+            caller = traceback.extract_stack(limit=2)[0].filename
+            if (
+                kwargs.get("device") is not None
+                and not isinstance(data, torch.Tensor)
+                and "mfg_lightning" in caller
+            ):
+                raise AssertionError(f"torch.{name}({data!r}, device=...) in {caller}")
+            return original(data, *args, **kwargs)
+
+        return build
+
+    for name in names:
+        setattr(torch, name, guarded(name))
+    try:
+        yield
+    finally:
+        for name, original in saved.items():
+            setattr(torch, name, original)
+
+
+def test_the_guard_catches_a_tensor_built_from_a_host_value() -> None:
+    with no_tensor_from_host_values(), pytest.raises(AssertionError, match="torch.as_tensor"):
+        # the code FiniteMean.update had: an int batch size as a weight
+        exec(  # run as if from the package, where the guard looks
+            compile("torch.as_tensor(4, device='cpu')", "mfg_lightning/x.py", "exec"),
+            {"torch": torch},
+        )
+
+
+def test_batch_sizes_and_upsampling_matrices_need_no_host_to_device_copy() -> None:
+    values = torch.rand(5, dtype=torch.float64)
+    with no_tensor_from_host_values():
+        metric = FiniteMean()
+        metric.update(values, weight=4)  # the batch size, as the module gives it
+        metric.update(torch.tensor([float("nan"), 2.0]), weight=torch.tensor(3.0))
+        metric.update(1.5)
+        for align in (True, False):
+            bilinear_matrix(24, 48, align, torch.device("cpu"))
+    assert metric.compute().item() == pytest.approx((4 * values.sum().item() + 6 + 1.5) / 24)
+    assert int(metric.nan_count) == 1
+
+
+def test_training_and_evaluation_steps_build_no_tensor_from_a_host_value() -> None:
+    from test_precision import _dm, _module
+
+    model = _module()
+    for name in ("training_step", "validation_step"):
+        step = getattr(model, name)
+
+        def guarded(*args: Any, _step: Any = step, **kwargs: Any):
+            with no_tensor_from_host_values():
+                return _step(*args, **kwargs)
+
+        setattr(model, name, guarded)
+    trainer = quiet_trainer(max_steps=2, limit_val_batches=2, val_check_interval=2)
+    trainer.fit(model, datamodule=_dm())
+    assert math.isfinite(float(trainer.callback_metrics["val/trans_err"]))
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.slow
+def test_two_gloo_processes_with_fewer_test_samples_than_processes(tmp_path: Path) -> None:
+    """Two processes started as torchrun starts them (tests/ddp_worker.py): training has no
+    barrier and one all_reduce per step inside the training step, both skip the step whose
+    loss is NaN on one of them, and testing on one sample (rank 1 sees none) finishes with the
+    metrics one process computes on the same weights."""
+    port = str(_free_port())
+    procs = []
+    for rank in range(2):
+        env = dict(
+            os.environ,
+            RANK=str(rank),
+            LOCAL_RANK=str(rank),
+            WORLD_SIZE="2",
+            NODE_RANK="0",
+            MASTER_ADDR="127.0.0.1",
+            MASTER_PORT=port,
+            OMP_NUM_THREADS="1",
+            PYTHONPATH=os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]),
+        )
+        log = (tmp_path / f"rank{rank}.log").open("w")
+        command = [sys.executable, str(TESTS / "ddp_worker.py"), str(tmp_path)]
+        procs.append(subprocess.Popen(command, env=env, stdout=log, stderr=subprocess.STDOUT))
+    try:
+        codes = [p.wait(timeout=240) for p in procs]
+    finally:
+        for p in procs:  # a hang is a failure, not a stuck test run
+            if p.poll() is None:
+                p.kill()
+    logs = "\n".join((tmp_path / f"rank{r}.log").read_text()[-3000:] for r in range(2))
+    assert codes == [0, 0], logs
+    ranks = [json.loads((tmp_path / f"rank{r}.json").read_text()) for r in range(2)]
+    for result in ranks:
+        assert result["calls"]["barrier"] == [0, 0, 0]
+        assert result["calls"]["all_reduce"] == [1, 1, 1]  # the non-finite flag, nothing else
+        assert result["skipped_steps"] == 1  # rank 1's NaN step, skipped on both
+    assert ranks[0]["metrics"] == ranks[1]["metrics"]
+
+    from ddp_worker import datamodule, module
+
+    model = module(rank=0)
+    state = torch.load(tmp_path / "ddp.ckpt", map_location="cpu", weights_only=True)
+    model.load_state_dict(state["state_dict"])
+    trainer = quiet_trainer()
+    trainer.test(model, datamodule=datamodule(), verbose=False)
+    single = {
+        k: None if math.isnan(float(v)) else float(v)
+        for k, v in trainer.callback_metrics.items()
+        if k.startswith("test/")
+    }
+    ddp = ranks[0]["metrics"]
+    assert set(ddp) == set(single)
+    for key in ("test/trans_err", "test/rot_err", "test/loss", "test/baseline_trans_err"):
+        assert single[key] is not None, key
+    differ = {
+        k: (ddp[k], single[k])
+        for k in single
+        if (ddp[k] is None) != (single[k] is None)
+        or (single[k] is not None and not math.isclose(ddp[k], single[k], rel_tol=1e-6))
+    }
+    assert not differ, differ
+
+
+# --------------------------------------------------------------------------------------------
+# last.ckpt by wall time
+# --------------------------------------------------------------------------------------------
+
+
+class Clock(L.Callback):
+    """A test clock that moves ``seconds`` at the end of every training step."""
+
+    def __init__(self, seconds: float) -> None:
+        self.now, self.seconds = 0.0, seconds
+
+    def __call__(self) -> float:
+        return self.now
+
+    def on_train_batch_end(self, *args: Any) -> None:
+        self.now += self.seconds
+
+
+@pytest.mark.parametrize(
+    ("every_n_train_steps", "saved"), [(0, [2, 4, 6, 7]), (3, [2, 3, 5, 6, 7])]
+)
+def test_last_checkpoint_is_saved_by_wall_time_as_well_as_by_step(
+    tmp_path: Path, every_n_train_steps: int, saved: list[int]
+) -> None:
+    """A step every 30 s and a save every minute: steps 2, 4, 6 by time, 7 at the end; with a
+    save every 3 steps as well, 3 and 6 by step and 2 and 5 by time (the minute counts from the
+    latest save, whichever made it)."""
+    from test_precision import _dm, _module
+
+    clock = Clock(30.0)
+    last = LastCheckpoint(tmp_path, every_n_train_steps=every_n_train_steps, every_minutes=1)
+    last.clock = clock
+    steps: list[int] = []
+    save = last._save
+
+    def recorded(trainer: L.Trainer) -> None:
+        steps.append(trainer.global_step)
+        save(trainer)
+
+    last._save = recorded  # type: ignore[method-assign]
+    trainer = quiet_trainer(
+        max_steps=7, limit_val_batches=0, enable_checkpointing=True, callbacks=[clock, last]
+    )
+    trainer.fit(_module(), datamodule=_dm())
+    assert steps == saved
+    assert (tmp_path / "last.ckpt").is_file()
+
+
+def test_last_checkpoint_period_settings() -> None:
+    cfg = compose("train", ["paths.output_dir=/tmp/unused"]).callbacks.last_checkpoint
+    assert cfg.every_minutes > 0 and cfg.every_n_train_steps == 0  # by time by default
+    with pytest.raises(ValueError, match="every_minutes must be positive"):
+        LastCheckpoint("/tmp/unused", every_minutes=0)
+
+
+# --------------------------------------------------------------------------------------------
+# The suite on the CPU
+# --------------------------------------------------------------------------------------------
+
+
+def test_the_tests_run_on_the_cpu_whatever_the_machine_has() -> None:
+    assert os.environ["CUDA_VISIBLE_DEVICES"] == ""
+    assert not torch.cuda.is_available()
+    assert quiet_trainer().accelerator.__class__.__name__ == "CPUAccelerator"
+    # An entry point started by a test inherits the hidden GPUs; a test about CUDA gets them.
+    kept = os.environ["MFG_TESTS_CUDA_VISIBLE_DEVICES"]  # the machine's own setting
+    assert cuda_env().get("CUDA_VISIBLE_DEVICES", "<unset>") == kept
+    assert "MFG_TESTS_CUDA_VISIBLE_DEVICES" not in cuda_env()
