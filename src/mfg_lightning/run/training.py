@@ -135,12 +135,13 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     output_dir = Path(cfg.paths.output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
     ckpt_path = resolve_ckpt_path(cfg.get("ckpt_path"), output_dir, bool(cfg.get("resume")))
+    L.seed_everything(cfg.seed, workers=True)
+
+    # The dataset checks its data when built: a refused data root writes nothing of the run's.
+    datamodule: L.LightningDataModule = instantiate(cfg.dataset)
     atomic_write_text(output_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
     info = {**run_info(), "seed": cfg.seed, "resumed_from": ckpt_path}
     atomic_write_text(output_dir / "run_info.json", json.dumps(info, indent=2) + "\n")
-    L.seed_everything(cfg.seed, workers=True)
-
-    datamodule: L.LightningDataModule = instantiate(cfg.dataset)
     model = build_model(cfg)
     callbacks = instantiate_list(cfg.get("callbacks"))
     # LastCheckpoint saves after ModelCheckpoint has recorded a validation's score (stable sort).
