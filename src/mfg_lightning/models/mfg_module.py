@@ -22,11 +22,10 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NamedTuple
 
 import lightning as L
 import torch
-from lightning.pytorch.loggers import TensorBoardLogger
 from lightning.pytorch.plugins.precision import MixedPrecision, Precision
 from torch import Tensor, nn
 from torchmetrics import SumMetric
@@ -43,7 +42,6 @@ from mfg_lightning.motion.object_motion import (
     extract_object_motion,
     threshold_baseline,
 )
-from mfg_lightning.pictures.colours import activation_map, flows_to_rgb
 
 log = logging.getLogger(__name__)
 
@@ -153,6 +151,28 @@ def fit_grad_scaler(plugin: Precision, init_scale: float = FP16_INIT_SCALE) -> b
     return True
 
 
+class StepFields(NamedTuple):
+    """What a training or validation step hands to the figure callback
+    (:class:`mfg_lightning.run.figures.TensorBoardFigures`) under its output's ``"fields"``
+    key: the batch's fields as detached tensors on the model's device, ``(B, 2, H, W)`` pixels.
+
+    Attributes:
+        step: the global step the fields belong to.
+        flow: the (masked) input flow.
+        v_t, v_omega: the ground-truth translational (ρ = 1 m⁻¹) and rotational fields.
+        v_t_pred, v_omega_pred: the predicted ones.
+        hidden: ``(B, M)`` the hidden activations the prediction was decoded from.
+    """
+
+    step: int
+    flow: Tensor
+    v_t: Tensor
+    v_omega: Tensor
+    v_t_pred: Tensor
+    v_omega_pred: Tensor
+    hidden: Tensor
+
+
 class _DeferredCounts:
     """Per-batch counts kept as device tensors beside their batch's sample ids, read back in
     one transfer when they are reported (a logging step, the end of an epoch)."""
@@ -189,7 +209,10 @@ class MFGLitModule(L.LightningModule):
             (paper: Adam, lr 1e-5, betas (0.99, 0.999)).
         scheduler: optional partial LR-scheduler constructor taking the optimiser.
         top_k: fraction of hidden units kept at evaluation (None: all); overrides ``net.top_k``.
-        image_log_every_n_steps: how often fields are drawn to TensorBoard (0: never).
+        image_log_every_n_steps: every how many training steps the step hands its fields to
+            the figure callback (:class:`mfg_lightning.run.figures.TensorBoardFigures`), which
+            draws them; validation steps hand theirs at every validation. 0: never (no field or
+            basis figures).
         max_consecutive_nonfinite: stop after this many non-finite losses in a row (checked at
             the logging steps and at the end of training).
         object_motion: object-motion filter parameters; when set, validation and test on
@@ -383,7 +406,9 @@ class MFGLitModule(L.LightningModule):
             return False
         return bool(trainer.optimizers[0].defaults.get("fused"))
 
-    def training_step(self, batch: dict[str, Any] | None, batch_idx: int) -> Tensor | None:
+    def training_step(
+        self, batch: dict[str, Any] | None, batch_idx: int
+    ) -> Tensor | dict[str, Any] | None:
         if batch is None:  # every sample of the batch was skipped as unreadable
             return None
         flow, v_t, v_w, _, n_bad = self._prepare(batch)
@@ -399,8 +424,7 @@ class MFGLitModule(L.LightningModule):
             if self._trainer.world_size > 1:
                 # One verdict for every process: their gradients are averaged, so one process's
                 # NaN reaches all of them, and all must skip (and count) the step together.
-                bad = self._trainer.strategy.reduce((~finite).float(), reduce_op="max")
-                finite = bad == 0
+                finite = _finite_on_every_process(finite, self._trainer.strategy)
             self._window_finite = (
                 finite if self._window_finite is None else self._window_finite & finite
             )
@@ -443,7 +467,9 @@ class MFGLitModule(L.LightningModule):
                 values["train/skipped_steps"] = self._skipped_steps.float()
             self.log_dict(values, batch_size=bs)
         if self.image_log_every_n_steps and self.global_step % self.image_log_every_n_steps == 0:
-            self._log_images("train", flow, v_t, v_w, out)
+            # The pictures are the figure callback's: it gets the fields from the step's output
+            # (references, no copy and no host read here).
+            return {"loss": terms.total, "fields": self._step_fields(flow, v_t, v_w, out)}
         return terms.total
 
     def _report_nonfinite(self, batch: dict[str, Any] | None) -> None:
@@ -544,8 +570,12 @@ class MFGLitModule(L.LightningModule):
     def _log_eval(self, stage: str) -> None:
         self._warn_masked_flow(stage)
         self._score_baseline = None
+        # Which metrics any process updated, agreed on by all of them: compute() is a
+        # collective under DDP, so a process that saw no batch (an evaluation split smaller than
+        # the number of processes) must still take part, or the others wait for it forever.
+        updated = self._updated_on_any_process(stage)
         for name, metric in self.eval_metrics[stage].items():
-            if metric.update_count:
+            if updated[name]:
                 self.log(
                     f"{stage}/{name}", metric.compute(), prog_bar=name in ("trans_err", "rot_err")
                 )
@@ -565,9 +595,25 @@ class MFGLitModule(L.LightningModule):
             self.log_dict(metrics)
         for method in ("object", "object_baseline"):
             metric = self.object_scores[f"{stage}_{method}"]
-            if metric.update_count:
+            if updated[f"{stage}_{method}"]:
                 self.log_dict({f"{stage}/{method}/{k}": v for k, v in metric.compute().items()})
             metric.reset()
+
+    def _updated_on_any_process(self, stage: str) -> dict[str, bool]:
+        """``{metric name: updated by some process}`` for the stage's metrics (the object-motion
+        scores under ``<stage>_<method>``): one ``all_reduce`` of their update counts at the end
+        of an evaluation epoch, none in a single process."""
+        metrics: dict[str, Any] = dict(self.eval_metrics[stage].items())
+        for method in ("object", "object_baseline"):
+            metrics[f"{stage}_{method}"] = self.object_scores[f"{stage}_{method}"]
+        counts = [int(m.update_count) for m in metrics.values()]
+        dist = torch.distributed
+        if dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1:
+            # On the module's device: NCCL reduces CUDA tensors only.
+            total = torch.tensor(counts, dtype=torch.long, device=self.device)
+            dist.all_reduce(total, op=dist.ReduceOp.SUM)
+            counts = [int(c) for c in total.tolist()]
+        return {name: count > 0 for name, count in zip(metrics, counts, strict=True)}
 
     def on_fit_start(self) -> None:
         self._set_mean_motion()
@@ -598,10 +644,14 @@ class MFGLitModule(L.LightningModule):
     def on_test_epoch_start(self) -> None:
         self._start_eval_epoch()
 
-    def validation_step(self, batch: dict[str, Any] | None, batch_idx: int) -> None:
+    def validation_step(
+        self, batch: dict[str, Any] | None, batch_idx: int
+    ) -> dict[str, StepFields] | None:
+        """Score the batch; hand its fields to the figure callback (the step's output)."""
         res = self._evaluate(batch, "val")
-        if res is not None and batch_idx == 0 and self.image_log_every_n_steps:
-            self._log_images("val", res["flow"], res["v_t"], res["v_omega"], res["out"])
+        if res is None or not self.image_log_every_n_steps:
+            return None
+        return {"fields": self._step_fields(res["flow"], res["v_t"], res["v_omega"], res["out"])}
 
     def on_validation_epoch_end(self) -> None:
         self._log_eval("val")
@@ -614,24 +664,17 @@ class MFGLitModule(L.LightningModule):
 
     # -- pictures ----------------------------------------------------------------------------
 
-    def _log_images(
-        self, stage: str, flow: Tensor, v_t: Tensor, v_w: Tensor, out: MFGOutput
-    ) -> None:
-        """Input flow, GT and predicted fields (Middlebury colours) and the hidden activations."""
-        logger = self.logger
-        if not isinstance(logger, TensorBoardLogger) or self.trainer.sanity_checking:
-            return
-        n = min(4, flow.shape[0])
-        exp = logger.experiment
-        step = self.global_step
-        exp.add_images(f"{stage}/flow", flows_to_rgb(flow[:n]), step, dataformats="NCHW")
-        for name, gt, pred in (("v_t", v_t, out.v_t), ("v_omega", v_w, out.v_omega)):
-            both = torch.cat([gt[:n], pred[:n].detach().to(gt)], dim=0)
-            rgb = flows_to_rgb(both)  # shared normalisation: GT and prediction comparable
-            exp.add_images(f"{stage}/{name}_gt", rgb[:n], step, dataformats="NCHW")
-            exp.add_images(f"{stage}/{name}_pred", rgb[n:], step, dataformats="NCHW")
-        maps = [torch.from_numpy(activation_map(h)).permute(2, 0, 1) for h in out.hidden[:n]]
-        exp.add_images(f"{stage}/hidden_activations", torch.stack(maps), step, dataformats="NCHW")
+    def _step_fields(self, flow: Tensor, v_t: Tensor, v_w: Tensor, out: MFGOutput) -> StepFields:
+        """The step's fields for :class:`StepFields` (detached views: no copy, no host read)."""
+        return StepFields(
+            self.global_step,
+            flow.detach(),
+            v_t.detach(),
+            v_w.detach(),
+            out.v_t.detach(),
+            out.v_omega.detach(),
+            out.hidden.detach(),
+        )
 
     # -- optimisation ------------------------------------------------------------------------
 
@@ -669,6 +712,19 @@ def _checked_scheduler(scheduler: Callable[..., Any] | None) -> Callable[..., An
             "a constant learning rate"
         )
     return scheduler
+
+
+def _finite_on_every_process(finite: Tensor, strategy: Any) -> Tensor:
+    """Whether the step's loss was finite on every process: one ``all_reduce`` (MAX) of a
+    one-element device tensor, queued on the device like the gradients' and never read on the
+    host. Lightning's ``strategy.reduce`` would add a ``barrier()`` before it in every step
+    (``_sync_ddp``); it is used only where torch.distributed is not what the strategy runs on."""
+    bad = (~finite).to(torch.float32)
+    if torch.distributed.is_available() and torch.distributed.is_initialized():
+        torch.distributed.all_reduce(bad, op=torch.distributed.ReduceOp.MAX)
+    else:
+        bad = strategy.reduce(bad, reduce_op="max")
+    return bad == 0
 
 
 def _as_float(value: Tensor | float) -> Tensor | float:
