@@ -112,13 +112,13 @@ class RpeOptions:
 
     def __post_init__(self) -> None:
         if self.delta_unit not in ("f", "m"):
-            raise ValueError(
-                f"delta_unit must be 'f' (frames) or 'm' (metres), got {self.delta_unit!r}"
-            )
-        if self.delta_unit == "f" and (self.delta < 1 or self.delta != int(self.delta)):
-            raise ValueError(f"--delta must be a whole number of frames >= 1, got {self.delta:g}")
+            raise ValueError(f"--delta_unit must be f (frames) or m (metres): {self.delta_unit}")
         if not (self.delta > 0 and math.isfinite(self.delta)):
-            raise ValueError(f"--delta must be a finite distance > 0, got {self.delta:g}")
+            raise ValueError(f"--delta must be a finite gap > 0, got {self.delta:g}")
+        if self.delta_unit == "f" and (self.delta < 1 or not float(self.delta).is_integer()):
+            raise ValueError(f"--delta must be a whole number of frames >= 1, got {self.delta:g}")
+        if not (self.delta_tol >= 0 and math.isfinite(self.delta_tol)):
+            raise ValueError(f"--delta_tol must be a finite fraction >= 0, got {self.delta_tol:g}")
         if self.pose_relation not in POSE_RELATIONS:
             raise ValueError(f"pose relation must be one of {', '.join(POSE_RELATIONS)}")
 
