@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import json
-import re
 import math
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -16,8 +16,8 @@ from scipy.spatial.transform import Rotation
 
 from conftest import SHARED
 from mfg_lightning.evaluate_poses import main
-from mfg_lightning.metrics.pose_evaluation import evaluate_trajectory
 from mfg_lightning.metrics import relative_pose_error, snippet_ate
+from mfg_lightning.metrics.pose_evaluation import evaluate_trajectory
 from mfg_lightning.trajectory.pose_io import read_kitti_poses, write_kitti_poses, write_tum_poses
 from mfg_lightning.trajectory.trajectories import snippets_from_poses
 
