@@ -389,7 +389,7 @@ def _flow_error_section(fe: dict | None) -> tuple[list[str], Any]:
           {f"offset {int(o):+d}": [q["regions"][r]["epe"] for r in QUALITY_REGIONS]
            for o, q in test.items()})],
         list(QUALITY_REGIONS),
-        "DIS against the exact flow, by frame offset (test pairs, render resolution)",
+        "DIS's error by frame offset (test pairs)",
     )  # fmt: skip
     heads = ("offset", "pairs", *(f"{r}: EPE (px) / Fl (%)" for r in QUALITY_REGIONS))
     return [
