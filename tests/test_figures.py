@@ -1,4 +1,4 @@
-"""The labelled TensorBoard figures (issue 33): drawn by a callback from the steps' outputs, read
+"""The labelled TensorBoard figures: drawn by a callback from the steps' outputs, read
 back from a real short training's event file at the validation steps."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""A GPU user's first run (issue 35), tested on a CPU: the install, ``make gpu-check``, no
+"""A GPU user's first run, tested on a CPU: the install, ``make gpu-check``, no
 collective or host copy per step that a tensor op avoids, ``last.ckpt`` by wall time, and the
 test suite itself pinned to the CPU.
 

@@ -1,4 +1,4 @@
-"""Labelled figures of what the network sees and predicts, for TensorBoard (issue 33).
+"""Labelled figures of what the network sees and predicts, for TensorBoard.
 
 * :func:`field_figure`: one row per sample, one titled column each for the input flow, the
   ground-truth and predicted translational field ``v_t`` (unit inverse depth), the ground-truth

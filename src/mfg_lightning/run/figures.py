@@ -1,4 +1,4 @@
-"""What a researcher looks at in TensorBoard while a model trains: labelled figures (issue 33).
+"""What a researcher looks at in TensorBoard while a model trains: labelled figures.
 
 :class:`TensorBoardFigures` draws, from what the steps of
 :class:`~mfg_lightning.models.mfg_module.MFGLitModule` hand out (their output's ``"fields"``, a

@@ -2,7 +2,7 @@
 
 Formats, as distributed:
 
-* **KITTI** (``poses/XX.txt`` of the odometry benchmark; ``../shared/docs/formats.md``): one line
+* **KITTI** (``poses/XX.txt`` of the odometry benchmark; ``docs/formats.md``): one line
   per frame, 12 numbers, the row-major 3×4 ``[R | t]`` of ``T_world_cam`` (camera-to-world, the
   camera of frame 0 is the world), metres. Results may put the frame index first (13 numbers a
   line, as kitti-odom-eval reads them): then the file may start late, end early and skip frames;

@@ -1,6 +1,6 @@
 """Forming trajectories and snippets from predicted motions and ground-truth poses.
 
-The evaluation protocols (``../shared/docs/protocols.md``) compare *trajectories*; the network
+The evaluation protocols (``docs/protocols.md``) compare *trajectories*; the network
 predicts *relative motions*. This module turns the latter into the former, in the conventions of
 :mod:`mfg_lightning.core.geometry`:
 
@@ -116,7 +116,7 @@ def snippets_from_motions(motions: Tensor, snippet_length: int = 5) -> Tensor:
     """Frame-by-frame snippets (Table 1's †): compose consecutive predicted motions.
 
     Snippet ``i`` starts at the identity and composes ``T_i,i+1, …, T_i+L−2,i+L−1``
-    (``../shared/docs/protocols.md``, "frame by frame").
+    (``docs/protocols.md``, "frame by frame").
 
     Args:
         motions: ``(N − 1, 4, 4)`` relative motions ``T_k,k+1`` of one sequence of N frames.
@@ -147,7 +147,7 @@ def snippets_from_central_frame(center_to_others: Tensor) -> Tensor:
     ``i + c``, the pose of every other frame: ``T_center,other`` = camera ``other`` expressed in
     camera ``center`` (with flow from the centre frame to frames at offsets −c … −1, +1 … +c).
     The centre's own pose is the identity; all ``L`` poses are then re-expressed relative to
-    frame ``i``: ``T_i,k = T_center,i^-1 · T_center,k`` (``../shared/docs/protocols.md``).
+    frame ``i``: ``T_i,k = T_center,i^-1 · T_center,k`` (``docs/protocols.md``).
 
     Args:
         center_to_others: ``(S, L − 1, 4, 4)`` for S snippets, the poses ``T_center,other`` in
