@@ -30,6 +30,8 @@ from mfg_lightning.trajectory.association import (
     KITTI_FRAME_RATE,
     MatchOptions,
 )
+from mfg_lightning.trajectory.pairs import RpeOptions
+from mfg_lightning.trajectory.pose_inputs import check_out, read_inputs
 
 __all__ = ["main"]
 
@@ -132,11 +134,9 @@ def _align_mode(args: argparse.Namespace) -> str:
     return mode
 
 
-def _options(args: argparse.Namespace):  # -> EvalOptions (imported with torch)
-    """The scoring options; ``ValueError`` for values that do not fit."""
-    from mfg_lightning.analysis.pose_report import EvalOptions
-    from mfg_lightning.metrics.pose_evaluation import RpeOptions
-
+def _options(args: argparse.Namespace) -> tuple[str, int | None, RpeOptions, MatchOptions]:
+    """The alignment, ``n_to_align``, RPE and matching options, checked (``ValueError``) before
+    torch is imported."""
     mode = _align_mode(args)
     n = None if args.n_to_align in (None, -1) else args.n_to_align
     if args.snippet_length < 2:
@@ -155,20 +155,23 @@ def _options(args: argparse.Namespace):  # -> EvalOptions (imported with torch)
     fit = 3 if mode in _UMEYAMA else 1
     match = MatchOptions(args.t_max_diff, args.t_offset, args.gt_times, args.gt_rate,
                          max(2, rpe.frames + 1, fit))  # fmt: skip
-    return EvalOptions(mode, n, args.align_origin, args.raw_rotations, args.snippet_length, rpe,
-                       match, args.plot_mode)  # fmt: skip
+    return mode, n, rpe, match
 
 
 def _run(args: argparse.Namespace) -> int:
-    from mfg_lightning.analysis import pose_report as report
-    from mfg_lightning.trajectory.pose_inputs import read_inputs
-
-    options = _options(args)
+    mode, n, rpe, match = _options(args)
     seqs = [s for arg in args.seqs for s in arg.split(",") if s] if args.seqs else None
-    inputs = read_inputs(args.gt, args.pred, seqs, args.format, options.match)
+    inputs = read_inputs(args.gt, args.pred, seqs, args.format, match)
     for path, flag in ((args.out, "--out"), (args.save_results, "--save_results")):
         if path is not None:
-            report.check_out(path, inputs, flag)
+            check_out(path, inputs, flag)
+    # torch and the metrics are imported only now: --help and input errors answer at once
+    # instead of after the seconds these imports take.
+    from mfg_lightning.analysis import pose_report as report
+    from mfg_lightning.core.atomic import atomic_write_bytes
+
+    options = report.EvalOptions(mode, n, args.align_origin, args.raw_rotations,
+                                 args.snippet_length, rpe, match, args.plot_mode)  # fmt: skip
     results = report.evaluate_inputs(inputs, options)
     payload = report.payload(inputs, results, options, str(args.gt), [str(p) for p in args.pred])
     tables = report.tables(inputs, results, options)
@@ -177,15 +180,13 @@ def _run(args: argparse.Namespace) -> int:
     if args.out is not None:
         report.write_out(args.out, tables, payload, report.figures(inputs, results, options))
     for path, data in archives.items():
-        from mfg_lightning.core.atomic import atomic_write_bytes
-
         atomic_write_bytes(path, data)
     if args.json:
         print(json.dumps(payload, indent=2))
     elif inputs.single:
         (name,) = inputs.matches
-        match = next(iter(inputs.matches[name].values()))
-        title = report.single_title(match, options, str(args.gt), str(args.pred[0]))
+        match_ = next(iter(inputs.matches[name].values()))
+        title = report.single_title(match_, options, str(args.gt), str(args.pred[0]))
         report.print_single(payload, title, options)
     else:
         print("\n".join(t.markdown() for t in tables.values()), end="")

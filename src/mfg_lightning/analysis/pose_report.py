@@ -31,7 +31,7 @@ from mfg_lightning.metrics.pose_evaluation import (
 )
 from mfg_lightning.metrics.stats import STATISTICS
 from mfg_lightning.trajectory.association import MatchOptions, PoseMatch
-from mfg_lightning.trajectory.pose_inputs import InputError, Inputs
+from mfg_lightning.trajectory.pose_inputs import Inputs
 from mfg_lightning.trajectory.result_archive import result_archive_bytes
 
 __all__ = ["EvalOptions", "PoseReport", "evaluate_inputs", "matches_table"]
@@ -319,18 +319,6 @@ def archives(
                     info, stats[metric.lower()], arrays
                 )
     return out
-
-
-def check_out(out: Path, inputs: Inputs, flag: str = "--out") -> None:
-    """Refuse an output path inside an input directory, or a directory that is a file."""
-    resolved = out.resolve()
-    for directory in inputs.directories:
-        d = directory.resolve()
-        if resolved == d or d in resolved.parents:
-            raise InputError(f"{flag} {out}: inside the input directory {directory}; "
-                             "results are never written among the data")  # fmt: skip
-    if flag == "--out" and out.exists() and not out.is_dir():
-        raise InputError(f"{flag} {out}: exists and is not a directory")
 
 
 def figures(inputs: Inputs, report: PoseReport, options: EvalOptions) -> dict[str, dict]:

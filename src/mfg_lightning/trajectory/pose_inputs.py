@@ -17,7 +17,14 @@ from pathlib import Path
 from mfg_lightning.trajectory.association import MatchOptions, PoseMatch, SequenceMatcher
 from mfg_lightning.trajectory.pose_io import PoseFile, PoseFileError, read_poses
 
-__all__ = ["InputError", "Inputs", "parse_method", "read_inputs", "sequence_file"]
+__all__ = [
+    "InputError",
+    "Inputs",
+    "check_out",
+    "parse_method",
+    "read_inputs",
+    "sequence_file",
+]
 
 
 class InputError(ValueError):
@@ -151,3 +158,15 @@ def read_inputs(
     )
     directories = [p for p in [gt, *sources.values()] if p.is_dir()]
     return Inputs(gt_files, methods, matches, sources, single, directories)
+
+
+def check_out(out: Path, inputs: Inputs, flag: str = "--out") -> None:
+    """Refuse an output path inside an input directory, or a directory that is a file."""
+    resolved = out.resolve()
+    for directory in inputs.directories:
+        d = directory.resolve()
+        if resolved == d or d in resolved.parents:
+            raise InputError(f"{flag} {out}: inside the input directory {directory}; "
+                             "results are never written among the data")  # fmt: skip
+    if flag == "--out" and out.exists() and not out.is_dir():
+        raise InputError(f"{flag} {out}: exists and is not a directory")
