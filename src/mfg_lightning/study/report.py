@@ -163,55 +163,11 @@ def write_report(study: S.Study, report: Path, th: Thresholds) -> Path:
     scale_model = next((m for k, m in sparsity.items() if "input_scale" in k), None)
     scale_text, _ = P.input_scale_decision(views, scale_model, float(cfg.sparsity.input_scale))
     stage_rows, total = _stage_rows(study)
-    main = study.cached("main")
-    recipe = main["recipe"] if main else None
-    # Paths as a reader finds them (relative, ../shared, <cache>), not this machine's.
-    data = " ".join(portable_overrides(cfg.data, Path.cwd(), default_cache_dir()))
-    main_overrides = main["overrides"] if main else cfg.main
-    main_text = " ".join(portable_overrides(main_overrides, Path.cwd(), default_cache_dir()))
-    rule = ", ".join(f"{k}={v}" for k, v in cfg.convergence.items())
     text = [
-        "# Reproduction of the paper's claims",
-        "",
-        "Produced by `python -m mfg_lightning.reproduce` (one command; every figure and every "
-        "number below comes from it; a fresh clone rebuilds this report from the committed stage "
-        f"results in `{portable_path(str(study.results), Path.cwd(), default_cache_dir())}/` "
-        "without retraining): synthetic worlds rendered along "
-        f"the real KITTI trajectories, overrides `{data}`; choices made on the validation tails "
-        "of the training sequences only, then fixed.",
-        "",
-        *(f"- **{k}**: {v}" for k, v in _machine().items()),
-        f"- **main model**: `{main_text}`, seeds {', '.join(str(s) for s in sorted(views))} "
-        "trained",
-        f"- **convergence rule** (every model, stated before training): {rule}",
-        f"- **budget used**: {total / 60:.1f} min over the stages below (training included), "
-        f"frames per sequence {cfg.budget.max_frames or 'all'}",
-        "- **recipe**: "
-        + (
-            f"CPU: batch {recipe['batch_size']}, {recipe['optimizer']} lr {recipe['lr']:g}, betas "
-            f"{recipe['betas']}, constant until the rule is met, w_s {recipe['w_s']:g}; the "
-            "paper: batch 1, Adam lr 1e-5, betas (0.99, 0.999), constant (row R compares them)."
-            if recipe
-            else "not run yet"
-        ),
-        "",
+        *_header(study, views, total),
         *_verdicts_section(judged, verdict_link),
         *_headline_section(views),
-        "## Diagnostics: the paper's tables beside ours (not verdicts)",
-        "",
-        "The shape of the paper's tables and figures, with each deviation from the paper's "
-        "figure; Table 1's ratios at every k, ATE * / ATE †, Table 2's ratios, row R and the w_s "
-        "sweep are read here, not judged.",
-        "",
-        *(f"- **{r.number}. {r.claim}.** " + "; ".join(r.parts) + "."
-          for r in C.RULES.values()),
-        "",
-        table.markdown(),
-        "",
-        "### The w_s sweep (this project's extension)",
-        "",
-        *([f"- {line}" for line in sweep] or ["not run yet"]),
-        "",
+        *_diagnostics_section(table, sweep),
         *_methods_section(study.cached("methods")),
         *flow_lines,
         *_balance_section(
@@ -299,6 +255,64 @@ def _offsets(study: S.Study, stage: str) -> list[int] | None:
         return None
     cfg = study.train_config(stage, list(r.get("overrides", [])), 1)
     return [int(o) for o in cfg.dataset.get("offsets", [1])]
+
+
+def _diagnostics_section(table: Table, sweep: list[str]) -> list[str]:
+    """The paper's tables beside ours, and the w_s sweep: read, not judged."""
+    return [
+        "## Diagnostics: the paper's tables beside ours (not verdicts)",
+        "",
+        "The shape of the paper's tables and figures, with each deviation from the paper's "
+        "figure; Table 1's ratios at every k, ATE * / ATE †, Table 2's ratios, row R and the w_s "
+        "sweep are read here, not judged.",
+        "",
+        *(f"- **{r.number}. {r.claim}.** " + "; ".join(r.parts) + "." for r in C.RULES.values()),
+        "",
+        table.markdown(),
+        "",
+        "### The w_s sweep (this project's extension)",
+        "",
+        *([f"- {line}" for line in sweep] or ["not run yet"]),
+        "",
+    ]
+
+
+def _header(study: S.Study, views: dict, total: float) -> list[str]:
+    """The report's title, what produced it, the machine, the main model and the budget."""
+    cfg = study.cfg
+    main = study.cached("main")
+    recipe = main["recipe"] if main else None
+    # Paths as a reader finds them (relative, ../shared, <cache>), not this machine's.
+    data = " ".join(portable_overrides(cfg.data, Path.cwd(), default_cache_dir()))
+    main_overrides = main["overrides"] if main else cfg.main
+    main_text = " ".join(portable_overrides(main_overrides, Path.cwd(), default_cache_dir()))
+    rule = ", ".join(f"{k}={v}" for k, v in cfg.convergence.items())
+    return [
+        "# Reproduction of the paper's claims",
+        "",
+        "Produced by `python -m mfg_lightning.reproduce` (one command; every figure and every "
+        "number below comes from it; a fresh clone rebuilds this report from the committed stage "
+        f"results in `{portable_path(str(study.results), Path.cwd(), default_cache_dir())}/` "
+        "without retraining): synthetic worlds rendered along "
+        f"the real KITTI trajectories, overrides `{data}`; choices made on the validation tails "
+        "of the training sequences only, then fixed.",
+        "",
+        *(f"- **{k}**: {v}" for k, v in _machine().items()),
+        f"- **main model**: `{main_text}`, seeds {', '.join(str(s) for s in sorted(views))} "
+        "trained",
+        f"- **convergence rule** (every model, stated before training): {rule}",
+        f"- **budget used**: {total / 60:.1f} min over the stages below (training included), "
+        f"frames per sequence {cfg.budget.max_frames or 'all'}",
+        "- **recipe**: "
+        + (
+            f"CPU: batch {recipe['batch_size']}, {recipe['optimizer']} lr {recipe['lr']:g}, betas "
+            f"{recipe['betas']}, constant until the rule is met, w_s {recipe['w_s']:g}; the "
+            "paper: batch 1, Adam lr 1e-5, betas (0.99, 0.999), constant (row R compares them)."
+            if recipe
+            else "not run yet"
+        ),
+        "",
+    ]
 
 
 def _object_motion_theta_d() -> float:
