@@ -108,7 +108,7 @@ def test_eval_align_aligns_figures_and_whole_trajectory_metrics(
                       f"hydra.run.dir={tmp_path / 'bad'}", cwd=tmp_path, check=False)  # fmt: skip
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines()[-1] == (
-        "error: eval.align='7dof': use one of none, se3, sim3, scale, scale_7dof"
+        "error: eval.align='7dof': use one of none, se3, sim3, scale, scale_7dof, sim3_scale"
     )
 
 

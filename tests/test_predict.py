@@ -156,7 +156,7 @@ def test_predict_with_ground_truth_draws_and_scores_aligned_trajectories(
                       f"hydra.run.dir={tmp_path / 'bad'}", cwd=tmp_path, check=False)  # fmt: skip
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines()[-1] == (
-        "error: predict.align='7dof': use one of none, se3, sim3, scale, scale_7dof"
+        "error: predict.align='7dof': use one of none, se3, sim3, scale, scale_7dof, sim3_scale"
     )
     assert not (tmp_path / "bad" / "predict.json").exists()
 

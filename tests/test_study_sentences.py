@@ -123,7 +123,7 @@ def test_report_text_follows_a_changed_stage_result(tmp_path: Path) -> None:
         [f"poses_dir={POSES}", f"results_dir={results}", f"report={report}",
          f"work_dir={tmp_path / 'work'}", f"readme={tmp_path / 'README.md'}"],
     )  # fmt: skip
-    (tmp_path / "README.md").write_text("# x\n<!-- reproduction-table:start -->\nold\n"
+    (tmp_path / "README.md").write_text("# x\n<!-- reproduction-table:start -->\nSTALE-TABLE\n"
                                         "<!-- reproduction-table:end -->\nend\n")  # fmt: skip
     study = Study(cfg)
     stale = report.with_suffix("") / "claim7.png"
@@ -142,7 +142,7 @@ def test_report_text_follows_a_changed_stage_result(tmp_path: Path) -> None:
     assert "ATE † 09: 2.000 (1 seed)" in s1 and "does not hold" in s1
     assert "4\u202f321 training pairs" in after and "4\u202f321 training pairs" not in before
     readme = (tmp_path / "README.md").read_text()
-    assert "old" not in readme and readme.endswith("end\n") and "| S1 |" in readme
+    assert "STALE-TABLE" not in readme and readme.endswith("end\n") and "| S1 |" in readme
     assert "(out/reproduction.md)" in readme
     # no figure of an earlier report layout is left beside it
     assert not stale.exists() and (report.with_suffix("") / "verdicts.png").is_file()
