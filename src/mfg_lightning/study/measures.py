@@ -13,7 +13,7 @@
 from __future__ import annotations
 
 import statistics
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import torch
@@ -112,6 +112,32 @@ def _inputs(batch: dict, flow_key: str) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 @torch.no_grad()
+def _pooled_iou(
+    model: Any,
+    loader: DataLoader,
+    flow_key: str,
+    n: int,
+    masks: Callable[[torch.Tensor, Any, dict, torch.Tensor], Iterable[torch.Tensor]],
+) -> torch.Tensor:
+    """The pooled mask IoU of ``n`` candidate masks over ``loader``: the model runs once per
+    batch, and ``masks(flow, out, batch, valid)`` yields each candidate's ``(B, H, W)`` mask
+    (pixels outside the object-motion validity already dropped); ``(n,)`` float64."""
+    from mfg_lightning.motion.object_motion import depth_validity
+
+    tp = torch.zeros(n, dtype=torch.float64)
+    union = torch.zeros_like(tp)
+    for batch in loader:
+        if batch is None or "object_mask" not in batch:
+            continue
+        flow, valid = _inputs(batch, flow_key)
+        out = model(flow)
+        gt = batch["object_mask"].bool() & valid & depth_validity(batch["depth"])
+        for i, pred in enumerate(masks(flow, out, batch, valid)):
+            tp[i] += float((pred & gt).sum())
+            union[i] += float((pred | gt).sum())
+    return torch.where(union > 0, tp / union.clamp_min(1), torch.zeros_like(tp))
+
+
 def choose_threshold(
     model: Any, loader: DataLoader, cfg: Any, candidates: list[float], flow_key: str
 ) -> dict[str, Any]:
@@ -120,20 +146,11 @@ def choose_threshold(
     model's input. Returns ``threshold`` and the ``iou`` of every candidate."""
     from mfg_lightning.motion.object_motion import extract_object_motion, threshold_baseline
 
-    tp = torch.zeros(len(candidates), dtype=torch.float64)
-    union = torch.zeros_like(tp)
-    for batch in loader:
-        if batch is None or "object_mask" not in batch:
-            continue
-        flow, valid = _inputs(batch, flow_key)
-        out = model(flow)
+    def masks(flow: torch.Tensor, out: Any, batch: dict, valid: torch.Tensor) -> Iterable:
         res = extract_object_motion(flow, out.v_t, out.v_omega, batch["depth"], cfg, valid=valid)
-        gt = batch["object_mask"].bool() & res.valid
-        for i, th in enumerate(candidates):
-            pred = threshold_baseline(res.residual, th, res.valid)
-            tp[i] += float((pred & gt).sum())
-            union[i] += float((pred | gt).sum())
-    iou = torch.where(union > 0, tp / union.clamp_min(1), torch.zeros_like(tp))
+        return (threshold_baseline(res.residual, th, res.valid) for th in candidates)
+
+    iou = _pooled_iou(model, loader, flow_key, len(candidates), masks)
     best = int(torch.argmax(iou))
     ious = dict(zip(map(str, candidates), iou.tolist(), strict=True))
     return {"threshold": float(candidates[best]), "iou": ious}
@@ -159,20 +176,15 @@ def choose_filters(
     from mfg_lightning.motion.object_motion import extract_object_motion
 
     pairs = [(float(d), float(p)) for d in grid["theta_d"] for p in grid["theta_p"]]
-    tp = torch.zeros(len(pairs), dtype=torch.float64)
-    union = torch.zeros_like(tp)
-    for batch in loader:
-        if batch is None or "object_mask" not in batch:
-            continue
-        flow, valid = _inputs(batch, flow_key)
-        out = model(flow)  # once per batch: only the masks depend on the constants
-        for i, (d, p) in enumerate(pairs):
+
+    def masks(flow: torch.Tensor, out: Any, batch: dict, valid: torch.Tensor) -> Iterable:
+        for d, p in pairs:
             c = dataclasses.replace(cfg, theta_d=d, theta_p=p)
-            res = extract_object_motion(flow, out.v_t, out.v_omega, batch["depth"], c, valid=valid)
-            gt = batch["object_mask"].bool() & res.valid
-            tp[i] += float((res.mask & gt).sum())
-            union[i] += float((res.mask | gt).sum())
-    iou = torch.where(union > 0, tp / union.clamp_min(1), torch.zeros_like(tp))
+            yield extract_object_motion(
+                flow, out.v_t, out.v_omega, batch["depth"], c, valid=valid
+            ).mask
+
+    iou = _pooled_iou(model, loader, flow_key, len(pairs), masks)
     best = int(torch.argmax(iou))
     return {
         "theta_d": pairs[best][0],

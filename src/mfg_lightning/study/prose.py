@@ -209,12 +209,16 @@ def para_robustness(cached: Cached, views: Mapping[int, View]) -> str | None:
     )
 
 
+def _first_seed(views: Mapping[int, View], key: str) -> Any:
+    """The first seed's (the main model's) result ``key``, None when not measured."""
+    return views[min(views)].get(key) if views else None
+
+
 def para_basis(views: Mapping[int, View], residual: float) -> str | None:
     """The rotational decoder's silent units."""
-    main = views.get(min(views)) if views else None
-    if not main or not main.get("basis"):
+    bs = _first_seed(views, "basis")
+    if bs is None:
         return None
-    bs = main["basis"]
     d = bs["per_decoder"]["omega"]
     fired = [r for r, f in zip(d["residual"], d["firing_rate"], strict=True) if f > 0]
     silent = [r for r, f in zip(d["residual"], d["firing_rate"], strict=True) if f <= 0]
@@ -235,10 +239,10 @@ def para_basis(views: Mapping[int, View], residual: float) -> str | None:
 
 def para_object_motion(views: Mapping[int, View], theta_d: float) -> str | None:
     """The two sides' treatment in the object-mask comparison."""
-    main = views.get(min(views)) if views else None
-    if not main or not main.get("object_motion"):
+    om = _first_seed(views, "object_motion")
+    if om is None:
         return None
-    om = main["object_motion"]["exact"]
+    om = om["exact"]
     choice = om.get("filters_choice")
     filters = (
         f"the filters' θ_d {choice['theta_d']:g} and θ_p {choice['theta_p']:g} chosen on "
