@@ -16,6 +16,7 @@ from typing import Any
 
 from mfg_lightning.core.tables import fmt
 from mfg_lightning.pictures import plots
+from mfg_lightning.study.noise import ratio
 from mfg_lightning.study.verdicts import NOT_RUN, relative_deviation
 
 #: Table 1 (†, frame by frame), ATE 09 / 10 (m) by k.
@@ -144,12 +145,6 @@ def _dev(ours: float | None, paper: float) -> str:
     return f"{sign}{100 * d:.1f} %"
 
 
-def _ratio(a: float | None, b: float | None) -> float | None:
-    if a is None or b is None or not b or not (math.isfinite(a) and math.isfinite(b)):
-        return None
-    return a / b
-
-
 # --------------------------------------------------------------------------------------------
 # The claims
 # --------------------------------------------------------------------------------------------
@@ -170,11 +165,11 @@ def claim_table1(t1: dict | None) -> tuple[Row, Any]:
         for k in ks:
             if k >= 1 or k not in PAPER_TABLE1:
                 continue
-            ours = _ratio(test[f"{k:g}"].get(f"{s}/ate"), full)
+            ours = ratio(test[f"{k:g}"].get(f"{s}/ate"), full)
             paper = PAPER_TABLE1[k][i] / PAPER_TABLE1[1.0][i]
             at.append(f"{100 * k:g} % ×{fmt(ours, 2)} ({paper:.2f}, {_dev(ours, paper)})")
         c = test["1"].get(f"{s}/ate_central")
-        c_ratio = _ratio(c, full)
+        c_ratio = ratio(c, full)
         paper_c = PAPER_CENTRAL_OVER_FRAME[s]
         texts.append(
             f"{s}: † {fmt(full)} at 100 %, ratios (paper's, deviation) " + ", ".join(at)
@@ -268,7 +263,7 @@ def claim_table2(t2: dict | None, offsets: list[int] | None = None) -> tuple[Row
     full = mfg["1"]
     ratios = []
     for k in (0.2, 0.15, 0.1, 0.05):
-        ours = _ratio(mfg.get(f"{k:g}", {}).get("rpe_trans"), full.get("rpe_trans"))
+        ours = ratio(mfg.get(f"{k:g}", {}).get("rpe_trans"), full.get("rpe_trans"))
         paper = PAPER_TABLE2[k][0] / PAPER_TABLE2[1.0][0]
         ratios.append(f"{100 * k:g} % ×{fmt(ours, 2)} ({paper:.2f}, {_dev(ours, paper)})")
     others = [c for c in classical if "oracle" not in c["name"]]

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 import statistics
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from decimal import Decimal
 from typing import Any
@@ -35,6 +35,7 @@ __all__ = [
     "Tolerance",
     "bounded_verdict",
     "print_precision",
+    "ratio",
     "spread_of",
     "tolerance",
 ]
@@ -156,6 +157,8 @@ def bounded_verdict(value: float | None, bound: float, direction: str, tol: Tole
     raise ValueError(f"direction must be '<=' or '>=', got {direction!r}")
 
 
-def values_text(values: Iterable[float], digits: int = 4) -> str:
-    """The per-seed values, comma separated."""
-    return ", ".join(fmt(v, digits) for v in values)
+def ratio(a: float | None, b: float | None) -> float | None:
+    """``a / b``; None when either is undefined, not finite, or ``b`` is 0."""
+    if a is None or b is None or not b or not (math.isfinite(a) and math.isfinite(b)):
+        return None
+    return a / b

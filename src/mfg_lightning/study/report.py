@@ -42,7 +42,7 @@ HEADLINE = (
 def _machine() -> dict[str, str]:
     import torch
 
-    from mfg_lightning.run.runs import git_commit
+    from mfg_lightning.run.runs import cpu_kind, git_commit
 
     try:
         cores = len(os.sched_getaffinity(0))
@@ -50,8 +50,9 @@ def _machine() -> dict[str, str]:
         cores = os.cpu_count() or 0
     return {
         "commit": (git_commit() or "-")[:12],
-        "machine": f"{platform.processor() or platform.machine()}, {cores} cores usable of "
-        f"{os.cpu_count()}",
+        "machine": f"{platform.processor() or platform.machine()} ({cpu_kind()}), {cores} cores "
+        f"usable of {os.cpu_count()} (this session's; each trained model's stage result names "
+        "its own precision and CPU kind where recorded)",
         "torch": f"{torch.__version__} ({torch.get_num_threads()} threads; CUDA "
         f"{'yes' if torch.cuda.is_available() else 'no'})",
         "date (UTC)": time.strftime("%Y-%m-%d %H:%M", time.gmtime()),

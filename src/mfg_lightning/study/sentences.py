@@ -32,6 +32,7 @@ from mfg_lightning.study.noise import (
     Tolerance,
     bounded_verdict,
     print_precision,
+    ratio,
     spread_of,
     tolerance,
 )
@@ -230,8 +231,7 @@ def test_at(v: View, k: float, key: str) -> float | None:
 
 def ratio_at(v: View, k: float, key: str) -> float | None:
     """``key`` at ``k`` over ``key`` with all units, on the central test."""
-    a, b = test_at(v, k, key), test_at(v, 1.0, key)
-    return a / b if a is not None and b else None
+    return ratio(test_at(v, k, key), test_at(v, 1.0, key))
 
 
 def _mfg_bins(v: View) -> Mapping[str, Any]:
@@ -262,8 +262,7 @@ def object_ratio(v: View, group: str, key: str, flow: str = "exact") -> float | 
     """The filters' score over the threshold's (``group`` all / slow / fast; ``key`` iou,
     precision, recall, near/recall, far/recall)."""
     sc = object_scores(v, flow)
-    a, b = sc["filters"].get(group, {}).get(key), sc["threshold"].get(group, {}).get(key)
-    return a / b if a is not None and b else None
+    return ratio(sc["filters"].get(group, {}).get(key), sc["threshold"].get(group, {}).get(key))
 
 
 def smallest_k_by_ratio(ratios: Mapping[float, float | None], tol: float) -> float | None:
@@ -376,20 +375,20 @@ def _table2_sentences(t2: dict | None, main: Mapping[int, View]) -> list[Judged]
     rot_spread = spread_of(main, lambda v: test_at(v, 1.0, "rpe_rot"))
     printed = print_precision(*PRINTED_TABLE2_ROT)
     tol = tolerance(rot_spread, printed)
-    proxy = "tolerance from the main model's seed spread of RPE rotation"
+    proxy = "the tolerance's seed part is the main model's spread of RPE rotation"
     ours = mfg["1"].get("rpe_rot")
     if irls:
-        j4.parts.append(Part(f"over {irls}", _div(ours, rot[irls]), 1.0, "<=", tol, note=proxy))
+        j4.parts.append(Part(f"over {irls}", ratio(ours, rot[irls]), 1.0, "<=", tol, note=proxy))
     if best:
-        j4.parts.append(Part(f"over the best, {best}", _div(ours, rot[best]), 1.0, "<=", tol))
+        j4.parts.append(Part(f"over the best, {best}", ratio(ours, rot[best]), 1.0, "<=", tol))
         at15 = mfg.get("0.15", {}).get("rpe_rot")
-        j6.parts.append(Part(f"k = 15 % over {best}", _div(at15, rot[best]), 1.0, "<=", tol,
+        j6.parts.append(Part(f"k = 15 % over {best}", ratio(at15, rot[best]), 1.0, "<=", tol,
                              note=proxy))  # fmt: skip
     # S5: the smallest k of each model within the tolerance of its own all-units score
     ratio_spread = spread_of(main, lambda v: ratio_at(v, 0.05, "09/ate"))
     tol5 = tolerance(ratio_spread, print_precision(PRINTED_TABLE1[0.05][0], PRINTED_TABLE1[1.0][0]))
     small = smallest_k_by_ratio(
-        {float(k): _div(m.get("rpe_trans"), mfg["1"].get("rpe_trans")) for k, m in mfg.items()},
+        {float(k): ratio(m.get("rpe_trans"), mfg["1"].get("rpe_trans")) for k, m in mfg.items()},
         tol5.value,
     )
     kitti = None
@@ -413,10 +412,6 @@ def _table2_sentences(t2: dict | None, main: Mapping[int, View]) -> list[Judged]
         part.verdict = HOLDS if small > kitti else NOT_HOLD
         j5.parts.append(part)
     return [j4, j5, j6]
-
-
-def _div(a: float | None, b: float | None) -> float | None:
-    return a / b if a is not None and b else None
 
 
 def _s7(views: Mapping[int, View]) -> Judged:
