@@ -148,6 +148,37 @@ def test_samples_carry_estimated_and_exact_flow_and_the_quality_is_stored(
     assert pooled / total["pixels"] == pytest.approx(total["epe"])
 
 
+def test_input_flow_exact_reads_the_cached_exact_flow_of_the_same_pairs(
+    tmp_path: Path, count_renders: list[int]
+) -> None:
+    """``dataset.input_flow=exact``: the model's ``flow`` is the exact flow of the very pairs
+    (and cache) the estimate has; nothing is rendered again and the ground truth is unchanged."""
+    cache = tmp_path / "cache"
+    est = _dm(cache)
+    est.prepare_data()
+    count_renders.clear()
+    exact = _dm(cache, input_flow="exact")
+    exact.prepare_data()
+    assert count_renders == []  # the same cache entry: both flows are in every pair
+    a, b = est.dataset("test"), exact.dataset("test")
+    assert a.cache.root == b.cache.root and a.samples == b.samples
+    for i in (0, len(a) - 1):
+        sa, sb = a[i], b[i]
+        assert torch.equal(sb["flow"], sa["exact_flow"]) and sb["flow_valid"].all()
+        assert not torch.equal(sb["flow"], sa["flow"])
+        for key in ("exact_flow", "depth", "object_mask", "object_flow", "pose"):
+            assert torch.equal(sa[key], sb[key])
+    # flow=exact: the same samples without the noise and outliers
+    plain = dict(height=H, width=W, train_sequences=1, test_sequences=1, sequence_length=8)
+    noisy = SyntheticDataModule(**plain).dataset("test")[2]
+    clean = SyntheticDataModule(**plain, input_flow="exact").dataset("test")[2]
+    assert torch.equal(noisy["pose"], clean["pose"]) and not torch.equal(
+        noisy["flow"], clean["flow"]
+    )
+    with pytest.raises(ValueError, match="input_flow"):
+        _dm(cache, input_flow="dis")
+
+
 def test_flow_quality_is_the_kitti_outlier_definition() -> None:
     exact = np.zeros((2, 4, 2))
     exact[..., 0] = [[1.0, 100.0, 100.0, 10.0], [1.0, 1.0, 1.0, 1.0]]

@@ -214,6 +214,8 @@ class RenderedDrivingDataset(TrajectoryDataset):
             :data:`RENDER_SIZE`).
         world: :class:`~mfg_lightning.scene.worlds.WorldConfig` fields (None: its defaults).
         cache_dir: the user cache directory (``paths.cache_dir``).
+        input_flow: the sample's ``flow``: ``"source"``, the estimate; ``"exact"``, the exact
+            flow (both are in every cached pair: the cache key does not depend on it).
         args, kwargs: ``trajectories``, ``frames``, ``height``, ``width``, ``seed``, ``offsets``,
             ``name`` of :class:`TrajectoryDataset`.
     """
@@ -224,9 +226,13 @@ class RenderedDrivingDataset(TrajectoryDataset):
         flow: EstimatedFlow,
         world: dict[str, Any] | None = None,
         cache_dir: str | Path | None = None,
+        input_flow: str = "source",
         **kwargs: Any,
     ) -> None:
         super().__init__(*args, **kwargs)
+        if input_flow not in ("source", "exact"):
+            raise ValueError(f"input_flow must be 'source' or 'exact', got {input_flow!r}")
+        self.input_flow = input_flow
         self.flow_source = flow
         self.estimator = flow.estimator
         self.image_hw = flow_render_size(flow, (self.height, self.width))
@@ -487,7 +493,8 @@ class RenderedDrivingDataset(TrajectoryDataset):
             arrays = self._store(
                 i, self.compute_pair(seq, src, tgt, self.render(seq, src), self.render(seq, tgt))
             )
-        flow = torch.from_numpy(np.ascontiguousarray(arrays["flow"].transpose(2, 0, 1)))
+        key = "exact_flow" if self.input_flow == "exact" else "flow"
+        flow = torch.from_numpy(np.ascontiguousarray(arrays[key].transpose(2, 0, 1)))
         flow, valid, _ = sanitize_flow(flow, torch.ones(flow.shape[1:], dtype=torch.bool))
         sample = {
             "flow": flow,

@@ -115,6 +115,11 @@ class SyntheticDataModule(MFGDataModule):
         scene_seed: seed of the trajectories and scenes (None: ``seed``, which then also sets
             the training order); the config fixes it so that runs differing in ``seed`` see the
             same samples, in a different order.
+        input_flow: the flow the model reads. ``"source"``: the flow group's (the DIS estimate,
+            or the exact flow with its noise and outliers); ``"exact"``: the exact flow of the
+            same samples (``flow=dis``: the rendered worlds' exact flow, cached beside the
+            estimate, so switching renders nothing; ``flow=exact``: without noise or outliers),
+            the ground-truth flow the paper trained and tested on for Virtual KITTI.
         Remaining arguments: see :class:`MFGDataModule`.
     """
 
@@ -135,9 +140,13 @@ class SyntheticDataModule(MFGDataModule):
         world: dict[str, Any] | None = None,
         cache_dir: str | None = None,
         precompute_flow: bool = True,
+        input_flow: str = "source",
         **kwargs,
     ) -> None:
         super().__init__(**kwargs)
+        if input_flow not in ("source", "exact"):
+            raise ValueError(f"dataset.input_flow must be 'source' or 'exact', got {input_flow!r}")
+        self.input_flow = input_flow
         self.scene_seed = self.seed if scene_seed is None else int(scene_seed)
         if trajectory not in ("procedural", "kitti"):
             raise ValueError(
@@ -245,15 +254,18 @@ class SyntheticDataModule(MFGDataModule):
             "name": f"synthetic/{split}",
             "stride": self.frame_stride if split == "train" else 1,
         }
+        exact = self.input_flow == "exact"
         if isinstance(self.flow, EstimatedFlow):
             ds = RenderedDrivingDataset(
-                trajs, frames, self.height, self.width,
-                flow=self.flow, world=self.world, cache_dir=self.cache_dir, **common,
+                trajs, frames, self.height, self.width, flow=self.flow, world=self.world,
+                cache_dir=self.cache_dir, input_flow=self.input_flow, **common,
             )  # fmt: skip
         else:
             ds = SyntheticDrivingDataset(
-                trajs, frames, self.height, self.width, noise_std=self.flow.noise_std,
-                outlier_fraction=self.flow.outlier_fraction, scene=self.scene, **common,
+                trajs, frames, self.height, self.width,
+                noise_std=0.0 if exact else self.flow.noise_std,
+                outlier_fraction=0.0 if exact else self.flow.outlier_fraction,
+                scene=self.scene, **common,
             )  # fmt: skip
         if split == "train+val" and self.frame_stride > 1:
             val_first = {seq: first for seq, (first, _) in self._val_frames(trajs).items()}
@@ -332,7 +344,8 @@ class SyntheticDataModule(MFGDataModule):
 
     def setup(self, stage: str | None = None) -> None:
         super().setup(stage)
-        if isinstance(self.flow, EstimatedFlow):
+        # the estimate's quality says nothing of the flow the model reads with input_flow=exact
+        if isinstance(self.flow, EstimatedFlow) and self.input_flow == "source":
             self._log_flow_quality()
 
     def _log_flow_quality(self) -> None:
