@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import re
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -84,10 +85,6 @@ def _short_label(sample_id: Any) -> str:
     parts = str(sample_id).strip("/").split("/")
     frames = re.sub(r"(?<![0-9])0+(?=[0-9])", "", parts[-1]).replace("->", "→")
     return "\n".join([*parts[-2:-1], frames])
-
-
-def _rows_in(fields: StepFields) -> int:
-    return int(fields.flow.shape[0])
 
 
 class TensorBoardFigures(L.Callback):
@@ -169,19 +166,12 @@ class TensorBoardFigures(L.Callback):
     # -- training ------------------------------------------------------------------------
 
     def on_train_batch_end(
-        self,
-        trainer: L.Trainer,
-        pl_module: L.LightningModule,
-        outputs: Any,
-        batch: Any,
-        batch_idx: int,
+        self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any, *_: Any
     ) -> None:
-        fields = outputs.get("fields") if isinstance(outputs, dict) else None
-        writer = self._writer(trainer) if isinstance(fields, StepFields) else None
-        if writer is None or not self.num_samples:
+        fields = _step_fields(outputs)
+        if fields is None or not self.num_samples or (writer := self._writer(trainer)) is None:
             return
-        rows = list(range(min(self.num_samples, _rows_in(fields))))
-        samples = [_host_sample(fields, batch, r) for r in rows]
+        samples = _host_samples(fields, batch, range(self.num_samples))
         self._log_fields(writer, pl_module, "train", samples, fields.step, f"step {fields.step}")
 
     # -- validation ----------------------------------------------------------------------
@@ -201,11 +191,9 @@ class TensorBoardFigures(L.Callback):
         dataloader_idx: int = 0,
     ) -> None:
         rows = self._plan.get(batch_idx) if dataloader_idx == 0 else None
-        fields = outputs.get("fields") if isinstance(outputs, dict) else None
-        if not rows or not isinstance(fields, StepFields):
-            return
-        n = _rows_in(fields)
-        self._samples += [_host_sample(fields, batch, r) for r in rows if r < n]
+        fields = _step_fields(outputs)
+        if rows and fields is not None:
+            self._samples += _host_samples(fields, batch, rows)
 
     def on_validation_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         # After the module's on_validation_epoch_end: its trajectory evaluation is complete.
@@ -293,6 +281,18 @@ class TensorBoardFigures(L.Callback):
         )
         for kind, fig in figures.items():
             writer.add_figure(f"val/{kind}", fig, step)
+
+
+def _step_fields(outputs: Any) -> StepFields | None:
+    """The fields a training or validation step handed out (None: it handed none out)."""
+    fields = outputs.get("fields") if isinstance(outputs, dict) else None
+    return fields if isinstance(fields, StepFields) else None
+
+
+def _host_samples(fields: StepFields, batch: Any, rows: Iterable[int]) -> list[_Sample]:
+    """Those of ``rows`` that the step's batch has, copied to the host."""
+    n = int(fields.flow.shape[0])
+    return [_host_sample(fields, batch, r) for r in rows if r < n]
 
 
 def _host_sample(fields: StepFields, batch: Any, row: int) -> _Sample:

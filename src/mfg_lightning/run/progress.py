@@ -76,16 +76,12 @@ class RunProgressBar(RichProgressBar):
             self.refresh()
 
     def on_train_batch_end(
-        self,
-        trainer: L.Trainer,
-        pl_module: L.LightningModule,
-        outputs: Any,
-        batch: Any,
-        batch_idx: int,
+        self, trainer: L.Trainer, pl_module: L.LightningModule, *args: Any
     ) -> None:
+        # The step's outputs, batch and index are Lightning's bar's business, passed on as given.
         max_steps = self._steps()
         if max_steps is None:
-            super().on_train_batch_end(trainer, pl_module, outputs, batch, batch_idx)
+            super().on_train_batch_end(trainer, pl_module, *args)
             return
         if not self.is_disabled and self.train_progress_bar_id is None:
             # A run resumed in the middle of an epoch starts here (as Lightning's bar does).
