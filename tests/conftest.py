@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import subprocess
 import sys
 from pathlib import Path
 from typing import Any
@@ -66,10 +67,18 @@ TINY_TRAINING = (
 )  # fmt: skip
 
 
+def run_command(
+    command: list[str], *, cwd: Path, env: dict[str, str] | None = None, timeout: int
+) -> subprocess.CompletedProcess[str]:
+    """Run ``command`` in a subprocess and return what it did: its exit status and its output
+    as text, whatever the status (the caller says what a failure means)."""
+    return subprocess.run(
+        command, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout, check=False
+    )
+
+
 def run_module(module: str, *args: str, cwd: Path, timeout: int = 300, check: bool = True):
     """Run ``python -m module args`` in a subprocess (a real entry point, as a user would)."""
-    import subprocess
-
     env = dict(
         os.environ,
         OMP_NUM_THREADS="1",
@@ -77,15 +86,7 @@ def run_module(module: str, *args: str, cwd: Path, timeout: int = 300, check: bo
         HYDRA_FULL_ERROR="0",
         MFG_CACHE_DIR=str(cwd / "cache"),
     )
-    proc = subprocess.run(
-        [sys.executable, "-m", module, *args],
-        cwd=cwd,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        check=False,
-    )
+    proc = run_command([sys.executable, "-m", module, *args], cwd=cwd, env=env, timeout=timeout)
     if check and proc.returncode != 0:
         raise AssertionError(
             f"{module} {' '.join(args)} failed ({proc.returncode}):\n"

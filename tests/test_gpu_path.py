@@ -31,7 +31,7 @@ import lightning as L
 import pytest
 import torch
 
-from conftest import REPO, cuda_env, quiet_trainer
+from conftest import REPO, cuda_env, quiet_trainer, run_command
 from mfg_lightning.core.config import compose
 from mfg_lightning.metrics.frame_errors import FiniteMean
 from mfg_lightning.models.mfg import bilinear_matrix
@@ -64,15 +64,7 @@ install_gpu = _bench_module("install_gpu")
 def _make(*args: str, cwd: Path = REPO, env: dict[str, str] | None = None, timeout: int = 60):
     if shutil.which("make") is None:
         pytest.skip("make is not installed")
-    return subprocess.run(
-        ["make", "--no-print-directory", *args],
-        cwd=cwd,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        check=False,
-    )
+    return run_command(["make", "--no-print-directory", *args], cwd=cwd, env=env, timeout=timeout)
 
 
 def test_make_install_hands_a_torch_spec_with_options_to_pip_as_separate_arguments(
