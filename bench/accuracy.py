@@ -183,14 +183,16 @@ def train_mfg(
     from hydra.utils import instantiate
 
     from mfg_lightning.core.config import compose
-    from mfg_lightning.run.runs import build_model, resolve_configured_precision
+    from mfg_lightning.run.precision import PrecisionSetup
+    from mfg_lightning.run.runs import build_model, resolve_configured_precision, set_baseline
 
     cfg = compose("train", overrides(args, output_dir, flow, max_frames))
     L.seed_everything(cfg.seed, workers=True)
     datamodule = instantiate(cfg.dataset)
     model = build_model(cfg)
+    set_baseline(model, datamodule)
     resolve_configured_precision(cfg)  # trainer.precision=auto, as a training run makes it
-    trainer = instantiate(cfg.trainer, logger=False, callbacks=[])
+    trainer = instantiate(cfg.trainer, logger=False, callbacks=[PrecisionSetup()])
     start = time.perf_counter()
     trainer.fit(model, datamodule=datamodule)
     return model, datamodule, cfg, time.perf_counter() - start

@@ -100,7 +100,7 @@ SHM_HEADROOM = 1.5
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    from mfg_lightning.models.mfg_module import check_precision
+    from mfg_lightning.run.precision import check_precision
 
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--accelerator", choices=["gpu", "cpu"], default="gpu")
@@ -323,7 +323,7 @@ def fit(cfg: Any, warmup: int, loader: Any = None) -> tuple[Any, Any, dict[str, 
     the model, the trainer and ``{samples/s, loss, peak GiB}``."""
     from hydra.utils import instantiate
 
-    from mfg_lightning.run.runs import build_model, build_trainer
+    from mfg_lightning.run.runs import build_model, build_trainer, set_baseline
     from mfg_lightning.run.training import check_trainer_settings
 
     check_trainer_settings(cfg)
@@ -331,6 +331,8 @@ def fit(cfg: Any, warmup: int, loader: Any = None) -> tuple[Any, Any, dict[str, 
     data = {"train_dataloaders": loader} if loader is not None else {
         "datamodule": instantiate(cfg.dataset)}  # fmt: skip
     model = build_model(cfg)
+    if "datamodule" in data:
+        set_baseline(model, data["datamodule"])
     timer = StepTimer(warmup)
     trainer = build_trainer(cfg, [timer], [])
     if torch.cuda.is_available():

@@ -14,7 +14,6 @@ Not a test module (no ``test_`` prefix): pytest does not collect it.
 
 from __future__ import annotations
 
-import functools
 import json
 import math
 import os
@@ -30,8 +29,9 @@ from torch.utils.data import Subset
 
 from mfg_lightning.data.synthetic import SyntheticDataModule
 from mfg_lightning.models.losses import MFGLoss
-from mfg_lightning.models.mfg import MFG
 from mfg_lightning.models.mfg_module import MFGLitModule
+from mfg_lightning.run.runs import set_baseline
+from module_helpers import small_datamodule, small_module
 
 #: training steps of the run; the step whose loss is NaN on rank 1 (1-based, as NaNLoss counts)
 STEPS, NAN_STEP = 3, 2
@@ -63,27 +63,13 @@ class OneTestSample(SyntheticDataModule):
 
 
 def datamodule() -> OneTestSample:
-    return OneTestSample(
-        height=32,
-        width=64,
-        batch_size=2,
-        eval_batch_size=4,
-        train_sequences=1,
-        test_sequences=1,
-        sequence_length=8,
-        val_fraction=0.25,
-    )
+    return small_datamodule(OneTestSample, batch_size=2, eval_batch_size=4, sequence_length=8,
+                            val_fraction=0.25)  # fmt: skip
 
 
 def module(rank: int) -> MFGLitModule:
     torch.manual_seed(0)
-    net = MFG(height=32, width=64, hidden_units=32, channels=(8, 8, 8, 16, 16))
-    return MFGLitModule(
-        net,
-        NaNOnRank1(rank),
-        functools.partial(torch.optim.Adam, lr=1e-3, fused=True),
-        image_log_every_n_steps=0,
-    )
+    return small_module(NaNOnRank1(rank))
 
 
 def record_collectives(model: MFGLitModule) -> dict[str, list[int]]:
@@ -132,9 +118,11 @@ def main(out: Path) -> None:
         enable_progress_bar=False,
         enable_model_summary=False,
     )
-    trainer.fit(model, datamodule=datamodule())
+    dm = datamodule()
+    set_baseline(model, dm)
+    trainer.fit(model, datamodule=dm)
     trainer.save_checkpoint(out / "ddp.ckpt")
-    skipped = int(model._skipped_steps)
+    skipped = int(model.nonfinite.skipped.count)
     trainer.test(model, datamodule=datamodule(), verbose=False)
     metrics = {
         k: (None if math.isnan(float(v)) else float(v))

@@ -2,63 +2,27 @@
 
 from __future__ import annotations
 
-import functools
-
 import lightning as L
 import pytest
 import torch
 
 from conftest import quiet_trainer
-from mfg_lightning.data.synthetic import SyntheticDataModule, SyntheticDrivingDataset
+from mfg_lightning.data.synthetic import SyntheticDataModule
 from mfg_lightning.models.losses import MFGLoss
-from mfg_lightning.models.mfg import MFG
 from mfg_lightning.models.mfg_module import MFGLitModule, NonFiniteLossError
 from mfg_lightning.run.runs import build_model
+from module_helpers import corrupt_datamodule, small_datamodule, small_module
 
-
-class CorruptFlowDataset(torch.utils.data.Dataset):
-    """Synthetic samples with a patch of NaN and infinite flow (a half-corrupt file, say)."""
-
-    def __init__(self, inner: SyntheticDrivingDataset) -> None:
-        self.inner = inner
-
-    def __len__(self) -> int:
-        return len(self.inner)
-
-    def __getitem__(self, i: int) -> dict:
-        s = self.inner[i]
-        s["flow"][:, :3, :5] = float("nan")
-        s["flow"][0, 5, 5] = float("inf")
-        return s
-
-
-class CorruptDataModule(SyntheticDataModule):
-    def build_dataset(self, split: str):
-        return CorruptFlowDataset(super().build_dataset(split))
+#: 15 NaN pixels and 1 infinite pixel per sample
+CorruptDataModule = corrupt_datamodule(slice(0, 3), slice(0, 5), inf=((0, 5, 5),))
 
 
 def _module(loss: MFGLoss | None = None, **kw) -> MFGLitModule:
-    net = MFG(height=32, width=64, hidden_units=32, channels=(8, 8, 8, 16, 16))
-    return MFGLitModule(
-        net,
-        loss or MFGLoss(w_s=1.0),
-        functools.partial(torch.optim.Adam, lr=1e-3),
-        image_log_every_n_steps=0,
-        **kw,
-    )
+    return small_module(loss, fused=False, **kw)
 
 
 def _dm(cls=SyntheticDataModule) -> SyntheticDataModule:
-    return cls(
-        height=32,
-        width=64,
-        batch_size=4,
-        eval_batch_size=8,
-        train_sequences=1,
-        test_sequences=1,
-        sequence_length=12,
-        val_fraction=0.2,
-    )
+    return small_datamodule(cls)
 
 
 def _trainer(tmp_path, steps: int = 3) -> L.Trainer:

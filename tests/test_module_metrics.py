@@ -26,7 +26,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from conftest import quiet_trainer  # noqa: E402
+from conftest import quiet_trainer
 
 HERE = Path(__file__).resolve().parent
 FIXTURE = HERE / "fixtures" / "run_v0_1"
@@ -39,7 +39,11 @@ def _metrics(trainer: Any) -> dict[str, float]:
 
 def fixture_metrics(cache: Path) -> dict[str, float]:
     """Validation and test metrics of the 0.1 fixture's checkpoint on its dataset."""
-    from mfg_lightning.run.checkpoints import dataset_config, load_checkpoint, module_from_checkpoint
+    from mfg_lightning.run.checkpoints import (
+        dataset_config,
+        load_checkpoint,
+        module_from_checkpoint,
+    )
     from mfg_lightning.run.runs import checkpoint_datamodule
 
     path = FIXTURE / "checkpoints" / "last.ckpt"
@@ -75,6 +79,7 @@ def tiny_run_metrics(root: Path) -> dict[str, float]:
         height=32, width=64, batch_size=4, eval_batch_size=8, train_sequences=1,
         test_sequences=1, sequence_length=12, val_fraction=0.2, cache_dir=str(root / "cache"),
     )  # fmt: skip
+    module.set_mean_motion(*dm.mean_motion("train"))  # the baseline, given explicitly
     trainer = quiet_trainer(
         max_steps=4, log_every_n_steps=1, limit_val_batches=2, val_check_interval=2,
         default_root_dir=root,

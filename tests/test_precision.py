@@ -7,7 +7,6 @@ tests/test_gpu_path.py).
 from __future__ import annotations
 
 import contextlib
-import functools
 import math
 from collections.abc import Iterator
 from pathlib import Path
@@ -25,23 +24,23 @@ from mfg_lightning.core import geometry as G
 from mfg_lightning.core.config import compose
 from mfg_lightning.core.errors import user_error_message
 from mfg_lightning.data.sample import SampleError, sanitize_flow
-from mfg_lightning.data.synthetic import SyntheticDataModule, SyntheticDrivingDataset
+from mfg_lightning.data.synthetic import SyntheticDataModule
 from mfg_lightning.metrics.frame_errors import FiniteMean
 from mfg_lightning.models.losses import MFGLoss, sparsity_count
 from mfg_lightning.models.mfg import MFG, bilinear_matrix, upsample_bilinear
-from mfg_lightning.models.mfg_module import (
-    FP16_INIT_SCALE,
-    HOST_INTRINSICS,
-    MFGLitModule,
-    NonFiniteLossError,
-    check_precision,
-    fit_grad_scaler,
-)
+from mfg_lightning.models.mfg_module import HOST_INTRINSICS, MFGLitModule, NonFiniteLossError
 from mfg_lightning.motion.object_motion import extract_object_motion
 from mfg_lightning.run.callbacks import BatchChecks
 from mfg_lightning.run.checkpoints import module_from_checkpoint
+from mfg_lightning.run.precision import (
+    FP16_INIT_SCALE,
+    PrecisionSetup,
+    check_precision,
+    fit_grad_scaler,
+)
 from mfg_lightning.run.runs import build_model
 from mfg_lightning.run.training import check_trainer_settings, train
+from module_helpers import corrupt_datamodule, small_datamodule, small_module
 
 #: torch.autocast dtypes on the CPU: what bf16-mixed and 16-mixed run the encoder in.
 LOW = {"bf16-mixed": torch.bfloat16, "16-mixed": torch.float16}
@@ -161,9 +160,9 @@ def test_accepted_precisions_and_lightning_aliases() -> None:
         assert check_precision(value) == name
 
 
-def test_a_trainer_with_a_true_low_precision_is_refused_by_the_module() -> None:
+def test_a_trainer_with_a_true_low_precision_is_refused_at_setup() -> None:
     model = _module()
-    trainer = quiet_trainer(max_steps=1, precision="bf16-true")
+    trainer = quiet_trainer(max_steps=1, precision="bf16-true", callbacks=[PrecisionSetup()])
     with pytest.raises(ValueError, match="trainer.precision=bf16-true"):
         trainer.fit(model, datamodule=_dm())
 
@@ -175,35 +174,19 @@ def test_a_trainer_with_a_true_low_precision_is_refused_by_the_module() -> None:
 
 def _module(loss: MFGLoss | None = None, **kw) -> MFGLitModule:
     torch.manual_seed(0)
-    net = MFG(height=32, width=64, hidden_units=32, channels=(8, 8, 8, 16, 16))
-    return MFGLitModule(
-        net,
-        loss or MFGLoss(w_s=1.0),
-        functools.partial(torch.optim.Adam, lr=1e-3, fused=True),
-        image_log_every_n_steps=0,
-        **kw,
-    )
+    return small_module(loss, **kw)
 
 
 def _dm(cls: type = SyntheticDataModule) -> SyntheticDataModule:
-    return cls(
-        height=32,
-        width=64,
-        batch_size=4,
-        eval_batch_size=8,
-        train_sequences=1,
-        test_sequences=1,
-        sequence_length=12,
-        val_fraction=0.2,
-    )
+    return small_datamodule(cls)
 
 
 def _precision_options(precision: str) -> dict:
     """Trainer options for ``precision`` on a CPU: Lightning turns ``precision="16-mixed"`` on a
     CPU into bf16-mixed, so fp16 autocast is asked for with its plugin."""
     if precision == "16-mixed":
-        return {"plugins": [MixedPrecision("16-mixed", "cpu")]}
-    return {"precision": precision}
+        return {"plugins": [MixedPrecision("16-mixed", "cpu")], "callbacks": [PrecisionSetup()]}
+    return {"precision": precision, "callbacks": [PrecisionSetup()]}
 
 
 @pytest.mark.parametrize("precision", ["32-true", "bf16-mixed", "16-mixed"])
@@ -300,24 +283,8 @@ def no_host_sync() -> Iterator[None]:
             setattr(torch.Tensor, name, method)
 
 
-class CorruptFlow(torch.utils.data.Dataset):
-    """Synthetic samples with a patch of NaN flow (masked and counted by the module)."""
-
-    def __init__(self, inner: SyntheticDrivingDataset) -> None:
-        self.inner = inner
-
-    def __len__(self) -> int:
-        return len(self.inner)
-
-    def __getitem__(self, i: int) -> dict:
-        s = self.inner[i]
-        s["flow"][:, :2, :3] = float("nan")
-        return s
-
-
-class CorruptDataModule(SyntheticDataModule):
-    def build_dataset(self, split: str):
-        return CorruptFlow(super().build_dataset(split))
+#: 6 NaN pixels per sample, masked and counted by the module
+CorruptDataModule = corrupt_datamodule(slice(0, 2), slice(0, 3))
 
 
 class NaNLoss(MFGLoss):
@@ -486,7 +453,7 @@ def test_gpu_trainer_configs() -> None:
 def test_auto_precision_is_bf16_on_a_cpu_with_native_bf16_and_float32_elsewhere(
     monkeypatch,
 ) -> None:
-    from mfg_lightning.models import mfg_module
+    from mfg_lightning.run import precision as mfg_module
 
     for explicit in ("32-true", "bf16-mixed", "16-mixed", "bf16-true"):
         assert mfg_module.resolve_precision(explicit, "cpu") == explicit
@@ -506,7 +473,7 @@ def test_auto_precision_is_recorded_in_the_run_config(tmp_path: Path) -> None:
 
     from conftest import tiny_training
     from mfg_lightning.core.config import compose
-    from mfg_lightning.models.mfg_module import resolve_precision
+    from mfg_lightning.run.precision import resolve_precision
 
     assert compose("train").trainer.precision == "auto"
     assert compose("evaluate", ["ckpt_path=x"]).trainer.precision == "32-true"

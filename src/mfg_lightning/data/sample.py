@@ -1,53 +1,136 @@
-"""The sample every dataset yields, and its validation.
+"""The sample every dataset yields, its schema, and its validation.
 
 A sample is a ``dict`` of tensors (plus a few identity fields). Every dataset (synthetic, KITTI,
-Virtual KITTI) yields the same keys so the model, losses, metrics and object-motion code never
-care where a sample came from. ``H, W`` is the model's input resolution.
+Virtual KITTI, rendered worlds) yields the same keys so the model, losses, metrics and
+object-motion code never care where a sample came from. ``H, W`` is the model's input resolution.
+:data:`SCHEMA` is the one statement of the keys (shape, dtype, required); the table below, the
+sample and batch checks and :func:`model_inputs` are made from it, and the code names the keys by
+their constants (:data:`FLOW`, :data:`POSE`, …).
 
-==================  ===================  ==================================================
-key                 shape / type         meaning
-==================  ===================  ==================================================
-``flow``            ``(2, H, W)`` f32    optical flow from the source frame to the target
-                                         frame, pixels at the input resolution, (u, v)
-``flow_valid``      ``(H, W)`` bool      pixels whose flow is known (False: invalid / sky /
-                                         non-finite in the file)
-``pose``            ``(4, 4)`` f32       relative pose ``T_src,tgt`` = camera at the target
-                                         frame expressed in the camera at the source frame
-                                         (metres); see :mod:`mfg_lightning.core.geometry`
-``intrinsics``      ``(4,)`` f32         ``(fx, fy, cx, cy)`` in pixels at the input resolution
-``depth``           ``(H, W)`` f32       (optional) depth of the source frame along z, metres;
-                                         0 where unknown
-``object_mask``     ``(H, W)`` bool      (optional) ground-truth independently moving pixels
-``object_flow``     ``(2, H, W)`` f32    (optional) flow due to object motion alone (flow minus
-                                         the rigid flow), pixels; 0 off objects
-``rgb``             ``(3, H, W)`` uint8  (optional) the source frame, for pictures
-``exact_flow``      ``(2, H, W)`` f32    (optional) the exact flow when ``flow`` was estimated
-                                         (``flow=dis`` on rendered worlds), 0 where unknown
-``sequence``        ``str``              sequence / world name (e.g. ``"09"``, ``"0001"``)
-``frame``           ``int``              index of the source frame in its sequence
-``target``          ``int``              index of the target frame (``frame + 1`` usually)
-``sample_id``       ``str``              ``"<dataset>/<split>/<sequence>/<frame>-><target>"``,
-                                         used in every error message about this sample
-==================  ===================  ==================================================
+{table}
+
+``pose`` is optional: a dataset of flow without ground truth (``mfg-predict`` on a directory of
+flow files) has none; training and evaluation need it (``check_batch_layout(..., needs=(POSE,))``).
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 
-REQUIRED_KEYS = (
-    "flow",
-    "flow_valid",
-    "pose",
-    "intrinsics",
-    "sequence",
-    "frame",
-    "target",
-    "sample_id",
-)
-OPTIONAL_KEYS = ("depth", "object_mask", "object_flow", "rgb", "exact_flow")
+FLOW = "flow"
+FLOW_VALID = "flow_valid"
+POSE = "pose"
+INTRINSICS = "intrinsics"
+DEPTH = "depth"
+OBJECT_MASK = "object_mask"
+OBJECT_FLOW = "object_flow"
+RGB = "rgb"
+EXACT_FLOW = "exact_flow"
+SEQUENCE = "sequence"
+FRAME = "frame"
+TARGET = "target"
+SAMPLE_ID = "sample_id"
+#: Batch only, never in a sample: the batch's intrinsics kept on the host when the batch moves to
+#: another device (:meth:`mfg_lightning.models.mfg_module.MFGLitModule.transfer_batch_to_device`),
+#: so that the closed-form recovery groups samples by intrinsics without reading them back.
+INTRINSICS_HOST = "intrinsics_host"
+
+
+class Field(NamedTuple):
+    """One key of :data:`SCHEMA`.
+
+    Attributes:
+        shape: of one sample; ``"H"``, ``"W"`` stand for the input resolution; ``None``: not a
+            tensor (an identity field).
+        dtype: ``"float"`` (any floating point), a torch dtype, or a Python type for identity
+            fields.
+        required: every sample has it.
+        meaning: the documentation.
+    """
+
+    shape: tuple[int | str, ...] | None
+    dtype: Any
+    required: bool
+    meaning: str
+
+
+#: Every key of a sample (in this order in the documentation).
+SCHEMA: dict[str, Field] = {
+    FLOW: Field((2, "H", "W"), "float", True,
+                "optical flow from the source frame to the target frame, pixels at the input "
+                "resolution, (u, v)"),
+    FLOW_VALID: Field(("H", "W"), torch.bool, True,
+                      "pixels whose flow is known (False: invalid / sky / non-finite in the file)"),
+    POSE: Field((4, 4), "float", False,
+                "relative pose T_src,tgt = camera at the target frame expressed in the camera at "
+                "the source frame (metres); see mfg_lightning.core.geometry. Needed for training "
+                "and evaluation"),
+    INTRINSICS: Field((4,), "float", True, "(fx, fy, cx, cy) in pixels at the input resolution"),
+    DEPTH: Field(("H", "W"), "float", False, "depth of the source frame along z, metres; 0 where "
+                 "unknown"),
+    OBJECT_MASK: Field(("H", "W"), torch.bool, False, "ground-truth independently moving pixels"),
+    OBJECT_FLOW: Field((2, "H", "W"), "float", False,
+                       "flow due to object motion alone (flow minus the rigid flow), pixels; 0 "
+                       "off objects"),
+    RGB: Field((3, "H", "W"), torch.uint8, False, "the source frame, for pictures"),
+    EXACT_FLOW: Field((2, "H", "W"), "float", False,
+                      "the exact flow when flow was estimated (flow=dis on rendered worlds), 0 "
+                      "where unknown"),
+    SEQUENCE: Field(None, str, True, 'sequence / world name (e.g. "09", "0001")'),
+    FRAME: Field(None, int, True, "index of the source frame in its sequence"),
+    TARGET: Field(None, int, True, "index of the target frame (frame + 1 usually)"),
+    SAMPLE_ID: Field(None, str, True,
+                     '"<dataset>/<split>/<sequence>/<frame>-><target>", used in every error '
+                     "message about this sample"),
+}  # fmt: skip
+
+REQUIRED_KEYS = tuple(k for k, f in SCHEMA.items() if f.required)
+OPTIONAL_KEYS = tuple(k for k, f in SCHEMA.items() if not f.required)
+
+
+def _dtype_name(dtype: Any) -> str:
+    if isinstance(dtype, torch.dtype):
+        return {torch.bool: "bool", torch.uint8: "uint8"}.get(dtype, str(dtype))
+    return dtype if isinstance(dtype, str) else dtype.__name__
+
+
+def schema_table() -> str:
+    """:data:`SCHEMA` as the reStructuredText table of this module's docstring."""
+    rows = [("key", "shape / type", "meaning")]
+    for key, f in SCHEMA.items():
+        shape = (
+            ""
+            if f.shape is None
+            else "(" + ", ".join(map(str, f.shape)) + ("," if len(f.shape) == 1 else "") + ") "
+        )
+        optional = "" if f.required else "(optional) "
+        rows.append((f"``{key}``", f"{shape}{_dtype_name(f.dtype)}", optional + f.meaning))
+    widths = [max(len(r[i]) for r in rows) for i in range(3)]
+    rule = "  ".join("=" * w for w in widths)
+    lines = [
+        rule,
+        "  ".join(c.ljust(w) for c, w in zip(rows[0], widths, strict=True)).rstrip(),
+        rule,
+    ]
+    lines += [
+        "  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip() for r in rows[1:]
+    ]
+    return "\n".join([*lines, rule])
+
+
+__doc__ = __doc__.format(table=schema_table())
+
+
+def _shape(field: Field, height: int, width: int) -> tuple[int, ...]:
+    """A field's sample shape at the input resolution ``height × width``."""
+    size = {"H": height, "W": width}
+    return tuple(size.get(d, d) for d in field.shape)  # type: ignore[misc, union-attr]
+
+
+#: The tensor keys of :data:`SCHEMA`.
+TENSOR_KEYS = tuple(k for k, f in SCHEMA.items() if f.shape is not None)
 
 
 class SampleError(ValueError):
@@ -79,42 +162,89 @@ def sanitize_flow(
     return flow, valid, n_bad
 
 
+class ModelInputs(NamedTuple):
+    """What the model reads of a batch (:func:`model_inputs`).
+
+    Attributes:
+        flow: ``(..., 2, H, W)`` the flow in pixels with its non-finite pixels set to 0.
+        valid: ``(..., H, W)`` bool, the flow's validity with those pixels cleared.
+        n_bad: how many pixels were non-finite (a 0-dim int64 tensor on the flow's device).
+    """
+
+    flow: torch.Tensor
+    valid: torch.Tensor
+    n_bad: torch.Tensor
+
+
+def model_inputs(batch: dict[str, Any], flow_key: str = FLOW) -> ModelInputs:
+    """The masked flow, the cleaned validity and the bad-pixel count of a sample or batch: what
+    every caller that feeds the model (training, evaluation, prediction, scoring, basis analysis)
+    reads. :func:`sanitize_flow` of ``batch[flow_key]`` and ``batch[FLOW_VALID]``; no host read.
+
+    Args:
+        batch: a sample or a collated batch.
+        flow_key: the flow to read (:data:`EXACT_FLOW` for the exact flow of an estimated one).
+    """
+    return ModelInputs(*sanitize_flow(batch[flow_key], batch[FLOW_VALID]))
+
+
+def _expected_shapes(height: int, width: int, batch: int | None = None) -> dict[str, tuple]:
+    """``{key: shape}`` of every tensor key of :data:`SCHEMA`; with ``batch``, batched."""
+    lead = () if batch is None else (batch,)
+    return {k: lead + _shape(SCHEMA[k], height, width) for k in TENSOR_KEYS}
+
+
 def check_sample(sample: dict[str, Any], height: int, width: int) -> None:
-    """Raise :class:`SampleError` naming the sample and key if a sample breaks the schema.
+    """Raise :class:`SampleError` naming the sample and key if a sample breaks :data:`SCHEMA`.
 
     Non-finite flow is *not* an error (it is masked by :func:`sanitize_flow`); non-finite poses or
     intrinsics are, since no pixel mask can repair them.
+
+    Args:
+        sample: one sample.
+        height, width: the model's input resolution in pixels.
     """
-    sid = sample.get("sample_id", "<unknown sample>")
+    sid = sample.get(SAMPLE_ID, "<unknown sample>")
     for key in REQUIRED_KEYS:
         if key not in sample:
             raise SampleError(f"{sid}: missing key '{key}'")
-    expected = {
-        "flow": (2, height, width),
-        "flow_valid": (height, width),
-        "pose": (4, 4),
-        "intrinsics": (4,),
-        "depth": (height, width),
-        "object_mask": (height, width),
-        "object_flow": (2, height, width),
-        "rgb": (3, height, width),
-        "exact_flow": (2, height, width),
-    }
-    for key, shape in expected.items():
+    for key, shape in _expected_shapes(height, width).items():
         if key in sample and tuple(sample[key].shape) != shape:
             raise SampleError(
                 f"{sid}: '{key}' has shape {tuple(sample[key].shape)}, expected {shape}"
             )
-    for key in ("pose", "intrinsics"):
-        if not torch.isfinite(sample[key]).all():
+    for key, field in SCHEMA.items():
+        if key in sample and not _has_dtype(sample[key], field.dtype):
+            raise SampleError(f"{sid}: '{key}' is {_type_of(sample[key])}, expected "
+                              f"{_dtype_name(field.dtype)}")  # fmt: skip
+    for key in (POSE, INTRINSICS):
+        if key in sample and not torch.isfinite(sample[key]).all():
             raise SampleError(f"{sid}: '{key}' has non-finite values")
-    if (sample["intrinsics"][:2] <= 0).any():
-        raise SampleError(f"{sid}: focal lengths must be positive, got {sample['intrinsics'][:2]}")
+    if (sample[INTRINSICS][:2] <= 0).any():
+        raise SampleError(f"{sid}: focal lengths must be positive, got {sample[INTRINSICS][:2]}")
+
+
+def _has_dtype(value: Any, dtype: Any) -> bool:
+    """Whether ``value`` has :class:`Field`'s ``dtype`` (an identity field of type ``int`` may
+    also be a 0-dim integer tensor or a numpy integer)."""
+    if isinstance(value, torch.Tensor):
+        if dtype == "float":
+            return value.dtype.is_floating_point
+        if dtype is int:
+            return not value.dtype.is_floating_point and value.dtype != torch.bool
+        return value.dtype == dtype
+    if dtype is int:
+        return isinstance(value, int) or type(value).__module__ == "numpy"
+    return isinstance(value, dtype) if isinstance(dtype, type) else False
+
+
+def _type_of(value: Any) -> str:
+    return str(value.dtype) if isinstance(value, torch.Tensor) else type(value).__name__
 
 
 def _batch_ids(batch: dict[str, Any], rows: torch.Tensor | None = None, limit: int = 4) -> str:
     """The ``sample_id`` of the given batch rows (all when None), for error messages."""
-    ids = batch.get("sample_id")
+    ids = batch.get(SAMPLE_ID)
     if not isinstance(ids, (list, tuple)):
         return "<batch without sample_id>"
     picked = list(ids) if rows is None else [ids[i] for i in rows.tolist() if i < len(ids)]
@@ -153,50 +283,47 @@ def check_batch(
 
 
 def check_batch_layout(
-    batch: dict[str, Any], height: int, width: int, dtype: torch.dtype | None = None
+    batch: dict[str, Any],
+    height: int,
+    width: int,
+    dtype: torch.dtype | None = None,
+    needs: tuple[str, ...] = (),
 ) -> None:
     """The shape and dtype half of :func:`check_batch`: reads no tensor's values, so it never
-    waits for a device. Arguments and errors as there."""
+    waits for a device. Arguments and errors as there; ``needs``: keys that :data:`SCHEMA` calls
+    optional but the caller needs (:data:`POSE` for training and evaluation)."""
     if not isinstance(batch, dict):
         raise SampleError(f"a batch must be a dict of tensors, got {type(batch).__name__}")
-    for key in ("flow", "flow_valid", "pose", "intrinsics"):
-        if not isinstance(batch.get(key), torch.Tensor):
-            raise SampleError(f"{_batch_ids(batch)}: missing tensor '{key}'")
-    b = batch["flow"].shape[0] if batch["flow"].ndim else 0
-    expected = {
-        "flow": (b, 2, height, width),
-        "flow_valid": (b, height, width),
-        "pose": (b, 4, 4),
-        "intrinsics": (b, 4),
-        "depth": (b, height, width),
-        "object_mask": (b, height, width),
-        "object_flow": (b, 2, height, width),
-        "rgb": (b, 3, height, width),
-    }
-    for key, shape in expected.items():
+    for key in (*REQUIRED_KEYS, *needs):
+        if key not in batch or (SCHEMA[key].shape is not None and
+                                not isinstance(batch[key], torch.Tensor)):  # fmt: skip
+            raise SampleError(f"{_batch_ids(batch)}: missing {_kind(key)} '{key}'")
+    b = batch[FLOW].shape[0] if batch[FLOW].ndim else 0
+    for key, shape in _expected_shapes(height, width, b).items():
         value = batch.get(key)
         if value is not None and tuple(value.shape) != shape:
             raise SampleError(
                 f"{_batch_ids(batch)}: '{key}' has shape {tuple(value.shape)}, expected {shape} "
                 f"(batch, then the model's {height}×{width} input)"
             )
-    flow_dtype = batch["flow"].dtype
+    flow_dtype = batch[FLOW].dtype
     if not flow_dtype.is_floating_point or (dtype is not None and flow_dtype != dtype):
         wanted = dtype or "floating point"
         raise SampleError(f"{_batch_ids(batch)}: 'flow' is {flow_dtype}, the model needs {wanted}")
-    if batch["flow_valid"].dtype != torch.bool:
-        raise SampleError(
-            f"{_batch_ids(batch)}: 'flow_valid' is {batch['flow_valid'].dtype}, expected bool"
-        )
-    for key in ("pose", "intrinsics", "depth", "object_flow"):
+    for key in TENSOR_KEYS:
         value = batch.get(key)
-        if value is not None and not value.dtype.is_floating_point:
-            raise SampleError(f"{_batch_ids(batch)}: '{key}' is {value.dtype}, expected float")
+        if key != FLOW and value is not None and not _has_dtype(value, SCHEMA[key].dtype):
+            wanted = "float" if SCHEMA[key].dtype == "float" else _dtype_name(SCHEMA[key].dtype)
+            raise SampleError(f"{_batch_ids(batch)}: '{key}' is {value.dtype}, expected {wanted}")
+
+
+def _kind(key: str) -> str:
+    return "tensor" if SCHEMA[key].shape is not None else "key"
 
 
 #: The value checks of :func:`batch_value_flags`, one row each: non-finite values of the first
 #: four keys, and a focal length that is not positive.
-VALUE_CHECKS = ("pose", "intrinsics", "depth", "object_flow", "focal")
+VALUE_CHECKS = (POSE, INTRINSICS, DEPTH, OBJECT_FLOW, "focal")
 
 
 def batch_value_flags(batch: dict[str, Any]) -> torch.Tensor:
@@ -209,16 +336,16 @@ def batch_value_flags(batch: dict[str, Any]) -> torch.Tensor:
         ``(len(VALUE_CHECKS), B)`` bool on the batch's device: row ``k`` marks the samples that
         fail check ``VALUE_CHECKS[k]`` (rows of absent keys are all False).
     """
-    b = batch["flow"].shape[0]
+    b = batch[FLOW].shape[0]
     rows = []
     for key in VALUE_CHECKS[:-1]:
         value = batch.get(key)
         if value is None:
-            rows.append(torch.zeros(b, dtype=torch.bool, device=batch["flow"].device))
+            rows.append(torch.zeros(b, dtype=torch.bool, device=batch[FLOW].device))
         else:
             rows.append(~torch.isfinite(value.reshape(b, -1)).all(dim=1))
-    rows.append((batch["intrinsics"][:, :2] <= 0).any(dim=1))
-    return torch.stack([r.to(batch["flow"].device) for r in rows])
+    rows.append((batch[INTRINSICS][:, :2] <= 0).any(dim=1))
+    return torch.stack([r.to(batch[FLOW].device) for r in rows])
 
 
 def raise_on_bad_values(batch: dict[str, Any], flags: torch.Tensor) -> None:

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import NamedTuple, Protocol, runtime_checkable
 
 import torch
 import torch.nn.functional as F
@@ -38,6 +38,80 @@ class MFGOutput(NamedTuple):
     v_omega: Tensor
     hidden: Tensor
     hidden_map: Tensor
+
+
+class StepFields(NamedTuple):
+    """What a training or validation step hands to the figure callback
+    (:class:`mfg_lightning.run.figures.TensorBoardFigures`) under its output's ``"fields"``
+    key: the batch's fields as detached tensors on the model's device, ``(B, 2, H, W)`` pixels.
+
+    Attributes:
+        step: the global step the fields belong to.
+        flow: the (masked) input flow.
+        v_t, v_omega: the ground-truth translational (ρ = 1 m⁻¹) and rotational fields.
+        v_t_pred, v_omega_pred: the predicted ones.
+        hidden: ``(B, M)`` the hidden activations the prediction was decoded from.
+    """
+
+    step: int
+    flow: Tensor
+    v_t: Tensor
+    v_omega: Tensor
+    v_t_pred: Tensor
+    v_omega_pred: Tensor
+    hidden: Tensor
+
+    @classmethod
+    def of(cls, step: int, flow: Tensor, v_t: Tensor, v_w: Tensor, out: MFGOutput) -> StepFields:
+        """A step's fields as detached views (no copy, no host read)."""
+        return cls(step, flow.detach(), v_t.detach(), v_w.detach(),
+                   out.v_t.detach(), out.v_omega.detach(), out.hidden.detach())  # fmt: skip
+
+
+@runtime_checkable
+class MotionFieldNetwork(Protocol):
+    """What the training module, scoring, checkpoints and callbacks use of a network: a second
+    encoder is one class with these members (and one ``conf/model`` file). :class:`MFG` is one.
+
+    Attributes:
+        height, width: the input flow's resolution, pixels.
+        hidden_units: M, the number of hidden units.
+        top_k: the fraction of hidden units kept at evaluation (None: all); the training module
+            sets it.
+    """
+
+    height: int
+    width: int
+    hidden_units: int
+    top_k: float | None
+
+    def encode(self, flow: Tensor) -> tuple[Tensor, Tensor]:
+        """``(B, 2, H, W)`` flow, pixels → hidden ``(B, M)`` (before top-k) and the hidden map
+        ``(B, M, h, w)``."""
+        ...
+
+    def decode(self, hidden: Tensor) -> tuple[Tensor, Tensor]:
+        """Hidden ``(B, M)`` → ``(v_t, v_ω)``, each ``(B, 2, H, W)`` pixels, float32."""
+        ...
+
+    def __call__(self, flow: Tensor, top_k: float | None = None) -> MFGOutput:
+        """:func:`generate_fields` for this network."""
+        ...
+
+
+def generate_fields(net: MotionFieldNetwork, flow: Tensor, top_k: float | None = None) -> MFGOutput:
+    """Encode, keep the top-k units (evaluation mode only: ``top_k``, else ``net.top_k``) and
+    decode: a :class:`MotionFieldNetwork`'s forward pass. Flow ``(B, 2, H, W)`` pixels."""
+    hidden, hidden_map = net.encode(flow)
+    if not net.training:  # type: ignore[attr-defined]
+        hidden = keep_top_k(hidden, validate_top_k(top_k) if top_k is not None else net.top_k)
+    v_t, v_omega = net.decode(hidden)
+    return MFGOutput(v_t, v_omega, hidden, hidden_map)
+
+
+def input_size(net: MotionFieldNetwork) -> tuple[int, int]:
+    """``(height, width)`` the network takes, pixels."""
+    return net.height, net.width
 
 
 def validate_top_k(top_k: float | None) -> float | None:
@@ -233,8 +307,4 @@ class MFG(nn.Module):
 
         Top-k (``top_k`` argument, else ``self.top_k``) applies in evaluation mode only.
         """
-        hidden, hidden_map = self.encode(flow)
-        if not self.training:
-            hidden = keep_top_k(hidden, validate_top_k(top_k) if top_k is not None else self.top_k)
-        v_t, v_omega = self.decode(hidden)
-        return MFGOutput(v_t, v_omega, hidden, hidden_map)
+        return generate_fields(self, flow, top_k)

@@ -20,6 +20,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from mfg_lightning.core.atomic import atomic_write_text
 from mfg_lightning.core.tables import finite_or_none
 from mfg_lightning.run.callbacks import AtomicCheckpointIO
+from mfg_lightning.run.precision import PRECISION_AUTO, resolve_precision, with_precision_setup
 
 log = logging.getLogger(__name__)
 
@@ -39,15 +40,20 @@ def build_model(cfg: DictConfig) -> L.LightningModule:
     return model
 
 
+def set_baseline(model: L.LightningModule, datamodule: L.LightningDataModule) -> None:
+    """Give the model its evaluation baseline: the mean motion of the datamodule's training
+    split (:meth:`mfg_lightning.data.base.MFGDataModule.mean_motion`), scored as
+    ``<stage>/baseline_*``."""
+    model.set_mean_motion(*datamodule.mean_motion("train"))
+
+
 def resolve_configured_precision(cfg: DictConfig) -> Any:
     """Make ``cfg.trainer.precision=auto`` concrete in ``cfg`` (logged); return the precision.
 
-    :func:`mfg_lightning.models.mfg_module.resolve_precision`: ``bf16-mixed`` on a CPU with
+    :func:`mfg_lightning.run.precision.resolve_precision`: ``bf16-mixed`` on a CPU with
     native bfloat16, ``32-true`` elsewhere.
     """
     from omegaconf import open_dict
-
-    from mfg_lightning.models.mfg_module import PRECISION_AUTO, resolve_precision
 
     trainer = cfg.get("trainer")
     if trainer is None or str(trainer.get("precision")) != PRECISION_AUTO:
@@ -62,13 +68,15 @@ def resolve_configured_precision(cfg: DictConfig) -> Any:
 def build_trainer(cfg: DictConfig, callbacks: list[Any], loggers: list[Any]) -> L.Trainer:
     """The configured ``lightning.Trainer``, writing checkpoints atomically unless the config
     brings its own checkpoint IO plugin (``trainer.plugins``: one or a list, configs with a
-    ``_target_`` or Lightning's plugin names)."""
+    ``_target_`` or Lightning's plugin names), and with the precision rules
+    (:class:`mfg_lightning.run.precision.PrecisionSetup`) among its callbacks."""
     resolve_configured_precision(cfg)
     given = cfg.trainer.get("plugins") or []
     given = list(given) if isinstance(given, (list, ListConfig)) else [given]
     plugins = [instantiate(p) if isinstance(p, DictConfig) else p for p in given]
     if not any(isinstance(p, CheckpointIO) for p in plugins):
         plugins.append(AtomicCheckpointIO())
+    callbacks = with_precision_setup(callbacks)
     return instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False, plugins=plugins)
 
 

@@ -25,9 +25,9 @@ from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from mfg_lightning.core.atomic import atomic_write_text
-from mfg_lightning.models.mfg_module import check_precision
 from mfg_lightning.run.callbacks import LastCheckpoint
 from mfg_lightning.run.checkpoints import CheckpointError
+from mfg_lightning.run.precision import check_precision
 from mfg_lightning.run.runs import (
     build_model,
     build_trainer,
@@ -38,6 +38,7 @@ from mfg_lightning.run.runs import (
     log_hyperparameters,
     resolve_configured_precision,
     run_info,
+    set_baseline,
     write_metrics,
 )
 
@@ -111,7 +112,7 @@ def check_trainer_settings(cfg: DictConfig) -> None:
     * ``trainer.precision``: ``auto`` made concrete (:func:`resolve_configured_precision`; the
       run's ``config.yaml`` records what it ran in), then ``32-true``, ``bf16-mixed`` or
       ``16-mixed``
-      (:func:`mfg_lightning.models.mfg_module.check_precision`; a ``*-true`` low precision is one
+      (:func:`mfg_lightning.run.precision.check_precision`; a ``*-true`` low precision is one
       ``error:`` line naming the key).
     * ``trainer.deterministic=true`` with ``trainer.benchmark=true`` (``trainer=gpu``'s): cuDNN's
       benchmark picks its convolution algorithms by timing them, so ``deterministic`` wins and
@@ -143,6 +144,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     info = {**run_info(), "seed": cfg.seed, "resumed_from": ckpt_path}
     atomic_write_text(output_dir / "run_info.json", json.dumps(info, indent=2) + "\n")
     model = build_model(cfg)
+    set_baseline(model, datamodule)
     callbacks = instantiate_list(cfg.get("callbacks"))
     # LastCheckpoint saves after ModelCheckpoint has recorded a validation's score (stable sort).
     callbacks.sort(key=lambda cb: isinstance(cb, LastCheckpoint))

@@ -1,0 +1,197 @@
+"""What a training step does with a non-finite loss: the step is skipped, counted, and a run
+that keeps producing them is stopped (:class:`NonFiniteLosses`).
+
+Two ways to skip, chosen once per step by what the optimiser can do:
+
+- **in the optimiser** (one fused optimiser, e.g. Adam with ``fused=True``, the default config's):
+  the step's finiteness goes to the optimiser's kernel as ``found_inf`` (as GradScaler does),
+  which leaves weights and state untouched on the device. Nothing is read on the host; the counts
+  are read at the logging steps (:meth:`NonFiniteLosses.report`). Under DDP every process gets one
+  verdict (one ``all_reduce`` per step): the gradients are averaged, so one process's NaN reaches
+  all of them, and all must skip the step together.
+- **on the host** (any other optimiser): the loss is tested on the host (one synchronisation per
+  step) and the step returns None, which skips backward and the optimiser step.
+
+Logged names, one meaning each: ``train/skipped_steps`` is the number of training steps skipped
+so far (either way). The counts are :class:`StepCount` metrics, reduced across processes by their
+``compute()`` (the maximum: an agreed count is the same on every process).
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+from torchmetrics import Metric
+
+from mfg_lightning.data.sample import SAMPLE_ID
+
+log = logging.getLogger(__name__)
+
+
+class NonFiniteLossError(RuntimeError):
+    """Training produced non-finite losses too many times in a row."""
+
+
+class StepCount(Metric):
+    """A count kept on the device, added to (``update(n)``) or, with ``restart``, reset to 0
+    where ``restart`` is True; reduced across processes by ``reduce`` (``"sum"`` or ``"max"``).
+    ``update`` reads nothing back from the device."""
+
+    full_state_update = False
+
+    def __init__(self, reduce: str = "sum") -> None:
+        super().__init__()
+        self.add_state("count", default=torch.tensor(0, dtype=torch.long), dist_reduce_fx=reduce)
+
+    def update(self, n: Tensor, restart: Tensor | None = None) -> None:
+        count = self.count + n.to(self.count)
+        self.count = count if restart is None else torch.where(restart, 0, count)
+
+    def compute(self) -> Tensor:
+        return self.count
+
+
+class NonFiniteLosses(nn.Module):
+    """Skips, counts and stops on non-finite losses (see the module's docstring).
+
+    The LightningModule calls :meth:`check` in its training step, :meth:`before_optimizer_step`
+    and :meth:`after_batch` from the hooks of the same names, and :meth:`report` at its logging
+    steps and at the end of training.
+
+    Args:
+        max_consecutive: stop after this many non-finite losses in a row.
+    """
+
+    def __init__(self, max_consecutive: int = 20) -> None:
+        super().__init__()
+        self.max_consecutive = max_consecutive
+        #: training steps skipped so far
+        self.skipped = StepCount("max")
+        #: non-finite losses in a row, up to the last step
+        self.consecutive = StepCount("max")
+        self._reported = 0
+        self._window_finite: Tensor | None = None
+        self._found_inf: Tensor | None = None
+
+    @staticmethod
+    def skips_in_the_optimiser(trainer: Any, automatic_optimization: bool = True) -> bool:
+        """Whether a non-finite loss can be skipped inside the optimiser's step: one fused
+        optimiser, whose kernel leaves weights and state untouched when told ``found_inf``."""
+        if trainer is None or not automatic_optimization or len(trainer.optimizers) != 1:
+            return False
+        return bool(trainer.optimizers[0].defaults.get("fused"))
+
+    def check(self, loss: Tensor, trainer: Any, ids: str | None = None, fused: bool = True) -> bool:
+        """Account for the step's ``loss``; False: skip the step (return None from it).
+
+        Args:
+            loss: the step's total loss (0-dim).
+            trainer: the Trainer (its world size and strategy).
+            ids: the batch's sample ids, for the messages of the host route.
+            fused: :meth:`skips_in_the_optimiser`.
+
+        Raises:
+            NonFiniteLossError: on the host route, after ``max_consecutive`` in a row.
+        """
+        if fused:
+            finite = torch.isfinite(loss.detach())
+            if trainer.world_size > 1:
+                finite = _finite_on_every_process(finite, trainer.strategy)
+            window = self._window_finite
+            self._window_finite = finite if window is None else window & finite
+            self.consecutive.update(torch.ones_like(self.consecutive.count), restart=finite)
+            self.skipped.update((~finite).long())
+            return True
+        if torch.isfinite(loss):
+            self.consecutive.count.zero_()
+            return True
+        self.skipped.update(torch.ones_like(self.skipped.count))
+        self.consecutive.update(torch.ones_like(self.consecutive.count))
+        run = int(self.consecutive.count)
+        self._reported = int(self.skipped.count)
+        log.warning("non-finite loss (%s) on %s: step skipped", loss.item(), ids)
+        if run >= self.max_consecutive:
+            raise NonFiniteLossError(f"{run} consecutive non-finite losses; last samples: {ids}")
+        return False
+
+    def report(self, ids: str) -> None:
+        """Read the counts (a host synchronisation: logging steps and the end of training only),
+        warn about new skips and stop a run that keeps producing them.
+
+        Raises:
+            NonFiniteLossError: after ``max_consecutive`` in a row.
+        """
+        run, skipped = torch.stack([self.consecutive.count, self.skipped.count]).tolist()
+        if skipped > self._reported:
+            log.warning(
+                "non-finite loss in %d step(s) since the last report: skipped in the optimiser "
+                "(latest samples: %s)",
+                skipped - self._reported,
+                ids,
+            )
+        self._reported = skipped
+        if run >= self.max_consecutive:
+            raise NonFiniteLossError(f"{run} consecutive non-finite losses; last samples: {ids}")
+
+    def before_optimizer_step(self, optimizer: torch.optim.Optimizer) -> None:
+        """Hand the step's finiteness to a fused optimiser (``found_inf``: 1 skips the update of
+        weights and state on the device). Under ``16-mixed`` the GradScaler sets its own
+        ``found_inf``, which a non-finite loss trips as well (its gradients are non-finite)."""
+        if self._window_finite is None:
+            return
+        if optimizer.defaults.get("fused"):
+            self._found_inf = (~self._window_finite).to(torch.float32)
+            optimizer.found_inf = self._found_inf
+        self._window_finite = None
+
+    def after_batch(self, optimizers: list[torch.optim.Optimizer]) -> None:
+        """Take ``found_inf`` back: it is this step's only; a stale one would skip later steps."""
+        if self._found_inf is None:
+            return
+        for optimizer in optimizers:
+            if getattr(optimizer, "found_inf", None) is self._found_inf:
+                del optimizer.found_inf
+        self._found_inf = None
+
+
+class DeferredCounts:
+    """Per-batch counts (of masked non-finite flow pixels) kept as device tensors beside their
+    batch's sample ids, read back in one transfer when they are reported (a logging step, the
+    end of an epoch)."""
+
+    #: report anyway after this many batches, so that the list stays short
+    LIMIT = 512
+
+    def __init__(self) -> None:
+        self._pending: list[tuple[Tensor, list]] = []
+
+    def add(self, count: Tensor, batch: dict[str, Any]) -> bool:
+        """Keep ``count`` (a 0-dim tensor); True when the list is full and should be read."""
+        self._pending.append((count.detach(), list(batch.get(SAMPLE_ID, []))))
+        return len(self._pending) >= self.LIMIT
+
+    def read(self) -> list[tuple[int, list]]:
+        """``(count, sample ids)`` of every kept batch with a non-zero count; empties the list
+        (one host synchronisation)."""
+        if not self._pending:
+            return []
+        counts = torch.stack([c for c, _ in self._pending]).tolist()
+        out = [(int(n), ids) for n, (_, ids) in zip(counts, self._pending, strict=True) if n]
+        self._pending.clear()
+        return out
+
+
+def _finite_on_every_process(finite: Tensor, strategy: Any) -> Tensor:
+    """Whether the step's loss was finite on every process: one ``all_reduce`` (MAX) of a
+    one-element device tensor, queued on the device like the gradients' and never read on the
+    host. Lightning's ``strategy.reduce`` would add a ``barrier()`` before it in every step
+    (``_sync_ddp``); it is used only where torch.distributed is not what the strategy runs on."""
+    bad = (~finite).to(torch.float32)
+    if torch.distributed.is_available() and torch.distributed.is_initialized():
+        torch.distributed.all_reduce(bad, op=torch.distributed.ReduceOp.MAX)
+    else:
+        bad = strategy.reduce(bad, reduce_op="max")
+    return bad == 0
