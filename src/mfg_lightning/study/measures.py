@@ -105,9 +105,9 @@ def basis_measurements(model: Any, val: DataLoader, intrinsics: torch.Tensor, un
 
 def _inputs(batch: dict, flow_key: str) -> tuple[torch.Tensor, torch.Tensor]:
     """The flow the model sees and its valid pixels (as :func:`object_motion_scores`)."""
-    from mfg_lightning.data.sample import sanitize_flow
+    from mfg_lightning.data.sample import model_inputs
 
-    flow, valid, _ = sanitize_flow(batch[flow_key], batch["flow_valid"])
+    flow, valid, _ = model_inputs(batch, flow_key)
     return flow, valid
 
 

@@ -353,7 +353,7 @@ def object_motion_scores(
     and split slow / fast by each sample's mean ground-truth object flow (near / far: the
     scores' own depth split). ``flow_key``: the batch's flow the model sees (``"flow"``, the
     estimated flow; ``"exact_flow"``, the rendered worlds' exact flow)."""
-    from mfg_lightning.data.sample import sanitize_flow
+    from mfg_lightning.data.sample import model_inputs
     from mfg_lightning.metrics.object_motion import ObjectMotionScores
     from mfg_lightning.motion.object_motion import extract_object_motion, threshold_baseline
 
@@ -362,7 +362,7 @@ def object_motion_scores(
     for batch in loader:
         if batch is None or "object_mask" not in batch:
             continue
-        flow, valid, _ = sanitize_flow(batch[flow_key], batch["flow_valid"])
+        flow, valid, _ = model_inputs(batch, flow_key)
         with torch.inference_mode():
             out = model(flow)
         depth, gt = batch["depth"], batch["object_mask"].bool()
