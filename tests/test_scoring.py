@@ -12,7 +12,7 @@ from torch.utils.data import DataLoader
 from mfg_lightning.analysis.scoring import Method, mfg_method, mfg_top_k_methods, score_methods
 from mfg_lightning.core.config import compose
 from mfg_lightning.data.base import collate_samples
-from mfg_lightning.data.sample import sanitize_flow
+from mfg_lightning.data.sample import model_inputs
 from mfg_lightning.run.runs import build_model
 
 KS = [None, 0.5, 0.1, 0.02]
@@ -39,7 +39,7 @@ def test_shared_encoder_predicts_what_predict_motion_does(tiny) -> None:
         batch = batches[0]
         got = [p(batch) for p in predicts]
         assert len(calls) == 1
-        flow, _, _ = sanitize_flow(batch["flow"], batch["flow_valid"])
+        flow = model_inputs(batch).flow
         with torch.inference_mode():
             want = [model.predict_motion(flow, batch["intrinsics"], top_k=k)[:2] for k in KS]
     finally:

@@ -64,7 +64,7 @@ from mfg_lightning.core.atomic import atomic_write_bytes, atomic_write_text
 from mfg_lightning.core.config import CONFIG_DIR
 from mfg_lightning.core.errors import UserError, exit_on_unknown_choice, exit_on_user_error
 from mfg_lightning.core.tables import finite_or_none
-from mfg_lightning.data.sample import sanitize_flow
+from mfg_lightning.data.sample import model_inputs
 from mfg_lightning.metrics.alignment import ALIGN_MODES
 from mfg_lightning.metrics.ate_traj import aligned_trajectory_metrics
 from mfg_lightning.models.mfg import validate_top_k
@@ -105,7 +105,7 @@ class MotionPredictor(L.LightningModule):
         ``(B, 4, 4)`` float64, the true ``T_src,tgt``, where the split has ground truth."""
         if batch is None:  # every sample of the batch was skipped as unreadable
             return None
-        flow, valid, _ = sanitize_flow(batch["flow"], batch["flow_valid"])
+        flow, valid, _ = model_inputs(batch)
         t, w, out = self.module.predict_motion(flow, batch["intrinsics"])
         result = {
             "sequence": list(batch["sequence"]),

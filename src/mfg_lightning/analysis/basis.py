@@ -49,7 +49,7 @@ from torch import Tensor
 from mfg_lightning.core import geometry
 from mfg_lightning.core.atomic import atomic_write_bytes, atomic_write_text
 from mfg_lightning.core.tables import Column, Table
-from mfg_lightning.data.sample import sanitize_flow
+from mfg_lightning.data.sample import FLOW, FLOW_VALID, model_inputs
 from mfg_lightning.pictures.colours import activation_map, flow_to_rgb, scalar_to_rgb
 from mfg_lightning.pictures.plots import figure_png
 from mfg_lightning.run.checkpoints import CheckpointSizeError
@@ -284,7 +284,7 @@ def population_statistics(
             break
         if batch is None:  # every sample of the batch was unreadable and skipped
             continue
-        flow, _, _ = sanitize_flow(batch["flow"], batch["flow_valid"])
+        flow = model_inputs(batch).flow
         hidden, _ = net.encode(flow.to(device))
         active = (hidden > 0).cpu()
         counts.append(active.sum(1))
@@ -378,7 +378,7 @@ def examples_figure(net: MFG, samples: Sequence[dict[str, Any]], top_units: int 
         n_rows, 2 * n, wspace=0.06, hspace=0.45, left=0.01, right=0.99, top=0.97, bottom=0.01
     )
     for c, sample in enumerate(samples):
-        flow, _, _ = sanitize_flow(sample["flow"][None], sample["flow_valid"][None])
+        flow = model_inputs({k: sample[k][None] for k in (FLOW, FLOW_VALID)}).flow
         hidden, _ = net.encode(flow.to(device))
         v_t, v_w = net.decode(hidden)
         K = sample["intrinsics"][None].float()

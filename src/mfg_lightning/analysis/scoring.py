@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 
 from mfg_lightning.core import geometry
-from mfg_lightning.data.sample import sanitize_flow
+from mfg_lightning.data.sample import model_inputs
 from mfg_lightning.metrics.evaluator import TrajectoryEvaluator
 from mfg_lightning.metrics.frame_errors import frame_errors
 from mfg_lightning.motion import baselines
@@ -81,16 +81,16 @@ def mfg_top_k_methods(model: Any, top_ks: Iterable[float | None]) -> list[Predic
     the first of them to see a batch encodes it, the others reuse its hidden activations (top-k
     only changes which units reach the decoders). The predictions are those of
     :func:`mfg_method`; the encoder's time is counted in the first method's seconds."""
-    from mfg_lightning.models.mfg import keep_top_k, validate_top_k
+    from mfg_lightning.models.mfg import MotionFieldNetwork, keep_top_k, validate_top_k
 
-    net = model.net
+    net: MotionFieldNetwork = model.net
     last: dict[str, Any] = {"batch": None, "hidden": None}
 
     def hidden_of(batch: dict) -> Tensor:
         if net.training:  # top-k is an evaluation-time setting (MFG.forward skips it in training)
             raise ValueError("MFG scoring: put the model in evaluation mode (model.eval())")
         if last["batch"] is not batch:
-            flow, _, _ = sanitize_flow(batch["flow"], batch["flow_valid"])
+            flow = model_inputs(batch).flow
             last["hidden"], last["batch"] = net.encode(flow)[0], batch
         return last["hidden"]
 

@@ -253,7 +253,11 @@ def _batch_ids(batch: dict[str, Any], rows: torch.Tensor | None = None, limit: i
 
 
 def check_batch(
-    batch: dict[str, Any], height: int, width: int, dtype: torch.dtype | None = None
+    batch: dict[str, Any],
+    height: int,
+    width: int,
+    dtype: torch.dtype | None = None,
+    needs: tuple[str, ...] = (),
 ) -> None:
     """Refuse a collated batch that does not fit a model of input size ``height × width``.
 
@@ -273,12 +277,13 @@ def check_batch(
         height, width: the model's input resolution in pixels.
         dtype: the floating-point type the model computes in (its parameters'); None accepts any
             floating-point flow.
+        needs: keys :data:`SCHEMA` calls optional that the caller needs (:data:`POSE`).
 
     Raises:
         SampleError: naming the samples (all of the batch for a shape error, the offending ones
             for non-finite values) and the key.
     """
-    check_batch_layout(batch, height, width, dtype)
+    check_batch_layout(batch, height, width, dtype, needs)
     raise_on_bad_values(batch, batch_value_flags(batch))
 
 

@@ -173,12 +173,10 @@ class MFGLitModule(L.LightningModule):
     def transfer_batch_to_device(
         self, batch: Any, device: torch.device, dataloader_idx: int
     ) -> Any:
-        """Lightning's batch transfer, skipped on a CPU: the batches are built on the CPU, so
-        the transfer is a no-op whose recursive walk of the batch dict still costs ~0.35 ms per
-        step, ~1.5 % of a batch-1 step (bench/results/throughput.md). On another device the
-        batch's CPU intrinsics stay beside it under ``INTRINSICS_HOST``: the closed-form
-        recovery groups samples by their intrinsics' values, which would otherwise be read back
-        from the device in every evaluation batch."""
+        """Lightning's batch transfer, skipped on a CPU (a no-op walk of the batch costing
+        ~0.35 ms, ~1.5 % of a batch-1 step: bench/results/throughput.md). Elsewhere the CPU
+        intrinsics stay beside the batch (``INTRINSICS_HOST``) for the closed-form recovery,
+        which groups samples by their values, without reading them back from the device."""
         if device.type == "cpu":
             return batch
         host = batch.get(keys.INTRINSICS) if isinstance(batch, dict) else None
@@ -190,10 +188,9 @@ class MFGLitModule(L.LightningModule):
     # -- training ----------------------------------------------------------------------------
 
     def _writes_logs_this_step(self) -> bool:
-        """Whether the loggers write this training step's values (every
-        ``trainer.log_every_n_steps`` optimiser steps, and the last): the step-only diagnostics
-        are logged just then, since each ``self.log`` costs Python time that shows at batch 1
-        (bench/results/throughput.md). The deferred counts are read back then too."""
+        """Whether the loggers write this step's values (every ``trainer.log_every_n_steps``
+        optimiser steps, and the last): the step diagnostics are logged (each ``self.log`` costs
+        time that shows at batch 1) and the deferred counts read back just then."""
         trainer = self._trainer
         if trainer is None:
             return True
@@ -227,7 +224,7 @@ class MFGLitModule(L.LightningModule):
             # this process's counts: a reduction across processes is a collective, which the
             # step keeps to the one all_reduce of the loss's finiteness
             values["train/nonfinite_flow_pixels"] = self.masked_flow_pixels.count.float()
-            values["train/lr"] = self._learning_rate()
+            values["train/lr"] = float(self.trainer.optimizers[0].param_groups[0]["lr"])
             if fused or int(self.nonfinite.skipped.count):
                 values["train/skipped_steps"] = self.nonfinite.skipped.count.float()
             self.log_dict(values, batch_size=bs)
@@ -239,13 +236,6 @@ class MFGLitModule(L.LightningModule):
                 "fields": StepFields.of(self.global_step, inputs.flow, v_t, v_w, out),
             }
         return terms.total
-
-    def _learning_rate(self) -> float:
-        """The first parameter group's current learning rate (NaN outside a fit)."""
-        trainer = self._trainer
-        if trainer is None or not trainer.optimizers:
-            return float("nan")
-        return float(trainer.optimizers[0].param_groups[0]["lr"])
 
     def on_before_optimizer_step(self, optimizer: torch.optim.Optimizer) -> None:
         self.nonfinite.before_optimizer_step(optimizer)

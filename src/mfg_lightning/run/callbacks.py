@@ -370,7 +370,8 @@ class LastCheckpoint(Checkpoint):
 class BatchChecks(L.Callback):
     """Refuse malformed batches where they enter the model, naming the samples.
 
-    Runs :func:`mfg_lightning.data.sample.check_batch` with the network's input size at the
+    Runs :func:`mfg_lightning.data.sample.check_batch` with the network's input size
+    (:func:`mfg_lightning.models.mfg.input_size`) and the pose required at the
     start of every training, validation and test step (shapes, and finite poses, intrinsics and
     depth; non-finite flow pixels are masked by the module itself), so that a dataset bug is one
     :class:`~mfg_lightning.data.sample.SampleError` naming the samples instead of an error deep
@@ -402,18 +403,22 @@ class BatchChecks(L.Callback):
 
     def _check(self, pl_module: L.LightningModule, batch: Any) -> None:
         from mfg_lightning.data.sample import (
+            POSE,
             batch_value_flags,
             check_batch_layout,
             raise_on_bad_values,
         )
+        from mfg_lightning.models.mfg import MotionFieldNetwork, input_size
 
         net = getattr(pl_module, "net", None)
-        height, width = getattr(net, "height", None), getattr(net, "width", None)
-        if batch is None or height is None or width is None:  # None: every sample was skipped
+        if batch is None or not isinstance(net, MotionFieldNetwork):  # None: all skipped
             self._read_pending(wait=False)
             return
+        height, width = input_size(net)
         param = next(pl_module.parameters(), None)
-        check_batch_layout(batch, height, width, dtype=None if param is None else param.dtype)
+        dtype = None if param is None else param.dtype
+        # training and evaluation compare with the ground truth: the pose is needed here
+        check_batch_layout(batch, height, width, dtype=dtype, needs=(POSE,))
         flags = batch_value_flags(batch)
         deferred = self.deferred if self.deferred is not None else flags.device.type != "cpu"
         if not deferred:

@@ -324,7 +324,9 @@ def check_targets(cfg: Any, source: str, key: str = "") -> None:
 
 @dataclass(frozen=True)
 class ModelSize:
-    """The sizes that decide whether MFG weights fit: ``M`` hidden units and the input grid."""
+    """The sizes that decide whether MFG weights fit: ``M`` hidden units and the input grid (a
+    :class:`mfg_lightning.models.mfg.MotionFieldNetwork`'s ``hidden_units``, ``height`` and
+    ``width``, which its config names alike)."""
 
     hidden_units: int
     height: int
