@@ -6,7 +6,7 @@
    set-up and the DDP rendezvous cancel out.
 2. The metric reduction: a ``trainer=ddp`` run tests its best checkpoint, and
    ``mfg_lightning.evaluate`` tests the same checkpoint in one process; the values must agree
-   (what ``tests/test_ddp.py`` asserts).
+   (``tests/test_ddp.py`` runs this same comparison and asserts it).
 
 ``python bench/scaleout.py`` (a few minutes on 2 CPU cores); ``--tiny`` for a smoke run.
 """
@@ -21,6 +21,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -95,15 +96,21 @@ def parameter_count(tiny: bool) -> int:
     return sum(p.numel() for p in instantiate(cfg.model.net).parameters())
 
 
-def reduction(tmp: Path) -> tuple[dict, dict]:
-    """Test metrics of one checkpoint: under DDP (2 processes) and in one process."""
+def reduction(tmp: Path, launch: Callable[[list[str], Path], object] = run) -> tuple[dict, dict]:
+    """Test metrics of one checkpoint: under DDP (2 processes) and in one process.
+
+    The DDP run writes ``<tmp>/ddp``, the single-process evaluation of its best checkpoint
+    ``<tmp>/single``. ``launch(args, cwd)`` runs ``python -m <args>`` and raises if it fails:
+    :func:`run` here, the tests' own runner in ``tests/test_ddp.py``, which asserts the two agree.
+    """
     ddp_dir, single_dir = tmp / "ddp", tmp / "single"
-    run(
+    launch(
         [
             "mfg_lightning.train",
             "debug=tiny",
             "trainer=ddp",
-            # evaluate computes in float32: the same precision on both sides of the comparison
+            # the run tests in the precision it trained in, evaluate in float32: the same
+            # precision on both sides, so that only the reduction is compared
             "trainer.precision=32-true",
             "logger=none",
             f"hydra.run.dir={ddp_dir}",
@@ -111,7 +118,7 @@ def reduction(tmp: Path) -> tuple[dict, dict]:
         tmp,
     )
     ddp = json.loads((ddp_dir / "metrics.json").read_text())
-    run(
+    launch(
         [
             "mfg_lightning.evaluate",
             f"ckpt_path={ddp['best_checkpoint']}",

@@ -6,6 +6,7 @@ checkpoint is evaluated again by ``mfg_lightning.evaluate`` in a single process.
 reduction across processes differs, so every value must agree to float32 rounding (per-sample
 sums are added in another order). The tiny test split has an odd number of samples (11), so an
 even split over 2 processes needs padding: a sample counted twice changes a mean by about 1/11.
+The two runs are ``bench/scaleout.py``'s :func:`reduction`, which reports the same comparison.
 """
 
 from __future__ import annotations
@@ -16,9 +17,11 @@ from pathlib import Path
 
 import pytest
 
-from conftest import run_module
+from conftest import bench_module, run_module
 
 pytestmark = pytest.mark.slow
+
+scaleout = bench_module("scaleout")
 
 # What must be among the compared values: per-frame means, the mean-motion baseline, the
 # trajectory metrics (gathered across processes, whole-trajectory ATE included) and the
@@ -39,44 +42,23 @@ REQUIRED = (
 )
 
 
-def _metrics(run_dir: Path) -> dict:
-    return json.loads((run_dir / "metrics.json").read_text())
+def _launch(args: list[str], cwd: Path) -> None:
+    """``python -m <args>`` as the tests run entry points (it raises if the run fails)."""
+    run_module(*args, cwd=cwd, timeout=240)
 
 
 def test_ddp_metrics_equal_single_process_metrics_of_the_same_checkpoint(tmp_path: Path) -> None:
-    ddp_dir = tmp_path / "ddp"
-    run_module(
-        "mfg_lightning.train",
-        "debug=tiny",
-        "trainer=ddp",
-        # the run tests in the precision it trained in and evaluate in float32: the same
-        # precision on both sides, so that only the reduction is compared
-        "trainer.precision=32-true",
-        "logger=none",
-        f"hydra.run.dir={ddp_dir}",
-        cwd=tmp_path,
-        timeout=240,
-    )
-    ddp = _metrics(ddp_dir)
-    best = ddp["best_checkpoint"]
+    # the benchmark's comparison: the DDP run in <tmp>/ddp, the evaluation in <tmp>/single
+    ddp, single = scaleout.reduction(tmp_path, _launch)
+    best = json.loads((tmp_path / "ddp" / "metrics.json").read_text())["best_checkpoint"]
     assert best and Path(best).is_file()
 
-    single_dir = tmp_path / "single"
-    run_module(
-        "mfg_lightning.evaluate",
-        f"ckpt_path={best}",
-        "eval.write_poses=false",
-        f"hydra.run.dir={single_dir}",
-        cwd=tmp_path,
-    )
-    single = _metrics(single_dir)["metrics"]
-
-    shared = sorted(k for k in ddp["metrics"] if k.startswith("test/") and k in single)
+    shared = sorted(k for k in ddp if k.startswith("test/") and k in single)
     missing = [k for k in REQUIRED if k not in shared]
     assert not missing, f"not reported by both runs: {missing}"
     differ = []
     for key in shared:
-        a, b = ddp["metrics"][key], single[key]
+        a, b = ddp[key], single[key]
         if a is None or b is None:  # NaN (e.g. drift on a sequence shorter than 100 m)
             if a is not b:
                 differ.append((key, a, b))

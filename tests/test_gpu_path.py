@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import contextlib
 import glob
-import importlib.util
 import json
 import math
 import os
@@ -24,14 +23,13 @@ import traceback
 import zipfile
 from collections.abc import Iterator
 from pathlib import Path
-from types import ModuleType
 from typing import Any
 
 import lightning as L
 import pytest
 import torch
 
-from conftest import REPO, cuda_env, quiet_trainer, run_command
+from conftest import REPO, bench_module, cuda_env, quiet_trainer, run_command
 from mfg_lightning.core.config import compose
 from mfg_lightning.metrics.frame_errors import FiniteMean
 from mfg_lightning.models.mfg import bilinear_matrix
@@ -41,19 +39,7 @@ BENCH = REPO / "bench"
 TESTS = Path(__file__).resolve().parent
 
 
-def _bench_module(name: str) -> ModuleType:
-    """``bench/<name>.py`` imported as a module (bench/ is not a package)."""
-    if str(BENCH) not in sys.path:
-        sys.path.insert(0, str(BENCH))
-    spec = importlib.util.spec_from_file_location(f"bench_{name}", BENCH / f"{name}.py")
-    assert spec and spec.loader
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
-
-
-install_gpu = _bench_module("install_gpu")
+install_gpu = bench_module("install_gpu")
 
 
 # --------------------------------------------------------------------------------------------
@@ -237,7 +223,7 @@ def test_make_gpu_check_runs_every_part_on_a_cpu(tmp_path: Path) -> None:
 
 
 def test_gpu_check_fits_the_loader_workers_to_dev_shm(tmp_path: Path, monkeypatch) -> None:
-    gpu_check = _bench_module("gpu_check")
+    gpu_check = bench_module("gpu_check")
     kb = 154 * 1024  # one sample of the quick start
     roomy = gpu_check.plan_workers(6, 16, 64, kb, tmp_path)
     assert roomy.workers == 6 and "enough" in roomy.note
