@@ -147,11 +147,64 @@ class Report:
         return markdown_table(["", ""], rows)
 
     def write(self) -> Path:
-        """Write ``<out_dir>/<name>.md`` (atomically) and return its path."""
+        """Write ``<out_dir>/<name>.md`` (atomically) and return its path. The marked sections
+        another script wrote into the old file (:meth:`write_section`) are kept, before the
+        environment."""
         from mfg_lightning.core.atomic import atomic_write_text
 
+        path = self.out_dir / f"{self.name}.md"
+        kept = marked_blocks(path.read_text()) if path.is_file() else []
         text = f"# {self.title}\n\n" + "\n".join(self.sections)
+        text += "".join(f"\n{block}" for block in kept)
         text += "\n## Environment\n\n" + self.environment()
-        path = atomic_write_text(self.out_dir / f"{self.name}.md", text)
+        path = atomic_write_text(path, text)
         print(f"wrote {path}", flush=True)
         return path
+
+    def write_section(self, marker: str, heading: str) -> Path:
+        """Write this report's sections as one section of ``<out_dir>/<name>.md``, leaving the
+        rest of the file as it is: ``## heading``, the sections, then their own environment,
+        between ``<!-- marker:start -->`` and ``<!-- marker:end -->``, replacing the old block
+        of that marker (a new one goes before the file's ``## Environment``; a new file gets
+        the title). Returns the path."""
+        from mfg_lightning.core.atomic import atomic_write_text
+
+        body = f"## {heading}\n\n" + "\n".join(self.sections)
+        body += f"\n### Environment of this section\n\n{self.environment()}"
+        path = self.out_dir / f"{self.name}.md"
+        old = path.read_text() if path.is_file() else f"# {self.title}\n"
+        path = atomic_write_text(path, replace_marked(old, marker, body, before="## Environment"))
+        print(f"wrote {path}", flush=True)
+        return path
+
+
+def _markers(marker: str) -> tuple[str, str]:
+    return f"<!-- {marker}:start -->", f"<!-- {marker}:end -->"
+
+
+def marked_blocks(text: str) -> list[str]:
+    """Every ``<!-- name:start -->`` … ``<!-- name:end -->`` block of ``text``, markers
+    included, each ending with a newline, in order."""
+    import re
+
+    found = re.finditer(r"<!-- ([\w-]+):start -->\n.*?<!-- \1:end -->\n?", text, flags=re.S)
+    return [m.group(0).rstrip("\n") + "\n" for m in found]
+
+
+def replace_marked(text: str, marker: str, body: str, before: str | None = None) -> str:
+    """``text`` with the block of ``marker`` (:func:`marked_blocks`) holding ``body``: in place
+    of the old block, or else inserted before the first line that starts with ``before``, or
+    else appended."""
+    start, end = _markers(marker)
+    block = f"{start}\n{body.rstrip()}\n{end}\n"
+    if start in text and end in text.split(start, 1)[1]:
+        head, rest = text.split(start, 1)
+        tail = rest.split(end, 1)[1].lstrip("\n")
+        return head + block + ("\n" + tail if tail else "")
+    lines = text.splitlines(keepends=True)
+    at = next(
+        (i for i, ln in enumerate(lines) if before is not None and ln.startswith(before)), None
+    )
+    if at is None:
+        return text.rstrip("\n") + "\n\n" + block
+    return "".join(lines[:at]) + block + "\n" + "".join(lines[at:])

@@ -1,5 +1,6 @@
-"""Regenerate every benchmark table (``make bench``): accuracy, throughput, scale-out,
-the KITTI flow cache, and on a machine with a CUDA GPU the GPU check.
+"""Regenerate every benchmark table (``make bench``): accuracy, throughput, images to poses (a
+section of throughput.md), scale-out, the KITTI flow cache, and on a machine with a CUDA GPU the
+GPU check.
 
 Runs the scripts one after the other (each needs the whole machine), each in its own process,
 and writes ``bench/results/<name>.md``. Extra arguments (``--tiny``, ``--out DIR``,
@@ -16,7 +17,13 @@ from pathlib import Path
 import torch
 
 BENCH = Path(__file__).resolve().parent
-SCRIPTS = ("accuracy.py", "throughput.py", "scaleout.py", "flow_cache.py")
+SCRIPTS = (
+    "accuracy.py",
+    "throughput.py",
+    "images_to_poses.py",  # after throughput.py: a section of its file
+    "scaleout.py",
+    "flow_cache.py",
+)
 #: Scripts that need a CUDA device: run only where one is (gpu_check.py's CPU form is a test,
 #: tests/test_gpu_path.py; `make gpu-check` installs what it needs and runs it).
 GPU_SCRIPTS = ("gpu_check.py",)

@@ -1,0 +1,475 @@
+"""Images to poses: how fast does ``python -m mfg_lightning.predict`` turn a folder of frames
+into a trajectory, against DIS + the best classical method on the same frames, and where does
+the time go?
+
+Frames: a procedural drive of the synthetic worlds (``dataset=synthetic flow=dis``'s persistent
+world and renderer, :mod:`mfg_lightning.data.rendered`) rendered at each ``--sizes`` and written
+as PNG files into a temporary folder with the camera's intrinsics, the input of
+``dataset=image_folder``. Model: the default config's MFG (48 × 128, M = 1000), trained for
+``--train-steps`` on the synthetic exact flow and saved as a checkpoint: its accuracy is
+irrelevant here, its cost is the trained model's.
+
+Measured per image size, interleaved, the median of ``--repeats`` after one warm-up round:
+
+1. end to end: :func:`mfg_lightning.predict.predict` (what ``python -m mfg_lightning.predict
+   dataset=image_folder`` runs, in this process: the checkpoint, the DataModule, Lightning's
+   predict loop, the DIS and RGB caches, the output files) on the whole folder, each run with
+   an empty cache (a first run on a folder); and on its first two frames, the call's start-up.
+2. the stages, on the same frames with the same functions the predict path calls: read (the
+   dataset's frame decoding, as its loader does it: PNG, resize to the input, grey), flow (DIS
+   and the resize to the input), network (the module's forward at the predict batch size),
+   recovery (:func:`~mfg_lightning.core.geometry.recover_motion`), composition
+   (:meth:`mfg_lightning.predict.PredictedSequence.trajectory`); and the classical method
+   frame by frame on the same flows (:func:`mfg_lightning.motion.baselines.
+   essential_matrix_motion` with MAGSAC++, as ``mfg_lightning.analysis.scoring`` scores it),
+   composed the same way.
+
+The classical method is MAGSAC++ (OpenCV's essential matrix): of the classical rows of
+``bench/results/accuracy.md``'s DIS-flow table and ``reproduction.md``'s method comparison it
+has the lowest ATE on both test sequences (and the lowest RPE translation); an image pipeline
+feeds it DIS flow.
+
+Written as one section of ``<out>/throughput.md`` between ``<!-- images-to-poses:start -->`` and
+``<!-- images-to-poses:end -->`` (the rest of the file is left as it is; ``bench/throughput.py``
+keeps the section when it rewrites the file), and, when a full run writes into ``bench/results``,
+one line into README.md between the same markers.
+
+``python bench/images_to_poses.py`` (about 4 minutes on 2 quiet CPU cores); ``--tiny`` for a
+smoke run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import (
+    REPO,
+    TINY_OVERRIDES,
+    Report,
+    add_common_arguments,
+    fmt,
+    markdown_table,
+    replace_marked,
+)
+
+#: The marker of this script's section in throughput.md and of its line in README.md.
+MARKER = "images-to-poses"
+HEADING = "Images to poses: `predict` on a folder of PNG frames, against DIS + MAGSAC++"
+#: The classical row: its name in the accuracy tables and OpenCV's robust estimator.
+CLASSICAL = ("essential matrix + MAGSAC++ (OpenCV)", "USAC_MAGSAC")
+MFG_STAGES = ("read", "flow", "network", "recovery", "composition")
+CLASSICAL_STAGES = ("read", "flow", "method", "composition")
+STAGE_NOTES = {
+    "read": "PNG decode, resize to the input (its cache written once), grey; each frame twice, "
+    "as the loader decodes it (source of one pair, target of the other)",
+    "flow": "DIS on the grey frames, resized to the input (its cache write: the rest)",
+    "network": "the module's forward, in batches of the predict loader",
+    "recovery": "closed-form (t, ω) from the fields",
+    "method": "frame by frame on the same flows",
+    "composition": "motions → camera-to-world poses",
+}
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--frames", type=int, default=101, help="frames per folder (pairs + 1)")
+    p.add_argument("--sizes", nargs="+", default=["192x512", "376x1241"], help="image sizes, HxW")
+    p.add_argument("--repeats", type=int, default=5, help="timed rounds (after one warm-up)")
+    p.add_argument("--train-steps", type=int, default=20, help="the checkpoint's training")
+    p.add_argument("--preset", default="medium", help="DIS preset (the image folder's default)")
+    p.add_argument("--readme", type=Path, default=None, help="README to update (default: the "
+                   "repository's when writing into bench/results, else none)")  # fmt: skip
+    add_common_arguments(p, "torch and OpenCV threads (default: all)")
+    args = p.parse_args(argv)
+    args.sizes = [parse_size(s) for s in args.sizes]
+    if args.tiny:
+        args.frames, args.sizes, args.repeats, args.train_steps = 6, [(48, 128)], 1, 2
+    if args.frames < 4:
+        p.error("--frames: at least 4")
+    return args
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """``"192x512"`` → ``(192, 512)``."""
+    try:
+        h, w = (int(v) for v in text.lower().replace("×", "x").split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"an image size is HxW, e.g. 192x512: {text!r}") from None
+    return h, w
+
+
+def model_overrides(tiny: bool) -> list[str]:
+    return list(TINY_OVERRIDES) if tiny else []
+
+
+def make_checkpoint(path: Path, tiny: bool, steps: int) -> Path:
+    """The default config's MFG (the tiny one with ``tiny``) trained ``steps`` steps on the
+    synthetic exact flow, in 32-bit, saved as a checkpoint ``predict`` reads."""
+    import lightning as L
+    import torch
+    from hydra.utils import instantiate
+
+    from mfg_lightning.core.config import compose
+    from mfg_lightning.run.runs import build_model
+
+    overrides = [f"paths.output_dir={path.parent}", "dataset.train_sequences=1",
+                 "dataset.test_sequences=1", "dataset.sequence_length=64",
+                 *model_overrides(tiny)]  # fmt: skip
+    cfg = compose("train", overrides)
+    torch.manual_seed(0)
+    model = build_model(cfg)
+    trainer = L.Trainer(
+        accelerator="cpu", devices=1, max_steps=steps, precision="32-true", logger=False,
+        enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
+        limit_val_batches=0, num_sanity_val_steps=0, default_root_dir=path.parent,
+    )  # fmt: skip
+    trainer.fit(model, datamodule=instantiate(cfg.dataset))
+    trainer.save_checkpoint(path)
+    return path
+
+
+def render_folder(folder: Path, height: int, width: int, frames: int, tiny: bool) -> list[float]:
+    """Render ``frames`` consecutive frames of a procedural drive at ``height × width`` into
+    ``folder/000000.png`` …; the camera's ``(fx, fy, cx, cy)`` in pixels."""
+    import cv2
+    from hydra.utils import instantiate
+
+    from mfg_lightning.core.config import compose
+
+    cfg = compose("train", [
+        "flow=dis", f"flow.height={height}", f"flow.width={width}", "dataset.train_sequences=1",
+        "dataset.test_sequences=1", f"dataset.sequence_length={frames}",
+        f"paths.output_dir={folder.parent}", f"paths.cache_dir={folder.parent / 'render-cache'}",
+        *model_overrides(tiny),
+    ])  # fmt: skip
+    dataset = instantiate(cfg.dataset).dataset("test")
+    seq = next(iter(dataset.trajectories))
+    folder.mkdir(parents=True)
+    for k in range(frames):
+        rgb = dataset.render(seq, k).rendered.rgb.permute(1, 2, 0).numpy()
+        if not cv2.imwrite(str(folder / f"{k:06d}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
+            raise OSError(f"could not write {folder / f'{k:06d}.png'}")
+    return [float(v) for v in dataset.image_intrinsics]
+
+
+def predict_config(ckpt: Path, folder: Path, camera: list[float], work: Path, args) -> Any:
+    """The config of ``python -m mfg_lightning.predict`` on ``folder`` (``dataset=image_folder``),
+    its outputs and an empty flow cache under ``work``."""
+    from mfg_lightning.core.config import compose
+
+    fx, fy, cx, cy = camera
+    input_hw = ["dataset.height=32", "dataset.width=64"] if args.tiny else []
+    return compose("predict", [
+        f"ckpt_path={ckpt}", "dataset=image_folder", f"dataset.data_root={folder}",
+        f"dataset.fx={fx}", f"dataset.fy={fy}", f"dataset.cx={cx}", f"dataset.cy={cy}",
+        *input_hw, f"flow.preset={args.preset}", f"paths.output_dir={work / 'run'}",
+        f"paths.cache_dir={work / 'cache'}", "trainer.accelerator=cpu",
+        "++trainer.enable_progress_bar=false", "trainer.enable_model_summary=false",
+    ])  # fmt: skip
+
+
+def time_predict(cfg: Any) -> float:
+    """Seconds of one :func:`mfg_lightning.predict.predict` call."""
+    from mfg_lightning.predict import predict
+
+    start = time.perf_counter()
+    predict(cfg)
+    return time.perf_counter() - start
+
+
+@dataclass
+class Stages:
+    """Seconds per stage over one pass of the folder's pairs."""
+
+    pairs: int
+    mfg: dict[str, float] = field(default_factory=dict)
+    classical: dict[str, float] = field(default_factory=dict)
+
+
+def time_stages(cfg: Any) -> Stages:
+    """One pass over the folder of ``cfg``, each stage timed alone with the functions the
+    predict path calls (the module docstring); the flow and RGB caches are those of ``cfg``,
+    empty, as for :func:`time_predict`."""
+    import numpy as np
+    import torch
+    from hydra.utils import instantiate
+
+    from mfg_lightning.core import geometry
+    from mfg_lightning.data import transforms
+    from mfg_lightning.data.sample import sanitize_flow
+    from mfg_lightning.models.mfg import validate_top_k
+    from mfg_lightning.motion.baselines import essential_matrix_motion
+    from mfg_lightning.predict import PredictedSequence
+    from mfg_lightning.run.checkpoints import module_from_checkpoint
+
+    module = module_from_checkpoint(cfg.ckpt_path, top_k=validate_top_k(cfg.model.get("top_k")))
+    module.eval()
+    datamodule = instantiate(cfg.dataset)
+    dataset = datamodule.dataset("predict")
+    clock = time.perf_counter
+    read = flow_s = 0.0
+    flows, valids = [], []
+    for seq, src, tgt in dataset.samples:  # the loader's order: frames 0 → 1, 1 → 2, …
+        start = clock()
+        _, gray0 = dataset._decode(seq, src)
+        _, gray1 = dataset._decode(seq, tgt)
+        read += clock() - start
+        start = clock()
+        flow = dataset._estimate(seq, src, tgt, gray0, gray1)
+        flow_s += clock() - start
+        flow_t, valid, _ = sanitize_flow(
+            transforms.flow_to_tensor(flow), torch.from_numpy(np.isfinite(flow).all(axis=2))
+        )
+        flows.append(flow_t)
+        valids.append(valid)
+    seq = dataset.samples[0][0]
+    K = dataset.intrinsics(seq)
+    frames = np.array([src for _, src, _ in dataset.samples])
+    stages = Stages(len(flows))
+    network = recovery = 0.0
+    t_all, w_all = [], []
+    batch = int(datamodule.eval_batch_size)
+    with torch.inference_mode():
+        for i in range(0, len(flows), batch):
+            x = torch.stack(flows[i : i + batch])
+            k = torch.stack([K] * x.shape[0])  # as the loader collates it
+            start = clock()
+            out = module(x)
+            network += clock() - start
+            start = clock()
+            t, w = geometry.recover_motion(out.v_t, out.v_omega, k)
+            recovery += clock() - start
+            t_all.append(t.double())
+            w_all.append(w.double())
+    start = clock()
+    PredictedSequence(frames, torch.cat(t_all), torch.cat(w_all), None).trajectory()
+    compose_mfg = clock() - start
+    method = 0.0
+    t_c, w_c = [], []
+    for flow_t, valid in zip(flows, valids, strict=True):
+        start = clock()
+        t, w = essential_matrix_motion(flow_t[None], K, valid[None], method=CLASSICAL[1])
+        method += clock() - start
+        t_c.append(t)
+        w_c.append(w)
+    start = clock()
+    PredictedSequence(frames, torch.cat(t_c), torch.cat(w_c), None).trajectory()
+    compose_classical = clock() - start
+    stages.mfg = {"read": read, "flow": flow_s, "network": network, "recovery": recovery,
+                  "composition": compose_mfg}  # fmt: skip
+    stages.classical = {"read": read, "flow": flow_s, "method": method,
+                        "composition": compose_classical}  # fmt: skip
+    return stages
+
+
+@dataclass
+class SizeResult:
+    """The medians of one image size."""
+
+    height: int
+    width: int
+    pairs: int
+    predict_s: float  # the whole folder
+    startup_s: float  # the first two frames (start-up and one pair)
+    mfg: dict[str, float]  # seconds per pass, per stage
+    classical: dict[str, float]
+
+    def marginal_ms(self) -> float:
+        """``predict``'s milliseconds per frame after its start-up."""
+        return 1000 * (self.predict_s - self.startup_s) / (self.pairs - 1)
+
+    def ms(self, stages: dict[str, float]) -> dict[str, float]:
+        return {k: 1000 * v / self.pairs for k, v in stages.items()}
+
+
+def measure_size(ckpt: Path, folder: Path, camera: list[float], work: Path, args) -> SizeResult:
+    """The medians of one image size: one warm-up round, then ``args.repeats`` rounds of
+    predict on the folder, predict on its first two frames and the staged pass, interleaved,
+    each with empty caches."""
+    import shutil
+
+    two = folder.parent / f"{folder.name}-2"
+    two.mkdir()
+    for path in sorted(folder.glob("*.png"))[:2]:
+        shutil.copy(path, two / path.name)
+    whole, start, passes = [], [], []
+    for r in range(args.repeats + 1):
+        round_dir = work / f"round{r}"
+        cfgs = [predict_config(ckpt, f, camera, round_dir / n, args)
+                for f, n in ((folder, "whole"), (two, "two"), (folder, "stages"))]  # fmt: skip
+        times = (time_predict(cfgs[0]), time_predict(cfgs[1]), time_stages(cfgs[2]))
+        shutil.rmtree(round_dir)
+        if r == 0:
+            continue  # the warm-up
+        whole.append(times[0])
+        start.append(times[1])
+        passes.append(times[2])
+        print(f"{folder.name} round {r}: predict {times[0]:.2f} s, its start-up {times[1]:.2f} s,"
+              f" stages {sum(times[2].mfg.values()):.2f} s", flush=True)  # fmt: skip
+
+    def median_stages(which: str) -> dict[str, float]:
+        keys = getattr(passes[0], which)
+        return {k: statistics.median(getattr(p, which)[k] for p in passes) for k in keys}
+
+    return SizeResult(
+        *parse_size(folder.name), passes[0].pairs, statistics.median(whole),
+        statistics.median(start), median_stages("mfg"), median_stages("classical"),
+    )  # fmt: skip
+
+
+def rate(ms: float) -> str:
+    """Frames per second of ``ms`` milliseconds per frame (– when not positive: a difference of
+    two timings on a loaded machine)."""
+    return fmt(1000 / ms, 1) if ms > 0 else "–"
+
+
+def share(part: float, whole: float) -> str:
+    return f"{100 * part / whole:.0f} %" if whole > 0 else "–"
+
+
+def rates_table(results: list[SizeResult], kind: str) -> str:
+    rows = []
+    for r in results:
+        whole_ms = 1000 * r.predict_s / r.pairs
+        mfg_ms, classical_ms = (sum(r.ms(s).values()) for s in (r.mfg, r.classical))
+        for name, ms in (
+            ("MFG: `predict`, end to end (the whole call)", whole_ms),
+            ("MFG: `predict` after its start-up", r.marginal_ms()),
+            ("MFG: its stages alone", mfg_ms),
+            (f"DIS + {CLASSICAL[0]}: its stages", classical_ms),
+        ):
+            rows.append([f"{r.height} × {r.width}", kind, name, rate(ms), fmt(ms, 2)])
+    return markdown_table(["image size", "CPU", "pipeline", "frames/s", "ms / frame"], rows)
+
+
+def stages_table(r: SizeResult) -> str:
+    mfg, classical = r.ms(r.mfg), r.ms(r.classical)
+    marginal, classical_total = r.marginal_ms(), sum(classical.values())
+
+    def cells(ms: float | None, whole: float) -> list[str]:
+        return ["–", "–"] if ms is None else [fmt(ms, 2), share(ms, whole)]
+
+    rows = [
+        [stage, STAGE_NOTES[stage], *cells(mfg.get(stage), marginal),
+         *cells(classical.get(stage), classical_total)]
+        for stage in dict.fromkeys(MFG_STAGES + CLASSICAL_STAGES)
+    ]  # fmt: skip
+    rest = "Lightning's loop, collation, the flow and RGB caches, the output files"
+    rows.append(["the rest of `predict`", rest, *cells(marginal - sum(mfg.values()), marginal),
+                 *cells(None, 0)])  # fmt: skip
+    total = "MFG: `predict` after its start-up; classical: the sum"
+    rows.append(["total", total, *cells(marginal, marginal), *cells(classical_total,
+                 classical_total)])  # fmt: skip
+    header = ["stage", "what", "MFG (ms / frame)", "MFG share", "classical (ms / frame)",
+              "classical share"]  # fmt: skip
+    return markdown_table(header, rows)
+
+
+def readme_line(results: list[SizeResult], kind: str, cores: int) -> str:
+    """The README's one line: the first size's end-to-end rate beside the classical one."""
+    r = results[0]
+    classical_ms = sum(r.ms(r.classical).values())
+    return (
+        f"Images to poses: `predict` on a folder of {r.height} × {r.width} PNG frames runs at "
+        f"{rate(r.marginal_ms())} frames/s after a {r.startup_s:.1f} s start-up (DIS + "
+        f"MAGSAC++: {rate(classical_ms)} frames/s) on {cores} {kind} CPU cores "
+        "([bench/results/throughput.md](bench/results/throughput.md)).\n"
+    )
+
+
+def write_readme(readme: Path, line: str) -> None:
+    """Replace the README's block between this script's markers (none: left alone)."""
+    from mfg_lightning.core.atomic import atomic_write_text
+
+    text = readme.read_text()
+    if f"<!-- {MARKER}:start -->" not in text:
+        print(f"warning: {readme} has no <!-- {MARKER}:start --> marker: not updated", flush=True)
+        return
+    atomic_write_text(readme, replace_marked(text, MARKER, line))
+    print(f"wrote {readme}", flush=True)
+
+
+def main(argv: list[str] | None = None) -> Path:
+    args = parse_args(argv)
+    import os
+
+    import cv2
+    import torch
+
+    from mfg_lightning.run.runs import cpu_kind
+
+    warnings.filterwarnings("ignore", ".*does not have many workers.*")
+    if args.threads:
+        torch.set_num_threads(args.threads)
+        cv2.setNumThreads(args.threads)
+    kind = cpu_kind()
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    report = Report("throughput", "Throughput: training, inference, data, memory", args.out)
+    results = []
+    with tempfile.TemporaryDirectory(prefix="mfg-bench-images-") as tmp_name:
+        tmp = Path(tmp_name)
+        start = time.perf_counter()
+        ckpt = make_checkpoint(tmp / "mfg.ckpt", args.tiny, args.train_steps)
+        print(f"checkpoint: {time.perf_counter() - start:.1f} s", flush=True)
+        for h, w in args.sizes:
+            start = time.perf_counter()
+            folder = tmp / f"{h}x{w}"
+            camera = render_folder(folder, h, w, args.frames, args.tiny)
+            print(f"{args.frames} frames rendered at {h} × {w}: "
+                  f"{time.perf_counter() - start:.1f} s", flush=True)  # fmt: skip
+            results.append(measure_size(ckpt, folder, camera, tmp / f"work-{h}x{w}", args))
+    model = "the tiny test model (32 × 64 input)" if args.tiny else "the default MFG (48 × 128"
+    model += "" if args.tiny else " input, M = 1000)"
+    report.add(
+        f"{args.frames} consecutive frames of a procedural drive through the synthetic worlds "
+        f"(the renderer of `flow=dis`), written as PNG files at each image size; {model} from "
+        f"a checkpoint trained {args.train_steps} steps (its accuracy is not what is measured "
+        f"here); DIS `{args.preset}` at the image size; CPU **{kind}** ({cores} cores, "
+        f"{torch.get_num_threads()} torch threads). Medians of {args.repeats} interleaved rounds "
+        "after one warm-up round, each run with an empty flow cache (a first run on a folder). "
+        "A frame is one pose: the pairs k → k + 1 of the folder."
+    )
+    report.add(rates_table(results, kind))
+    report.add(
+        "*End to end*: `mfg_lightning.predict.predict` in this process, what `python -m "
+        "mfg_lightning.predict dataset=image_folder` runs after its imports: the checkpoint, "
+        "the DataModule, Lightning's predict loop, DIS and its cache, the network, the "
+        "recovery, the composition and the output files (KITTI and TUM poses, motions CSV). "
+        "*After its start-up*: (the folder's time − the time on its first two frames) / (pairs "
+        "− 1), the rate a long sequence approaches; start-up "
+        + ", ".join(f"{r.startup_s:.2f} s at {r.height} × {r.width}" for r in results)
+        + ". *Stages*: each stage timed alone on the same frames with the functions the predict "
+        "path calls (the table below); the classical pipeline has no entry point, so its rate "
+        "is the sum of its stages, without a loader, caches or files. The classical method is "
+        f"{CLASSICAL[0]} on the same DIS flows at the model input (every 2nd pixel, as "
+        "`bench/accuracy.py` scores it), the lowest ATE of the classical methods on DIS flow in "
+        "`accuracy.md` and `reproduction.md`'s method comparison; without ground truth its "
+        "translation keeps unit length."
+    )
+    for r in results:
+        report.add(f"### Where the time goes, {r.height} × {r.width}\n\n{stages_table(r)}")
+    report.add(
+        "Shares: of `predict` after its start-up (MFG) and of the stages' sum (classical). "
+        "*The rest of `predict`*: its time after start-up less its stages, what the loop "
+        "around the stages costs. Read and flow are one measurement shared by both pipelines "
+        "(the same frames through the same functions)."
+    )
+    path = report.write_section(MARKER, HEADING)
+    # The README's line only from a real run into bench/results (or a README named).
+    readme = args.readme or (REPO / "README.md" if args.out is None and not args.tiny else None)
+    if readme is not None:
+        write_readme(readme, readme_line(results, kind, cores))
+    return path
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,122 @@
+"""bench/images_to_poses.py in its tiny setting, in this process: it writes its section of
+throughput.md between its markers with the expected rows and positive rates, leaves the rest of
+the file as it was, and replaces its README line; ``bench/throughput.py``'s rewrite of the file
+(``Report.write``) keeps the section. The numbers of a tiny run mean nothing."""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import cv2
+import pytest
+import torch
+
+from conftest import REPO
+from mfg_lightning.run.runs import cpu_kind
+
+BENCH = REPO / "bench"
+OTHER = "# Throughput: training, inference, data, memory\n\n## Training\n\nkeep me\n\n"
+ENVIRONMENT = "## Environment\n\n| a | b |\n|---|---:|\n| c | d |\n"
+
+
+def _load(name: str) -> ModuleType:
+    spec = importlib.util.spec_from_file_location(f"bench_{name}", BENCH / f"{name}.py")
+    assert spec and spec.loader
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+def _rows(text: str, heading: str) -> list[list[str]]:
+    """The body rows of the first table after ``heading``."""
+    lines = text.split(heading, 1)[1].splitlines()
+    start = next(i for i, ln in enumerate(lines) if ln.startswith("|"))
+    rows = []
+    for ln in lines[start:]:
+        if not ln.startswith("|"):
+            break
+        rows.append([c.strip() for c in ln.strip().strip("|").split("|")])
+    return rows[2:]
+
+
+@pytest.fixture
+def one_thread():
+    """One torch and OpenCV thread during the test, restored after it."""
+    threads, cv_threads = torch.get_num_threads(), cv2.getNumThreads()
+    yield
+    torch.set_num_threads(threads)
+    cv2.setNumThreads(cv_threads)
+
+
+def test_images_to_poses_writes_its_section(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, one_thread: None
+) -> None:
+    monkeypatch.setenv("MFG_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "throughput.md").write_text(OTHER + ENVIRONMENT)
+    readme = tmp_path / "README.md"
+    readme.write_text("# x\n\n<!-- images-to-poses:start -->\nSTALE\n<!-- images-to-poses:end -->"
+                      "\n\nend\n")  # fmt: skip
+    bench = _load("images_to_poses")
+    monkeypatch.setattr(sys, "argv", ["bench/images_to_poses.py", "--tiny"])
+    path = bench.main(["--tiny", "--threads", "1", "--out", str(tmp_path), "--readme", str(readme)])
+    text = path.read_text()
+    # the rest of the file as it was, the section once, before the file's environment
+    assert text.startswith(OTHER) and text.endswith(ENVIRONMENT)
+    assert text.count("<!-- images-to-poses:start -->") == 1
+    section = text.split("<!-- images-to-poses:start -->")[1].split("<!-- images-to-poses:end")[0]
+    assert f"## {bench.HEADING}" in section and "### Environment of this section" in section
+    assert "bench/images_to_poses.py" in section  # the command that wrote it
+    rates = _rows(section, bench.HEADING)
+    assert [r[2] for r in rates] == [
+        "MFG: `predict`, end to end (the whole call)",
+        "MFG: `predict` after its start-up",
+        "MFG: its stages alone",
+        "DIS + essential matrix + MAGSAC++ (OpenCV): its stages",
+    ]
+    for row in rates:
+        assert row[0] == "48 × 128" and row[1] == cpu_kind()
+        if "after its start-up" in row[2]:
+            continue  # a difference of two timings: on a loaded machine and 5 pairs, any sign
+        assert float(row[3]) > 0 and float(row[4]) > 0, row
+    stages = {r[0]: r for r in _rows(section, "### Where the time goes, 48 × 128")}
+    assert list(stages) == ["read", "flow", "network", "recovery", "composition", "method",
+                            "the rest of `predict`", "total"]  # fmt: skip
+    for name in ("read", "flow", "network", "recovery", "composition"):
+        assert float(stages[name][2]) > 0, stages[name]
+    for name in ("read", "flow", "method", "composition"):
+        assert float(stages[name][4]) > 0, stages[name]
+    classical = sum(float(stages[n][4]) for n in ("read", "flow", "method", "composition"))
+    assert math.isclose(float(stages["total"][4]), classical, rel_tol=1e-2, abs_tol=0.03)
+    # the README's line between its markers, the rest of the README as it was
+    lines = readme.read_text().splitlines()
+    assert lines[:3] == ["# x", "", "<!-- images-to-poses:start -->"]
+    assert lines[3].startswith("Images to poses: `predict` on a folder of 48 × 128 PNG frames")
+    assert lines[4:] == ["<!-- images-to-poses:end -->", "", "end"]
+    # bench/throughput.py rewriting the file keeps the section
+    common = _load("_common")
+    report = common.Report("throughput", "Throughput: training, inference, data, memory", tmp_path)
+    report.add("## Training\n\nnew numbers")
+    rewritten = report.write().read_text()
+    assert "new numbers" in rewritten and "keep me" not in rewritten
+    assert section in rewritten
+    assert rewritten.index("<!-- images-to-poses:end -->") < rewritten.index("\n## Environment")
+
+
+def test_a_marked_block_is_replaced_in_place_or_inserted_before_a_heading() -> None:
+    common = _load("_common")
+    text = "# t\n\n## a\n\n## Environment\n\nx\n"
+    once = common.replace_marked(text, "m", "## M\n\none")
+    assert once.endswith("<!-- m:start -->\n## M\n\none\n<!-- m:end -->\n")  # no anchor: appended
+    before = common.replace_marked(text, "m", "## M\n\none", before="## Environment")
+    assert before == "# t\n\n## a\n\n<!-- m:start -->\n## M\n\none\n<!-- m:end -->\n\n" + (
+        "## Environment\n\nx\n"
+    )
+    again = common.replace_marked(before, "m", "## M\n\ntwo", before="## Environment")
+    assert again == before.replace("one", "two")
+    assert common.marked_blocks(again) == ["<!-- m:start -->\n## M\n\ntwo\n<!-- m:end -->\n"]
