@@ -18,6 +18,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from conftest import run_module
@@ -152,3 +153,53 @@ def test_loader_settings_alone_apply_to_the_checkpoints_own_dataset() -> None:
     assert type(dm).__name__ == "SyntheticDataModule"
     assert (dm.height, dm.width, dm.eval_batch_size) == (16, 32, 3)
     assert dm.pin_memory is True
+
+
+#: A run directory of the format before the training module was split into its model, its
+#: evaluation (metrics.motion_eval), its non-finite-loss policy (models.nonfinite) and the
+#: precision rules (run.precision): ``python -m mfg_lightning.train debug=tiny dataset.height=16
+#: dataset.width=32 model.net.hidden_units=16 model.net.channels=[4,4,8,8,8] logger=csv`` at
+#: commit 2e171c7 (machine paths replaced by relative ones), and what ``mfg_lightning.evaluate``
+#: printed for its ``last.ckpt`` then.
+FIXTURE_0_2 = Path(__file__).resolve().parent / "fixtures" / "run_v0_2"
+
+
+def test_checkpoint_of_0_2_rebuilds_with_its_weights_and_baseline() -> None:
+    path = FIXTURE_0_2 / "checkpoints" / "last.ckpt"
+    module = module_from_checkpoint(path)
+    stored = load_checkpoint(path)["state_dict"]
+    assert set(module.state_dict()) == set(stored)
+    for name, value in module.state_dict().items():
+        assert torch.equal(value, stored[name]), name
+    assert bool(module.has_mean_motion)  # the baseline travels with the weights
+
+
+def test_run_directory_of_0_2_evaluates_with_the_same_metrics(tmp_path: Path) -> None:
+    run = Path(shutil.copytree(FIXTURE_0_2, tmp_path / "run_v0_2"))
+    out = tmp_path / "eval"
+    run_module(
+        "mfg_lightning.evaluate", f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}",
+        "logger=none", f"hydra.run.dir={out}", cwd=tmp_path,
+    )  # fmt: skip
+    got = json.loads((out / "metrics.json").read_text())["metrics"]
+    expected = json.loads((FIXTURE_0_2 / "expected_evaluate_metrics.json").read_text())
+    assert set(got) == set(expected)
+    assert "test/ate" in got and "test/baseline_trans_err" in got
+    for key, value in expected.items():
+        if value is None or (isinstance(value, float) and math.isnan(value)):
+            assert got[key] is None or math.isnan(got[key]), key
+        else:
+            assert got[key] == pytest.approx(value, rel=1e-6, abs=1e-9), key
+
+
+def test_the_run_configs_model_keywords_are_still_accepted() -> None:
+    """Every constructor keyword a stored model config names (0.1's and 0.2's) still builds."""
+    for fixture in (FIXTURE, FIXTURE_0_2):
+        config = with_moved_targets(
+            OmegaConf.to_container(OmegaConf.load(fixture / "config.yaml")), "config.yaml"
+        )
+        checkpoints.check_targets(config["model"], "config.yaml", "model")
+        module = instantiate(config["model"])
+        assert module.net.top_k is None and module.hparams.get("fp16_init_scale") in (None, 16.0)
+        # the checkpoints are still chosen by the validation ATE the module logs
+        assert config["callbacks"]["model_checkpoint"]["monitor"] == "val/ate"
