@@ -122,6 +122,17 @@ def tiny_training(tmp_path: Path, *overrides: str) -> Path:
     return run
 
 
+def dataset_training(tmp_path: Path, dataset: str, data_root: Path, *overrides: str) -> Path:
+    """A dataset's end-to-end test: :func:`tiny_training` on ``dataset=<dataset>`` read from
+    ``data_root``, with ``overrides``; checks that the run wrote its metrics and returns its
+    directory."""
+    run = tiny_training(
+        tmp_path, f"dataset={dataset}", f"dataset.data_root={data_root}", *overrides
+    )
+    assert (run / "metrics.json").is_file()
+    return run
+
+
 def bench_module(name: str) -> ModuleType:
     """``bench/<name>.py`` imported as a module (bench/ is not a package), its own imports of
     ``bench/_common.py`` included."""
