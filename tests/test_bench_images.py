@@ -5,31 +5,19 @@ the file as it was, and replaces its README line; ``bench/throughput.py``'s rewr
 
 from __future__ import annotations
 
-import importlib.util
 import math
 import sys
 from pathlib import Path
-from types import ModuleType
 
 import cv2
 import pytest
 import torch
 
-from conftest import REPO
+from conftest import bench_module
 from mfg_lightning.run.runs import cpu_kind
 
-BENCH = REPO / "bench"
 OTHER = "# Throughput: training, inference, data, memory\n\n## Training\n\nkeep me\n\n"
 ENVIRONMENT = "## Environment\n\n| a | b |\n|---|---:|\n| c | d |\n"
-
-
-def _load(name: str) -> ModuleType:
-    spec = importlib.util.spec_from_file_location(f"bench_{name}", BENCH / f"{name}.py")
-    assert spec and spec.loader
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # its dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
 
 
 def _rows(text: str, heading: str) -> list[list[str]]:
@@ -62,7 +50,7 @@ def test_images_to_poses_writes_its_section(
     readme = tmp_path / "README.md"
     readme.write_text("# x\n\n<!-- images-to-poses:start -->\nSTALE\n<!-- images-to-poses:end -->"
                       "\n\nend\n")  # fmt: skip
-    bench = _load("images_to_poses")
+    bench = bench_module("images_to_poses")
     monkeypatch.setattr(sys, "argv", ["bench/images_to_poses.py", "--tiny"])
     path = bench.main(["--tiny", "--threads", "1", "--out", str(tmp_path), "--readme", str(readme)])
     text = path.read_text()
@@ -99,7 +87,7 @@ def test_images_to_poses_writes_its_section(
     assert lines[3].startswith("Images to poses: `predict` on a folder of 48 × 128 PNG frames")
     assert lines[4:] == ["<!-- images-to-poses:end -->", "", "end"]
     # bench/throughput.py rewriting the file keeps the section
-    common = _load("_common")
+    common = bench_module("_common")
     report = common.Report("throughput", "Throughput: training, inference, data, memory", tmp_path)
     report.add("## Training\n\nnew numbers")
     rewritten = report.write().read_text()
@@ -109,7 +97,7 @@ def test_images_to_poses_writes_its_section(
 
 
 def test_a_marked_block_is_replaced_in_place_or_inserted_before_a_heading() -> None:
-    common = _load("_common")
+    common = bench_module("_common")
     text = "# t\n\n## a\n\n## Environment\n\nx\n"
     once = common.replace_marked(text, "m", "## M\n\none")
     assert once.endswith("<!-- m:start -->\n## M\n\none\n<!-- m:end -->\n")  # no anchor: appended
