@@ -94,23 +94,34 @@ def test_tiny_study_runs_resumes_and_rebuilds_from_committed_results(tmp_path: P
     assert "commit" in text and "cores" in text and "torch" in text
     # every trained model's convergence row, and no absolute path of this machine
     conv = text.split("## Did it converge")[1].split("## ")[0]
-    for name in ("main", "main, seed 1", "table2", "balance_squared", "sparsity w_s=0",
+    for name in ("main", "main, seed 1", "exact-flow twin", "table2", "table2_exact",
+                 "size stride4", "size stride2", "balance_squared", "sparsity w_s=0",
                  "recipe paper"):  # fmt: skip
         assert f"| {name} |" in conv, name
     assert str(tmp_path) not in text
+    # the causes separated: the exact-flow twin, Table 2 on exact flow beside the study's flow,
+    # the size curve, each with its table (and figure)
+    for head, png in (("## The flow against the method", "twin.png"),
+                      ("## Table 2's setting on exact flow", None),
+                      ("## Claim 3's data size", "size.png")):  # fmt: skip
+        section = text.split(head)[1].split("\n## ")[0]
+        assert "|---" in section, head
+        assert png is None or f"(reproduction/{png})" in section, head
+    assert "S9: The exact-flow twin's masks" in text and "S4: Judged on exact flow" in text
     checkpoints = {p: p.stat().st_mtime_ns for p in work.glob("models/*/checkpoints/*.ckpt")}
-    # main, its second seed, table2, 4 sparsity models (w_s 0, 100, input scale, low rate),
-    # balance, 2 recipes: the tiny main model runs past the other models' 2-step cap, so no
-    # model reuses its run
+    # main, its second seed, its exact-flow twin, table2 on both flows, the size curve's two
+    # strides, 4 sparsity models (w_s 0, 100, input scale, low rate), balance, 2 recipes: the
+    # tiny main model runs past the other models' 2-step cap, so no model reuses its run
     assert {p.parts[-3] for p in checkpoints} == {
-        "main", "seed1", "table2", "ws0", "ws100", "ws100_scale0.2", "ws100_lr0.0001",
-        "balance_squared", "recipe_cpu", "recipe_paper",
+        "main", "seed1", "twin", "table2", "table2_exact", "size_stride4", "size_stride2",
+        "ws0", "ws100", "ws100_scale0.2", "ws100_lr0.0001", "balance_squared", "recipe_cpu",
+        "recipe_paper",
     }  # fmt: skip
     recipe = json.loads((results / "recipe.json").read_text())
     assert "same_as" not in recipe["cpu"] and recipe["cpu"]["epochs"] >= 0.5
     assert recipe["paper"]["epochs"] >= 0.5 and recipe["paper"]["batch_size"] == 1
     stage_files = sorted(p.relative_to(results) for p in results.glob("**/*.json"))
-    assert len(stage_files) == 14
+    assert len(stage_files) == 19
     for f in stage_files:
         assert str(tmp_path) not in (results / f).read_text(), f
 
@@ -248,3 +259,19 @@ def test_main_run_serves_only_a_converged_run_within_the_other_caps() -> None:
     assert not main_run_serves(study, {**main, "train_seconds": 1801.0})
     # a longer cap of its own (the paper recipe's) admits a longer main run
     assert main_run_serves(study, {**main, "train_seconds": 3000.0}, "00:01:00:00")
+
+
+@pytest.mark.skipif(not POSES.is_dir(), reason="KITTI poses not found beside the repository")
+def test_the_size_curve_runs_on_the_main_models_frames_only() -> None:
+    """The size curve's points: every stride, then the extra seeds at the largest; a stride off
+    the main model's training frames (whose pairs the flow cache has) is refused, by key."""
+    from mfg_lightning.core.config import compose
+    from mfg_lightning.study.run import check
+    from mfg_lightning.study.stages import size_name, size_runs
+
+    cfg = compose("reproduce", [f"poses_dir={POSES}"])
+    assert size_runs(cfg) == [(24, None), (12, None), (6, None), (3, None), (24, 1), (24, 2)]
+    assert size_name(24, 1) == "stride24_seed1" and size_name(3, None) == "stride3"
+    check(cfg)
+    with pytest.raises(ValueError, match=r"size\.strides: \[4\] must be positive multiples"):
+        check(compose("reproduce", [f"poses_dir={POSES}", "size.strides=[6,4]"]))

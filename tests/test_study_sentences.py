@@ -76,6 +76,45 @@ def test_sentences_on_hand_made_seeds() -> None:
     assert judged["S7"].parts[1].verdict == "does not hold"
 
 
+def _t2(mfg_rot: float, irls_rot: float) -> dict:
+    """A Table 2 result with the keys S4–S6 read."""
+    mfg = {k: {"rpe_rot": mfg_rot, "rpe_trans": 0.1} for k in ("1", "0.15")}
+    return {
+        "mfg": mfg,
+        "classical": [
+            {"name": "continuous LS + IRLS (Cauchy)", "metrics": {"rpe_rot": irls_rot}},
+            {"name": "oracle: exact fields", "metrics": {"rpe_rot": 0.0}},
+        ],
+    }
+
+
+def _masks(filters_iou: float) -> dict:
+    """Object-mask scores on exact flow: the filters' IoU against a threshold's 0.3."""
+
+    def scores(iou: float) -> dict:
+        return {"all": {"iou": iou, "precision": 0.5, "far/recall": 0.5},
+                "slow": {"recall": 0.5}}  # fmt: skip
+
+    return {"exact": {"scores": {"filters": scores(filters_iou), "threshold": scores(0.3)}}}
+
+
+def test_the_papers_protocol_is_judged_where_it_has_run() -> None:
+    """S4–S6 on the exact-flow Table 2 run when it exists (DIS otherwise, said beside); S9 on
+    the exact-flow twin's masks when it exists, with the main model's spread as tolerance."""
+    views = {s: {**_view(0.0100), "object_motion": _masks(0.2)} for s in range(3)}
+    dis, exact = _t2(0.003, 0.002), _t2(0.001, 0.002)
+    on_dis = {j.sentence.key: j for j in judge_all(views, dis, 0.1, 0.8, 0.05)}
+    assert on_dis["S4"].verdict == "does not hold" and "DIS" in on_dis["S4"].beside
+    assert on_dis["S9"].parts[0].value == pytest.approx(0.2 / 0.3)
+    assert "twin (stage twin) has not run" in on_dis["S9"].beside
+    twin = {"object_motion": _masks(0.6)}
+    both = {j.sentence.key: j for j in judge_all(views, dis, 0.1, 0.8, 0.05, exact, twin)}
+    assert both["S4"].verdict == "holds" and "exact flow, the paper's" in both["S4"].beside
+    assert both["S4"].parts[0].value == pytest.approx(0.5)
+    assert both["S9"].parts[0].value == pytest.approx(2.0) and both["S9"].parts[0].spread is None
+    assert "twin's masks" in both["S9"].beside and both["S9"].parts[0].verdict == "holds"
+
+
 def test_input_scale_is_adopted_only_beyond_the_seed_spread() -> None:
     views = {s: _view(0.01) for s in range(3)}
     for s, v in zip(range(3), (0.0200, 0.0202, 0.0198), strict=True):

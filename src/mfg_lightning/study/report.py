@@ -72,15 +72,18 @@ def _sparsity_models(study: S.Study) -> dict[str, dict]:
     return out
 
 
-def _trained_models(study: S.Study, sparsity: dict[str, dict]) -> dict[str, dict]:
+def _trained_models(
+    study: S.Study, sparsity: dict[str, dict], size: dict[str, dict]
+) -> dict[str, dict]:
     """Every trained model's cached result, by the name the report gives it."""
     models = {}
-    for name in ("main", "table2", "balance"):
+    for name in ("main", "twin", "table2", "table2_exact", "balance"):
         if (r := study.cached(name)) is not None:
-            models[{"balance": "balance_squared"}.get(name, name)] = r
+            models[{"balance": "balance_squared", "twin": "exact-flow twin"}.get(name, name)] = r
     for seed in study.cfg.seeds.extra:
         if (r := study.cached(f"seeds/seed{int(seed)}")) is not None:
             models[f"main, seed {int(seed)}"] = r
+    models.update({f"size {k}": v for k, v in size.items() if "steps" in v})
     # a run that is the main model's (``same_as``) has the main model's row
     models.update({f"sparsity {k}": v for k, v in sparsity.items() if not v.get("same_as")})
     if (rc := study.cached("recipe")) is not None:
@@ -126,9 +129,13 @@ def write_report(study: S.Study, report: Path, th: Thresholds) -> Path:
     sparsity = _sparsity_models(study)
     tol = float(cfg.sparsity.ate_tolerance)
     views = seed_views(study.cached, int(cfg.seed), [int(s) for s in cfg.seeds.extra])
+    twin = study.cached("twin")
+    size = {n: r for n in [S.size_name(*p) for p in S.size_runs(cfg)] + ["classical"]
+            if (r := study.cached(f"size/{n}")) is not None}  # fmt: skip
     judged = judge_all(
-        views, study.cached("table2"), float(cfg.basis.residual), float(cfg.basis.one_motion), tol
-    )
+        views, study.cached("table2"), float(cfg.basis.residual), float(cfg.basis.one_motion),
+        tol, study.cached("table2_exact"), twin,
+    )  # fmt: skip
     t1 = study.cached("table1")
     row2, fig2, sweep = C.claim_sparsity(t1, sparsity, tol)
     built = [
@@ -149,7 +156,7 @@ def write_report(study: S.Study, report: Path, th: Thresholds) -> Path:
         [Column(h) for h in ("#", "diagnostic", "paper", "ours (seed 0)", "figure")],
         [[r.number, r.claim, r.paper, r.ours, r.figure] for (r, _), _ in built],
     )
-    models = _trained_models(study, sparsity)
+    models = _trained_models(study, sparsity, size)
     conv_rows, conv_fig = C.convergence_rows(models)
     conv_link = _figure(figdir, "convergence.png", conv_fig) if conv_fig is not None else ""
     made += ["convergence.png"] if conv_fig is not None else []
@@ -157,6 +164,7 @@ def write_report(study: S.Study, report: Path, th: Thresholds) -> Path:
     if flow_fig is not None:
         flow_lines[2] += " " + _figure(figdir, "flow_error.png", flow_fig)
         made.append("flow_error.png")
+    causes = _causes_sections(study, views, twin, size, figdir, made)
     verdict_fig = _verdict_figure(judged)
     verdict_link = _figure(figdir, "verdicts.png", verdict_fig) if verdict_fig else ""
     made += ["verdicts.png"] if verdict_fig is not None else []
@@ -171,6 +179,7 @@ def write_report(study: S.Study, report: Path, th: Thresholds) -> Path:
         *_diagnostics_section(table, sweep),
         *_methods_section(study.cached("methods")),
         *flow_lines,
+        *causes,
         *_balance_section(
             study.cached("basis"), study.cached("methods"), study.cached("balance"),
             float(cfg.basis.residual),
@@ -193,7 +202,7 @@ def write_report(study: S.Study, report: Path, th: Thresholds) -> Path:
         "Generated from the stage results (`mfg_lightning.study.prose`).",
         "",
         *P.reading(study.cached, views, judged, float(cfg.basis.residual),
-                   float(_object_motion_theta_d()), scale_text),
+                   float(_object_motion_theta_d()), scale_text, size),
         *_notes(report),
         "## Stages",
         "",
@@ -417,6 +426,25 @@ def _flow_error_section(fe: dict | None) -> tuple[list[str], Any]:
         Table([Column(h) for h in heads], rows).markdown(),
         "",
     ], fig
+
+
+def _causes_sections(
+    study: S.Study, views: dict, twin: dict | None, size: dict, figdir: Path, made: list[str]
+) -> list[str]:
+    """The causes separated (:mod:`mfg_lightning.study.causes`): the exact-flow twin, Table 2 on
+    exact flow beside DIS, the size curve (``size``: its results by name); their figures
+    written and added to ``made``."""
+    from mfg_lightning.study import causes
+
+    twin_lines, twin_fig = causes.twin_section(views, twin, study.cached("methods"))
+    size_lines, size_fig = causes.size_section(size)
+    for lines, fig, name in ((twin_lines, twin_fig, "twin.png"), (size_lines, size_fig,
+                                                                  "size.png")):  # fmt: skip
+        if fig is not None:
+            lines[2] += " " + _figure(figdir, name, fig)
+            made.append(name)
+    t2 = causes.table2_flow_section(study.cached("table2_exact"), study.cached("table2"))
+    return [*twin_lines, *t2, *size_lines]
 
 
 def _verdict_figure(judged: list[Judged]) -> Any:

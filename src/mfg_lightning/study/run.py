@@ -45,6 +45,14 @@ def check(cfg: DictConfig) -> None:
             f"seeds.extra: {seeds} must be distinct and differ from the main model's seed "
             f"({cfg.seed})"
         )
+    main_stride = int(cfg.budget.main_frame_stride)
+    bad = [int(n) for n in cfg.size.strides if int(n) <= 0 or int(n) % main_stride]
+    if bad:
+        # a stride off the main model's frames would render pairs the flow cache does not have
+        raise ValueError(
+            f"size.strides: {bad} must be positive multiples of budget.main_frame_stride "
+            f"({main_stride}), the source frames whose pairs the main model's data rendered"
+        )
     Thresholds(**cfg.thresholds)
 
 
@@ -57,7 +65,10 @@ STAGES = (
     "object_motion",
     "methods",
     "seeds",
+    "twin",
     "table2",
+    "table2_exact",
+    "size",
     "sparsity",
     "balance",
     "recipe",
@@ -102,7 +113,16 @@ def run(study: S.Study, report: Path) -> Path:
     for seed in cfg.seeds.extra:
         study.stage(f"seeds/seed{int(seed)}", partial(stage_seed, study, int(seed), main_extra))
         write()
+    study.stage("twin", lambda: stage_twin(study, main_extra))
+    write()
     study.stage("table2", lambda: stage_table2(study))
+    write()
+    study.stage("table2_exact", lambda: stage_table2(study, exact=True))
+    write()
+    for stride, seed in S.size_runs(cfg):
+        study.stage(f"size/{S.size_name(stride, seed)}", partial(stage_size, study, stride, seed))
+        write()
+    study.stage("size/classical", lambda: stage_size_classical(study))
     write()
     for name, extra, plain, w in S.sparsity_variants(cfg):
         study.stage(f"sparsity/{name}", partial(stage_sparsity, study, name, extra, plain, w, main))
@@ -162,10 +182,8 @@ def stage_seed(study: S.Study, seed: int, main_extra: list[str]) -> dict:
     ``seeds.max_time`` caps its time: a machine without native bfloat16 trains at about half
     the rate of the one that trained the main model, and the rule, not the clock, should end a
     seed's run."""
-    cfg = study.cfg
     extra = [*main_extra, f"seed={seed}"]
-    max_time = cfg.seeds.get("max_time") or cfg.budget.get("main_max_time")
-    trained = study.train(f"seed{seed}", extra, int(cfg.budget.main_steps), max_time)
+    trained = study.train(f"seed{seed}", extra, *_main_caps(study.cfg))
     t1 = stage_table1(study, trained, extra)
     return {
         **trained,
@@ -175,6 +193,72 @@ def stage_seed(study: S.Study, seed: int, main_extra: list[str]) -> dict:
         "basis": stage_basis(study, trained, extra),
         "object_motion": stage_object_motion(study, trained, extra),
     }
+
+
+def _main_caps(cfg: DictConfig) -> tuple[int, str | None]:
+    """The step and time caps of a model of the main setting trained again (a seed, the twin):
+    the main model's step cap and ``seeds.max_time`` (a safety net the rule should not meet on
+    a machine slower than the one that trained the main model)."""
+    return int(cfg.budget.main_steps), cfg.seeds.get("max_time") or cfg.budget.get("main_max_time")
+
+
+def stage_twin(study: S.Study, main_extra: list[str]) -> dict:
+    """``twin``: the main model's exact-flow twin, the same worlds, pairs, seed, rule and caps
+    with the model reading the exact flow (``twin.overrides``, ``dataset.input_flow=exact``),
+    to separate the flow from the method (ATE * / ATE †) and to give the object masks the
+    paper's protocol (a model trained on ground-truth flow). Scored on the exact central test
+    (Table 1 at every k, validation too), on the DIS central test (all units), beside every
+    classical method on the exact central test; its object masks on the exact and on the DIS
+    test flow, the threshold and filters chosen on validation as for the main model."""
+    cfg = study.cfg
+    extra = [*main_extra, *cfg.twin.overrides]
+    trained = study.train("twin", extra, *_main_caps(cfg))
+    t1 = stage_table1(study, trained, extra)
+    dis = study.test_datamodule(main_extra)
+    return {
+        **trained,
+        "table1": t1,
+        "dis_test": S.mfg_scores(study.model(trained), study.loader(dis, "test"), [1.0])["1"],
+        "methods": stage_methods(study, trained, extra, t1),
+        # the DIS datamodule: its samples carry both flows (object_motion_by_flow scores each)
+        "object_motion": stage_object_motion(study, trained, main_extra),
+    }
+
+
+def _size_extra(cfg: DictConfig, stride: int, seed: int | None) -> list[str]:
+    extra = [*cfg.size.overrides, f"dataset.frame_stride={int(stride)}"]
+    return extra + ([f"seed={seed}"] if seed is not None else [])
+
+
+def stage_size(study: S.Study, stride: int, seed: int | None) -> dict:
+    """``size/stride<N>[_seed<n>]``: the Table 2 setting (``size.overrides``: the +1 pairs, the
+    exact flow) trained on every ``stride``-th source frame of the study's training split,
+    under the other models' caps; its test scores with all units (the full 09 / 10 +1 pairs,
+    whatever the stride: the stride thins training only)."""
+    extra = _size_extra(study.cfg, stride, seed)
+    name = f"size_{S.size_name(stride, seed)}"
+    trained = _other(study, name, extra)
+    dm = study.datamodule(study.train_config(name, extra, 1))
+    return {
+        **trained,
+        "stride": int(stride),
+        "seed": int(study.cfg.seed) if seed is None else int(seed),
+        "train_pairs": len(dm.dataset("train")),
+        "test_pairs": len(dm.dataset("test")),
+        "test": S.mfg_scores(study.model(trained), study.loader(dm, "test"), [1.0])["1"],
+    }
+
+
+def stage_size_classical(study: S.Study) -> dict:
+    """``size/classical``: every classical method on the size curve's test pairs (they do not
+    train, so one row each whatever the training set's size)."""
+    from mfg_lightning.analysis.scoring import classical_methods, score_methods, scored_rows
+
+    extra = _size_extra(study.cfg, 1, None)
+    dm = study.datamodule(study.train_config("size_classical", extra, 1))
+    ds = dm.dataset("test")
+    rows = score_methods(classical_methods(ds.height, ds.width), study.loader(dm, "test"))
+    return {"test_pairs": len(ds), "classical": scored_rows(rows)}
 
 
 def stage_table1(study: S.Study, main: dict, main_extra: list[str]) -> dict | None:
@@ -254,15 +338,19 @@ def stage_sparsity(
     }
 
 
-def stage_table2(study: S.Study) -> dict:
-    """``table2``: train on the Table 2 data; MFG and the classical methods on its test split."""
+def stage_table2(study: S.Study, exact: bool = False) -> dict:
+    """``table2``: train on the Table 2 data; MFG and the classical methods on its test split.
+    ``exact`` (``table2_exact``): every model and method reads the exact flow
+    (``table2.exact``), the paper's Virtual KITTI protocol; ``table2`` (the study's flow) is
+    the extension beside it."""
     from mfg_lightning.analysis.scoring import classical_methods, score_methods, scored_rows
 
     cfg = study.cfg
-    extra = list(cfg.table2.overrides)
-    trained = _other(study, "table2", extra)
+    name = "table2_exact" if exact else "table2"
+    extra = [*cfg.table2.overrides, *(cfg.table2.exact if exact else [])]
+    trained = _other(study, name, extra)
     model = study.model(trained)
-    dm = study.datamodule(study.train_config("table2", extra, 1))
+    dm = study.datamodule(study.train_config(name, extra, 1))
     test = study.loader(dm, "test", forward_only=True)
     ds = dm.dataset("test")
     rows = score_methods(classical_methods(ds.height, ds.width), list(test))

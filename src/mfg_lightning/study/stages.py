@@ -260,6 +260,19 @@ def recipe_of(cfg: DictConfig) -> dict[str, Any]:
 # --------------------------------------------------------------------------------------------
 
 
+def size_name(stride: int, seed: int | None) -> str:
+    """The stage (and model) name of one point of the training-set-size curve."""
+    return f"stride{stride}" + (f"_seed{seed}" if seed is not None else "")
+
+
+def size_runs(cfg: DictConfig) -> list[tuple[int, int | None]]:
+    """The size curve's (frame stride, extra seed or None) points: every stride at the study's
+    seed, then the extra seeds at the smallest training set (the largest stride)."""
+    strides = sorted({int(s) for s in cfg.size.strides}, reverse=True)
+    runs: list[tuple[int, int | None]] = [(s, None) for s in strides]
+    return runs + [(strides[0], int(seed)) for seed in cfg.size.seeds] if strides else runs
+
+
 def mfg_scores(model: Any, loader: DataLoader, ks: list[float]) -> dict[str, dict[str, float]]:
     """The trajectory metrics of MFG at every k (``"1"``: all units) over one loader."""
     from mfg_lightning.analysis.scoring import Method, mfg_top_k_methods, score_methods

@@ -1,0 +1,242 @@
+"""The causes separated, beside the verdicts: the flow against the method (the main model's
+exact-flow twin, stage ``twin``), the paper's protocol against ours (Table 2 on exact flow,
+stage ``table2_exact``, against DIS, stage ``table2``) and the training set's size (stages
+``size/*``). Each section is a table and, where a picture says more, a figure; nothing here
+is a verdict (:mod:`mfg_lightning.study.sentences` judges)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from typing import Any
+
+from mfg_lightning.core.tables import Column, Table, fmt
+from mfg_lightning.study.noise import ratio, spread_of
+
+SEQS = ("09", "10")
+#: The paper's robust continuous baseline's name stem among the classical rows.
+IRLS = "IRLS"
+
+Lines = list[str]
+Metrics = Mapping[str, float]
+
+
+def _classical(rows: list[dict]) -> dict[str, Metrics]:
+    """The classical methods' metrics by name (the oracle is a check, not a method)."""
+    return {
+        r["name"]: r["metrics"]
+        for r in rows
+        if "oracle" not in r["name"] and not r["name"].startswith("MFG")
+    }
+
+
+def _star_over_dagger(m: Metrics, seq: str) -> float | None:
+    return ratio(m.get(f"{seq}/ate_central"), m.get(f"{seq}/ate"))
+
+
+#: Short names for the figure's axis.
+SHORT = {"essential matrix + RANSAC": "RANSAC", "essential matrix + MAGSAC++": "MAGSAC++",
+         "continuous least squares": "least squares", "continuous LS + IRLS": "IRLS",
+         "MFG, main model": "MFG main (DIS-trained)",
+         "MFG, exact-flow twin": "MFG twin (exact-trained)"}  # fmt: skip
+
+
+def _short(label: str) -> str:
+    return next((v for k, v in SHORT.items() if label.startswith(k)), label)
+
+
+def _twin_rows(views: Mapping[int, Any], twin: dict, methods: dict | None) -> list[tuple]:
+    """(label, flow trained on, flow tested on, metrics or per-key mean over seeds)."""
+    rows: list[tuple[str, str, str, Callable[[str], float | None]]] = []
+    main = {s: v for s, v in views.items() if v.get("table1")}
+    if main:
+        n = len(main)
+
+        def seeds_mean(key: str) -> float | None:
+            return spread_of(main, lambda v: v["table1"]["test"]["1"].get(key)).mean
+
+        rows.append((f"MFG, main model ({n} seed{'s' * (n > 1)})", "DIS", "DIS", seeds_mean))
+    exact = twin["table1"]["test"]["1"]
+    rows.append(("MFG, exact-flow twin", "exact", "exact", exact.get))
+    rows.append(("MFG, exact-flow twin", "exact", "DIS", twin["dis_test"].get))
+    dis_rows = _classical(methods["rows"]) if methods else {}
+    for name, m in _classical(twin["methods"]["rows"]).items():
+        if name in dis_rows:
+            rows.append((name, "–", "DIS", dis_rows[name].get))
+        rows.append((name, "–", "exact", m.get))
+    return rows
+
+
+def twin_section(
+    views: Mapping[int, Any], twin: dict | None, methods: dict | None
+) -> tuple[Lines, Any]:
+    """The exact-flow twin against the main model, and every classical method on exact and on
+    DIS flow: ATE † and ATE * per test sequence and their ratio, RPE rotation; a figure of the
+    ratios. Nothing before the stage has run."""
+    from mfg_lightning.pictures.plots import bar_figure
+
+    if twin is None:
+        return [], None
+    rows = _twin_rows(views, twin, methods)
+    table = []
+    for label, trained, tested, get in rows:
+        cells = [label, trained, tested]
+        for s in SEQS:
+            dagger, star = get(f"{s}/ate"), get(f"{s}/ate_central")
+            cells += [fmt(dagger, 4), fmt(star, 4), fmt(ratio(star, dagger), 2)]
+        table.append([*cells, fmt(get("rpe_rot"), 5)])
+    heads = ["method", "trained on", "tested on"]
+    for s in SEQS:
+        heads += [f"ATE † {s} (m)", f"ATE * {s} (m)", f"* / † {s}"]
+    # one bar group per method, one colour per test flow: the flow's part is the step between
+    # a method's two bars, the method's its exact bar
+    names = list(dict.fromkeys(_short(lab) for lab, _, _, _ in rows))
+    flows = ("exact", "DIS")
+    panels = []
+    for s in SEQS:
+        series = {f"{f} test flow": [None] * len(names) for f in flows}
+        for lab, _, tested, get in rows:
+            value = ratio(get(f"{s}/ate_central"), get(f"{s}/ate"))
+            series[f"{tested} test flow"][names.index(_short(lab))] = value
+        panels.append((f"ATE * / ATE † ({s})", series))
+    fig = bar_figure(panels, names, "ATE * / ATE †: the method (exact flow) and the flow (DIS)")
+    conv = twin.get("convergence") or {}
+    status = "converged" if conv.get("converged") else "not converged"
+    return [
+        "## The flow against the method: the exact-flow twin",
+        "",
+        f"The main model's setting trained again on the same pairs with the rendered worlds' "
+        f"exact flow as input ({twin['steps']} steps, {status}; {twin.get('precision', '?')} "
+        f"on {twin.get('cpu_kind', '?')}), scored on the exact and on the DIS central test, "
+        "beside every classical method on both flows. ATE * (the ±1, ±2 snippets) over ATE † "
+        "(the +1 pairs) on exact flow is the method's own; its growth on DIS is the flow's.",
+        "",
+        Table([Column(h) for h in [*heads, "RPE rotation (rad)"]], table).markdown(),
+        "",
+    ], fig
+
+
+def _t2_row(label: str, t2: dict) -> list[list[str]]:
+    """MFG (all units, k = 15 %) and IRLS and the best classical method of one Table 2 run."""
+    classical = _classical(t2["classical"])
+    rot = {n: m.get("rpe_rot") for n, m in classical.items()}
+    best = min(rot, key=lambda n: rot[n] if rot[n] is not None else math.inf, default=None)
+    irls = next((n for n in rot if IRLS in n), None)
+    mfg, k15 = t2["mfg"]["1"], t2["mfg"].get("0.15", {})
+    out = [
+        [label, "MFG (all units)", fmt(mfg.get("rpe_rot"), 5), fmt(mfg.get("rpe_trans"), 4)],
+        [label, "MFG (k = 15 %)", fmt(k15.get("rpe_rot"), 5), fmt(k15.get("rpe_trans"), 4)],
+    ]
+    for name in dict.fromkeys(n for n in (irls, best) if n):
+        m = classical[name]
+        tag = " (best in rotation)" if name == best else ""
+        out.append([label, name + tag, fmt(m.get("rpe_rot"), 5), fmt(m.get("rpe_trans"), 4)])
+    if irls:
+        out.append(
+            [label, "MFG / IRLS, rotation", fmt(ratio(mfg.get("rpe_rot"), rot[irls]), 2), ""]
+        )
+    return out
+
+
+def table2_flow_section(exact: dict | None, dis: dict | None) -> Lines:
+    """Table 2's setting on the exact flow (the paper's protocol) beside DIS (the extension)."""
+    runs = [(lab, r) for lab, r in (("exact flow (the paper's)", exact), ("DIS", dis)) if r]
+    if not exact:
+        return []
+    rows = [row for lab, r in runs for row in _t2_row(lab, r)]
+    return [
+        "## Table 2's setting on exact flow and on DIS",
+        "",
+        f"The Table-2-sized model ({exact['train_pairs']} training, {exact['test_pairs']} test "
+        "pairs, +1 only) trained and tested on the exact flow, as the paper on Virtual KITTI's "
+        "ground truth, beside the same on DIS; the classical methods read the same flow. The "
+        "paper: MFG 0.0011 rad against the robust continuous method's 0.0014 (0.79).",
+        "",
+        Table(
+            [Column(h) for h in ("flow", "method", "RPE rotation (rad)", "RPE translation (m)")],
+            rows,
+        ).markdown(),
+        "",
+    ]
+
+
+def size_points(size: Mapping[str, dict]) -> dict[int, list[dict]]:
+    """The size curve's results by stride (largest first), each stride's seeds in a list."""
+    by: dict[int, list[dict]] = {}
+    for r in size.values():
+        if "stride" in r:
+            by.setdefault(int(r["stride"]), []).append(r)
+    return dict(sorted(by.items(), reverse=True))
+
+
+def size_section(size: Mapping[str, dict]) -> tuple[Lines, Any]:
+    """MFG's RPE rotation (and translation) against the training set's size, the seeds' spread
+    where there are several, beside the classical methods on the same test pairs."""
+    from mfg_lightning.pictures.plots import line_figure
+
+    points = size_points(size)
+    if not points:
+        return [], None
+    classical = _classical(size["classical"]["classical"]) if "classical" in size else {}
+    rows, xs, rot, trans = [], [], [], []
+    for stride, runs in points.items():
+        sp_r = spread_of(dict(enumerate(runs)), lambda r: r["test"].get("rpe_rot"))
+        sp_t = spread_of(dict(enumerate(runs)), lambda r: r["test"].get("rpe_trans"))
+        pairs = runs[0]["train_pairs"]
+        conv = sum(bool((r.get("convergence") or {}).get("converged")) for r in runs)
+        rows.append([str(stride), str(pairs), sp_r.text(5), sp_t.text(4), f"{conv} of {len(runs)}"])
+        xs.append(pairs)
+        rot.append(sp_r.mean)
+        trans.append(sp_t.mean)
+    lines_r = {"MFG (seed mean)": (xs, rot)}
+    lines_t = {"MFG (seed mean)": (xs, trans)}
+    for name, m in classical.items():
+        lines_r[_short(name)] = (xs, [m.get("rpe_rot")] * len(xs))
+        lines_t[_short(name)] = (xs, [m.get("rpe_trans")] * len(xs))
+    fig = line_figure(
+        [("RPE rotation (rad)", lines_r), ("RPE translation (m)", lines_t)],
+        "training pairs",
+        "Table 2's setting (exact flow) against the training set's size",
+        log_x=True,
+        log_y=True,
+    )
+    crows = [
+        [n, fmt(m.get("rpe_rot"), 5), fmt(m.get("rpe_trans"), 4)] for n, m in classical.items()
+    ]
+    test = next(iter(points.values()))[0]["test_pairs"]
+    return [
+        "## Claim 3's data size: the size curve",
+        "",
+        f"Table 2's setting (+1 pairs, all units, exact flow) trained on every Nth source frame of "
+        f"the study's training split, each tested on the same {test} +1 pairs of 09 and 10; the "
+        "classical methods do not train (one value each).",
+        "",
+        Table(
+            [
+                Column(h)
+                for h in (
+                    "stride N",
+                    "training pairs",
+                    "RPE rotation (rad)",
+                    "RPE translation (m)",
+                    "converged",
+                )
+            ],
+            rows,
+        ).markdown(),
+        "",
+        *(
+            [
+                Table(
+                    [
+                        Column(h)
+                        for h in ("classical method", "RPE rotation (rad)", "RPE translation (m)")
+                    ],
+                    crows,
+                ).markdown(),
+                "",
+            ]
+            if crows
+            else []
+        ),
+    ], fig
