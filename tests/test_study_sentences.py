@@ -64,6 +64,9 @@ def test_sentences_on_hand_made_seeds() -> None:
     s1 = judged["S1"]
     assert [p.verdict for p in s1.parts] == ["holds"] * 4 and s1.verdict == "holds"
     assert s1.parts[0].spread.n == 3 and s1.parts[0].value == pytest.approx(1.01)
+    # above the bound, inside the tolerance: it holds, and says that it holds by the noise only
+    assert s1.parts[0].text().endswith("holds, within the tolerance only")
+    assert s1.parts[2].text().endswith("— holds")  # RPE translation: on the claimed side
     assert judged["S2"].verdict == "holds"  # ×1.4 ≤ 1.5 on 09, ×1.2 ≤ 1.31 on 10
     assert judged["S3"].verdict == "holds"  # 5 % within 5 % on validation
     assert judged["S7"].verdict == "holds"

@@ -65,8 +65,8 @@ def para_run(cached: Cached, views: Mapping[int, View]) -> str | None:
         text += " " + " ".join(
             f"Seed {s}: {_n(views[s]['trained']['steps'])} steps, "
             f"{(views[s]['trained'].get('convergence') or {}).get('reason') or '–'}, "
-            f"{views[s]['trained'].get('precision', 'precision not recorded')} on a "
-            f"{views[s]['trained'].get('cpu_kind', 'CPU of unrecorded kind')} CPU, "
+            f"{views[s]['trained'].get('precision', 'precision not recorded')} on CPU kind "
+            f"{views[s]['trained'].get('cpu_kind', 'not recorded')}, "
             f"{_n(views[s]['trained']['train_seconds'])} s."
             for s in seeds
         )
@@ -323,9 +323,12 @@ def para_basis(views: Mapping[int, View], residual: float) -> str | None:
     )
 
 
-def para_object_motion(views: Mapping[int, View], theta_d: float) -> str | None:
-    """The two sides' treatment in the object-mask comparison."""
-    om = _first_seed(views, "object_motion")
+def para_object_motion(
+    views: Mapping[int, View], theta_d: float, twin: dict | None = None
+) -> str | None:
+    """The two sides' treatment in the object-mask comparison: the exact-flow ``twin``'s masks
+    when it has run (the paper's protocol), else the main model's."""
+    om = (twin or {}).get("object_motion") or _first_seed(views, "object_motion")
     if om is None:
         return None
     om = om["exact"]
@@ -340,9 +343,14 @@ def para_object_motion(views: Mapping[int, View], theta_d: float) -> str | None:
     )
     return (
         f"**Object masks.** On exact flow the plain threshold is chosen on validation "
-        f"({om['threshold']['threshold']:g} px, largest mask IoU) and {filters}. The model "
-        "that predicts the egomotion fields was trained on DIS flow; the exact-flow model, as "
-        "the paper trained on Virtual KITTI's ground-truth flow, is the exact-flow twin."
+        f"({om['threshold']['threshold']:g} px, largest mask IoU) and {filters}. "
+        + (
+            "The egomotion fields are the exact-flow twin's, a model trained on exact flow as "
+            "the paper's on Virtual KITTI's ground-truth flow."
+            if twin
+            else "The model that predicts the egomotion fields was trained on DIS flow; the "
+            "exact-flow twin, trained on exact flow as the paper's, has not run yet."
+        )
     )
 
 
@@ -447,7 +455,7 @@ def reading(
         para_size(size),
         para_robustness(cached, views),
         para_basis(views, residual),
-        para_object_motion(views, theta_d),
+        para_object_motion(views, theta_d, cached("twin")),
         scale_text or None,
         para_rule(cached),
         para_recipe(cached),

@@ -206,6 +206,7 @@ def write_report(study: S.Study, report: Path, th: Thresholds) -> Path:
         *_notes(report),
         "## Stages",
         "",
+        *_pending(study),
         "| stage | seconds | of which training | trained (steps × batch) | commit |",
         "|---|---:|---:|---:|---|",
         *stage_rows,
@@ -445,6 +446,22 @@ def _causes_sections(
             made.append(name)
     t2 = causes.table2_flow_section(study.cached("table2_exact"), study.cached("table2"))
     return [*twin_lines, *t2, *size_lines]
+
+
+def _pending(study: S.Study) -> list[str]:
+    """The configured stages whose result is not cached yet, in the order the study runs them
+    (what a reader should not look for in the report yet)."""
+    cfg = study.cfg
+    names = [
+        "data", "flow_error", "main", "table1", "basis", "object_motion", "methods",
+        *[f"seeds/seed{int(s)}" for s in cfg.seeds.extra], "twin", "table2", "table2_exact",
+        *[f"size/{S.size_name(*p)}" for p in S.size_runs(cfg)], "size/classical",
+        *[f"sparsity/{v[0]}" for v in S.sparsity_variants(cfg)], "balance", "recipe",
+    ]  # fmt: skip
+    missing = [n for n in names if study.cached(n) is None]
+    if not missing:
+        return ["Every stage has run.", ""]
+    return [f"Not run yet, in the study's order: {', '.join(f'`{n}`' for n in missing)}.", ""]
 
 
 def _verdict_figure(judged: list[Judged]) -> Any:

@@ -88,8 +88,15 @@ def run(study: S.Study, report: Path) -> Path:
     main_extra = list(cfg.main)
     budget = cfg.budget
 
-    def write() -> Path:
-        return write_report(study, report, th)
+    written = [-1]
+
+    def write(final: bool = False) -> Path:
+        # after each stage that ran (a reader follows a long study), and once at the end: a
+        # study whose stages are all cached writes its report once, not once per stage
+        if final or len(study.ran) != written[0]:
+            written[0] = len(study.ran)
+            return write_report(study, report, th)
+        return report
 
     study.stage("data", lambda: stage_data(study, main_extra))
     write()
@@ -130,7 +137,7 @@ def run(study: S.Study, report: Path) -> Path:
     study.stage("balance", lambda: stage_balance(study))
     write()
     study.stage("recipe", lambda: stage_recipe(study, main))
-    return write()
+    return write(final=True)
 
 
 # --------------------------------------------------------------------------------------------

@@ -181,9 +181,14 @@ class Part:
     def text(self, digits: int = 3) -> str:
         ours = self.spread.text(digits) if self.spread is not None else fmt(self.value, digits)
         note = f"; {self.note}" if self.note else ""
+        # a reader should see whether a part holds on the claimed side or only by the noise
+        wrong_side = self.value is not None and (
+            self.value > self.bound if self.direction == "<=" else self.value < self.bound
+        )
+        only = ", within the tolerance only" if self.verdict == HOLDS and wrong_side else ""
         return (
             f"{self.label}: {ours} {self.direction.replace('<=', '≤').replace('>=', '≥')} "
-            f"{fmt(self.bound, digits)}, tolerance {self.tol.text()}{note} — {self.verdict}"
+            f"{fmt(self.bound, digits)}, tolerance {self.tol.text()}{note} — {self.verdict}{only}"
         )
 
 
