@@ -173,15 +173,21 @@ def test_report_text_follows_a_changed_stage_result(tmp_path: Path) -> None:
     stale.write_bytes(b"\x89PNG")
     before = write_report(study, report, Thresholds()).read_text()
     assert "## Verdicts, one per sentence of the paper" in before
+    # every seed's Table 1 (seed 0's stage and each seeds/seed<n>'s copy): ATE † 09 doubled at 5 %
     t1 = json.loads((results / "table1.json").read_text())
     t1["test"]["0.05"]["09/ate"] = 2 * t1["test"]["1"]["09/ate"]
     (results / "table1.json").write_text(json.dumps(t1))
+    for path in results.glob("seeds/seed*.json"):
+        seed = json.loads(path.read_text())
+        test = seed["table1"]["test"]
+        test["0.05"]["09/ate"] = 2 * test["1"]["09/ate"]
+        path.write_text(json.dumps(seed))
     data = json.loads((results / "data.json").read_text())
     data["main"]["train_pairs"] = 4321
     (results / "data.json").write_text(json.dumps(data))
     after = write_report(study, report, Thresholds()).read_text()
     s1 = next(line for line in after.splitlines() if line.startswith("| S1 |"))
-    assert "ATE † 09: 2.000 (1 seed)" in s1 and "does not hold" in s1
+    assert "ATE † 09: 2.000 ± 0.000" in s1 and "does not hold" in s1
     assert "4\u202f321 training pairs" in after and "4\u202f321 training pairs" not in before
     readme = (tmp_path / "README.md").read_text()
     assert "STALE-TABLE" not in readme and readme.endswith("end\n") and "| S1 |" in readme
