@@ -109,19 +109,29 @@ def test_moved_targets_map_module_prefixes_only() -> None:
 def test_run_directory_of_0_1_evaluates_with_the_same_metrics(
     run_v0_1: Path, tmp_path: Path
 ) -> None:
+    _evaluates_as_expected(run_v0_1, FIXTURE / "expected_evaluate_metrics.json", tmp_path)
+
+
+def _evaluates_as_expected(
+    run: Path, expected_file: Path, tmp_path: Path, rel: float = 1e-5, abs_: float = 1e-7
+) -> dict:
+    """``evaluate`` on a run directory's ``last.ckpt``: the metrics written are those of
+    ``expected_file`` within ``rel`` / ``abs_`` (NaN / None where they were undefined);
+    returns them."""
     out = tmp_path / "eval"
     run_module(
-        "mfg_lightning.evaluate", f"ckpt_path={run_v0_1 / 'checkpoints' / 'last.ckpt'}",
+        "mfg_lightning.evaluate", f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}",
         "logger=none", f"hydra.run.dir={out}", cwd=tmp_path,
     )  # fmt: skip
     got = json.loads((out / "metrics.json").read_text())["metrics"]
-    expected = json.loads((FIXTURE / "expected_evaluate_metrics.json").read_text())
+    expected = json.loads(expected_file.read_text())
     assert set(got) == set(expected)
     for key, value in expected.items():
         if value is None or (isinstance(value, float) and math.isnan(value)):
             assert got[key] is None or math.isnan(got[key]), key
         else:
-            assert got[key] == pytest.approx(value, rel=1e-5, abs=1e-7), key
+            assert got[key] == pytest.approx(value, rel=rel, abs=abs_), key
+    return got
 
 
 def test_run_config_of_0_1_gives_the_dataset_of_a_checkpoint_without_one(run_v0_1: Path) -> None:
@@ -176,20 +186,9 @@ def test_checkpoint_of_0_2_rebuilds_with_its_weights_and_baseline() -> None:
 
 def test_run_directory_of_0_2_evaluates_with_the_same_metrics(tmp_path: Path) -> None:
     run = Path(shutil.copytree(FIXTURE_0_2, tmp_path / "run_v0_2"))
-    out = tmp_path / "eval"
-    run_module(
-        "mfg_lightning.evaluate", f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}",
-        "logger=none", f"hydra.run.dir={out}", cwd=tmp_path,
-    )  # fmt: skip
-    got = json.loads((out / "metrics.json").read_text())["metrics"]
-    expected = json.loads((FIXTURE_0_2 / "expected_evaluate_metrics.json").read_text())
-    assert set(got) == set(expected)
+    expected = FIXTURE_0_2 / "expected_evaluate_metrics.json"
+    got = _evaluates_as_expected(run, expected, tmp_path, rel=1e-6, abs_=1e-9)
     assert "test/ate" in got and "test/baseline_trans_err" in got
-    for key, value in expected.items():
-        if value is None or (isinstance(value, float) and math.isnan(value)):
-            assert got[key] is None or math.isnan(got[key]), key
-        else:
-            assert got[key] == pytest.approx(value, rel=1e-6, abs=1e-9), key
 
 
 def test_the_run_configs_model_keywords_are_still_accepted() -> None:
