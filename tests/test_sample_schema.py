@@ -3,6 +3,7 @@ documentation and checks are made from it, and ``model_inputs`` is what the mode
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import pytest
@@ -11,6 +12,7 @@ import torch
 from fake_datasets import make_kitti, make_vkitti
 from mfg_lightning.data import sample as S
 from mfg_lightning.data.base import collate_samples
+from mfg_lightning.data.image_folder import ImageFolderDataset
 from mfg_lightning.data.kitti import KittiOdometryDataset
 from mfg_lightning.data.synthetic import SyntheticDataModule
 from mfg_lightning.data.vkitti import VirtualKittiDataset
@@ -34,8 +36,21 @@ def _datasets(tmp_path: Path) -> dict[str, torch.utils.data.Dataset]:
         height=H, width=W, train_sequences=1, test_sequences=1, sequence_length=8,
         val_fraction=0.25, cache_dir=str(tmp_path / "cache"),
     )  # fmt: skip
+    rendered = SyntheticDataModule(
+        height=H, width=W, train_sequences=1, test_sequences=1, sequence_length=6,
+        val_fraction=0.25, cache_dir=str(tmp_path / "cache"),
+        flow={"source": "dis", "preset": "fast", "height": 64, "width": 128},
+    )  # fmt: skip
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for k in range(3):
+        shutil.copy(kitti.image("09", k), frames / f"{k:04d}.png")
     return {
         "synthetic": synthetic.dataset("train"),
+        "synthetic/rendered": rendered.dataset("test"),
+        "image_folder": ImageFolderDataset(frames, kitti.intrinsics, height=H, width=W,
+                                           cache_dir=tmp_path / "cache",
+                                           flow={"source": "dis", "preset": "fast"}),
         "kitti": KittiOdometryDataset(kitti.root, ("09",), height=H, width=W,
                                       cache_dir=tmp_path / "cache",
                                       flow={"source": "dis", "preset": "fast"}),
@@ -47,7 +62,7 @@ def test_every_datasets_samples_follow_the_one_schema(tmp_path: Path) -> None:
     for name, ds in _datasets(tmp_path).items():
         for i in (0, len(ds) - 1):
             sample = ds[i]
-            assert sample[S.SAMPLE_ID].startswith(name), sample[S.SAMPLE_ID]
+            assert sample[S.SAMPLE_ID].startswith(name.split("/")[0]), sample[S.SAMPLE_ID]
             _follows_the_schema(sample, H, W)
 
 
