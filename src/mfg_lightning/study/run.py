@@ -261,7 +261,9 @@ def stage_size_classical(study: S.Study) -> dict:
     train, so one row each whatever the training set's size)."""
     from mfg_lightning.analysis.scoring import classical_methods, score_methods, scored_rows
 
-    extra = _size_extra(study.cfg, 1, None)
+    # the main model's stride: its training pairs are the ones the flow cache has (stride 1
+    # would render every other frame of 00-08 in prepare_data, for a test split that is the same)
+    extra = _size_extra(study.cfg, int(study.cfg.budget.main_frame_stride), None)
     dm = study.datamodule(study.train_config("size_classical", extra, 1))
     ds = dm.dataset("test")
     rows = score_methods(classical_methods(ds.height, ds.width), study.loader(dm, "test"))
