@@ -108,8 +108,9 @@ def twin_section(
         f"The main model's setting trained again on the same pairs with the rendered worlds' "
         f"exact flow as input ({twin['steps']} steps, {status}; {twin.get('precision', '?')} "
         f"on {twin.get('cpu_kind', '?')}), scored on the exact and on the DIS central test, "
-        "beside every classical method on both flows. ATE * (the ±1, ±2 snippets) over ATE † "
-        "(the +1 pairs) on exact flow is the method's own; its growth on DIS is the flow's.",
+        f"beside every classical method on {'both flows' if methods else 'exact flow'}. "
+        "ATE * (the ±1, ±2 snippets) over ATE † (the +1 pairs) on exact flow is the method's "
+        "own; its growth on DIS is the flow's.",
         "",
         Table([Column(h) for h in [*heads, "RPE rotation (rad)"]], table).markdown(),
         "",
@@ -149,7 +150,8 @@ def table2_flow_section(exact: dict | None, dis: dict | None) -> Lines:
         "",
         f"The Table-2-sized model ({exact['train_pairs']} training, {exact['test_pairs']} test "
         "pairs, +1 only) trained and tested on the exact flow, as the paper on Virtual KITTI's "
-        "ground truth, beside the same on DIS; the classical methods read the same flow. The "
+        f"ground truth{', beside the same on DIS' if dis else ''}; the classical methods read "
+        "the same flow. The "
         "paper: MFG 0.0011 rad against the robust continuous method's 0.0014 (0.79).",
         "",
         Table(

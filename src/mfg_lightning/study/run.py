@@ -53,6 +53,11 @@ def check(cfg: DictConfig) -> None:
             f"size.strides: {bad} must be positive multiples of budget.main_frame_stride "
             f"({main_stride}), the source frames whose pairs the main model's data rendered"
         )
+    if int(cfg.seed) in [int(s) for s in cfg.size.seeds]:
+        raise ValueError(
+            f"size.seeds: {list(cfg.size.seeds)} must not hold the study's seed ({cfg.seed}), "
+            "whose run at each stride is the curve's own"
+        )
     Thresholds(**cfg.thresholds)
 
 
@@ -88,7 +93,7 @@ def run(study: S.Study, report: Path) -> Path:
     main_extra = list(cfg.main)
     budget = cfg.budget
 
-    written = [-1]
+    written = [0]
 
     def write(final: bool = False) -> Path:
         # after each stage that ran (a reader follows a long study), and once at the end: a
