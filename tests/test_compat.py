@@ -15,6 +15,7 @@ import json
 import math
 import shutil
 from pathlib import Path
+from typing import Any
 
 import pytest
 import torch
@@ -60,13 +61,18 @@ def test_the_fixture_names_the_old_modules() -> None:
     assert "mfg_lightning.callbacks.LastCheckpoint" in _targets(config)
 
 
-def test_checkpoint_of_0_1_rebuilds_with_its_weights() -> None:
-    path = FIXTURE / "checkpoints" / "last.ckpt"
+def _rebuilds_with_its_weights(path: Path) -> Any:
+    """The module rebuilt from checkpoint ``path``, its state exactly the stored one."""
     module = module_from_checkpoint(path)
     stored = load_checkpoint(path)["state_dict"]
     assert set(module.state_dict()) == set(stored)
     for name, value in module.state_dict().items():
         assert torch.equal(value, stored[name]), name
+    return module
+
+
+def test_checkpoint_of_0_1_rebuilds_with_its_weights() -> None:
+    module = _rebuilds_with_its_weights(FIXTURE / "checkpoints" / "last.ckpt")
     assert type(module.loss_fn).__module__ == "mfg_lightning.models.losses"
     assert module.model_config["loss"]["_target_"] == "mfg_lightning.models.losses.MFGLoss"
 
@@ -175,12 +181,7 @@ FIXTURE_0_2 = Path(__file__).resolve().parent / "fixtures" / "run_v0_2"
 
 
 def test_checkpoint_of_0_2_rebuilds_with_its_weights_and_baseline() -> None:
-    path = FIXTURE_0_2 / "checkpoints" / "last.ckpt"
-    module = module_from_checkpoint(path)
-    stored = load_checkpoint(path)["state_dict"]
-    assert set(module.state_dict()) == set(stored)
-    for name, value in module.state_dict().items():
-        assert torch.equal(value, stored[name]), name
+    module = _rebuilds_with_its_weights(FIXTURE_0_2 / "checkpoints" / "last.ckpt")
     assert bool(module.has_mean_motion)  # the baseline travels with the weights
 
 

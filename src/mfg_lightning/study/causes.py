@@ -12,6 +12,7 @@ from typing import Any
 
 from mfg_lightning.core.tables import Column, Table, fmt
 from mfg_lightning.study.noise import ratio, spread_of
+from mfg_lightning.study.sentences import PRINTED_TABLE2_ROT
 
 SEQS = ("09", "10")
 #: The paper's robust continuous baseline's name stem among the classical rows.
@@ -21,7 +22,7 @@ Lines = list[str]
 Metrics = Mapping[str, float]
 
 
-def _classical(rows: list[dict]) -> dict[str, Metrics]:
+def classical_metrics(rows: list[dict]) -> dict[str, Metrics]:
     """The classical methods' metrics by name (the oracle is a check, not a method)."""
     return {
         r["name"]: r["metrics"]
@@ -59,8 +60,8 @@ def _twin_rows(views: Mapping[int, Any], twin: dict, methods: dict | None) -> li
     exact = twin["table1"]["test"]["1"]
     rows.append(("MFG, exact-flow twin", "exact", "exact", exact.get))
     rows.append(("MFG, exact-flow twin", "exact", "DIS", twin["dis_test"].get))
-    dis_rows = _classical(methods["rows"]) if methods else {}
-    for name, m in _classical(twin["methods"]["rows"]).items():
+    dis_rows = classical_metrics(methods["rows"]) if methods else {}
+    for name, m in classical_metrics(twin["methods"]["rows"]).items():
         if name in dis_rows:
             rows.append((name, "–", "DIS", dis_rows[name].get))
         rows.append((name, "–", "exact", m.get))
@@ -119,7 +120,7 @@ def twin_section(
 
 def _t2_row(label: str, t2: dict) -> list[list[str]]:
     """MFG (all units, k = 15 %) and IRLS and the best classical method of one Table 2 run."""
-    classical = _classical(t2["classical"])
+    classical = classical_metrics(t2["classical"])
     rot = {n: m.get("rpe_rot") for n, m in classical.items()}
     best = min(rot, key=lambda n: rot[n] if rot[n] is not None else math.inf, default=None)
     irls = next((n for n in rot if IRLS in n), None)
@@ -152,7 +153,9 @@ def table2_flow_section(exact: dict | None, dis: dict | None) -> Lines:
         "pairs, +1 only) trained and tested on the exact flow, as the paper on Virtual KITTI's "
         f"ground truth{', beside the same on DIS' if dis else ''}; the classical methods read "
         "the same flow. The "
-        "paper: MFG 0.0011 rad against the robust continuous method's 0.0014 (0.79).",
+        f"paper: MFG {PRINTED_TABLE2_ROT[0]} rad against the robust continuous method's "
+        f"{PRINTED_TABLE2_ROT[1]} "
+        f"({float(PRINTED_TABLE2_ROT[0]) / float(PRINTED_TABLE2_ROT[1]):.2f}).",
         "",
         Table(
             [Column(h) for h in ("flow", "method", "RPE rotation (rad)", "RPE translation (m)")],
@@ -179,7 +182,7 @@ def size_section(size: Mapping[str, dict]) -> tuple[Lines, Any]:
     points = size_points(size)
     if not points:
         return [], None
-    classical = _classical(size["classical"]["classical"]) if "classical" in size else {}
+    classical = classical_metrics(size["classical"]["classical"]) if "classical" in size else {}
     rows, xs, rot, trans = [], [], [], []
     for stride, runs in points.items():
         sp_r = spread_of(dict(enumerate(runs)), lambda r: r["test"].get("rpe_rot"))

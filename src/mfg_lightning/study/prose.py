@@ -13,7 +13,7 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 from mfg_lightning.core.tables import fmt
-from mfg_lightning.study.causes import size_points
+from mfg_lightning.study.causes import classical_metrics, size_points
 from mfg_lightning.study.claims import PAPER_CENTRAL_OVER_FRAME
 from mfg_lightning.study.noise import ratio, spread_of, tolerance
 from mfg_lightning.study.sentences import (
@@ -137,11 +137,10 @@ def para_central(cached: Cached, views: Mapping[int, View]) -> str | None:
 
 def _star_ranges(rows: list[dict]) -> list[str]:
     """The classical methods' ATE * / ATE † range per test sequence ("09 ×a–×b")."""
-    classical = [r for r in rows if not r["name"].startswith("MFG") and "oracle" not in r["name"]]
+    classical = classical_metrics(rows).values()
     ranges = []
     for s in SEQS:
-        rs = [ratio(r["metrics"].get(f"{s}/ate_central"), r["metrics"].get(f"{s}/ate"))
-              for r in classical]  # fmt: skip
+        rs = [ratio(m.get(f"{s}/ate_central"), m.get(f"{s}/ate")) for m in classical]
         rs = [r for r in rs if r is not None]
         ranges.append(f"{s} ×{fmt(min(rs), 2)}–×{fmt(max(rs), 2)}" if rs else f"{s} –")
     return ranges
@@ -220,8 +219,7 @@ def _offset_ratio(flow: dict, far: int) -> float | None:
 
 def _table2_rotation(t2: dict, flow: str) -> str:
     """One Table 2 run's MFG rotation against the robust continuous method's."""
-    rot = {c["name"]: c["metrics"].get("rpe_rot") for c in t2["classical"]
-           if "oracle" not in c["name"]}  # fmt: skip
+    rot = {n: m.get("rpe_rot") for n, m in classical_metrics(t2["classical"]).items()}
     irls = next((n for n in rot if "IRLS" in n), None)
     ours = t2["mfg"]["1"].get("rpe_rot")
     return (
@@ -248,8 +246,7 @@ def para_table2(cached: Cached, views: Mapping[int, View], size_run: bool = Fals
     )
     if mt is not None and views:
         full = spread_of(views, lambda v: test_at(v, 1.0, "rpe_rot"))
-        classical = {r["name"]: r["metrics"].get("rpe_rot") for r in mt["rows"]
-                     if not r["name"].startswith("MFG") and "oracle" not in r["name"]}  # fmt: skip
+        classical = {n: m.get("rpe_rot") for n, m in classical_metrics(mt["rows"]).items()}
         irls_full = next((v for n, v in classical.items() if "IRLS" in n), None)
         best = min((v for v in classical.values() if v is not None), default=None)
         text += (
