@@ -483,14 +483,20 @@ def bar_figure(
     categories: Sequence[str],
     title: str = "",
     log_y: bool = False,
+    references: Sequence[tuple[str, float] | None] | None = None,
 ) -> Figure:
     """Side-by-side panels of grouped bars: per panel a y label and, per series (one colour
-    each, the same in every panel), one value per category (None: no bar)."""
+    each, the same in every panel), one value per category (None: no bar). ``references``: per
+    panel, a ``(label, value)`` drawn as a dashed horizontal line (None: none)."""
     fig = _new_figure(max(4.2 * len(panels), 1.1 * len(categories) * len(panels)), 3.8)
     n = max(len({k for _, series in panels for k in series}), 1)
     x = np.arange(len(categories))
     width = 0.8 / n
-    for ax, series, index in _side_by_side(fig, panels, log_y):
+    refs = list(references or [None] * len(panels))
+    for p, (ax, series, index) in enumerate(_side_by_side(fig, panels, log_y)):
+        if refs[p] is not None:
+            label, value = refs[p]
+            ax.axhline(value, color="black", linestyle="--", linewidth=1.0, label=label)
         for name, values in series.items():
             j = index(name)
             ax.bar(x + (j - (n - 1) / 2) * width, _nan_for_none(values), width, label=name,

@@ -11,6 +11,7 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 from mfg_lightning.core.tables import Column, Table, fmt
+from mfg_lightning.study.claims import PAPER_CENTRAL_OVER_FRAME
 from mfg_lightning.study.noise import ratio, spread_of
 from mfg_lightning.study.sentences import PRINTED_TABLE2_ROT
 
@@ -100,7 +101,12 @@ def twin_section(
             value = ratio(get(f"{s}/ate_central"), get(f"{s}/ate"))
             series[f"{tested} test flow"][names.index(_short(lab))] = value
         panels.append((f"ATE * / ATE † ({s})", series))
-    fig = bar_figure(panels, names, "ATE * / ATE †: the method (exact flow) and the flow (DIS)")
+    fig = bar_figure(
+        panels,
+        names,
+        "ATE * / ATE †: the method (exact flow) and the flow (DIS)",
+        references=[("the paper's MFG", PAPER_CENTRAL_OVER_FRAME[s]) for s in SEQS],
+    )
     conv = twin.get("convergence") or {}
     status = "converged" if conv.get("converged") else "not converged"
     return [
