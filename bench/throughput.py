@@ -25,6 +25,12 @@ Adam), the same samples already in memory (pre-collated batches, cycled) and bat
 Every rate is the median of ``--repeats`` interleaved measurements, each over ``--steps-*``
 steps after a warm-up: the machine may be shared.
 
+The sample cache (``dataset.sample_cache``, ``dataset.prefetch``), a section of its own:
+the loader alone and training on it in the first epoch (samples computed, with each
+prefetch) and the second (read back), against the uncached generator and pre-collated
+batches; ``--sample-cache`` runs only it (about 4 minutes), ``--quick-start`` adds the
+quick start's wall time without and with the cache (about 15 minutes more).
+
 ``python bench/throughput.py`` (about 7 minutes on 2 CPU cores); ``--tiny`` for a smoke run.
 """
 
@@ -40,6 +46,7 @@ import time
 from collections.abc import Callable, Iterator
 from functools import cache, partial
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -64,6 +71,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--candidate-repeats", type=int, default=2, help="of the other measurements")
     p.add_argument("--rss-steps", type=int, default=60, help="steps of the peak-memory run")
     p.add_argument("--no-compile", action="store_true", help="skip the torch.compile candidate")
+    p.add_argument("--sample-cache", action="store_true", help="only the sample cache")
+    p.add_argument(
+        "--quick-start", action="store_true",
+        help="the sample cache section also times the quick start without and with it",
+    )  # fmt: skip
+    p.add_argument("--cache-frames", type=int, default=200,
+                   help="frames of each of the 2 training trajectories (sample cache)")  # fmt: skip
     add_common_arguments(p)
     return p.parse_args(argv)
 
@@ -73,6 +87,8 @@ def base_overrides(tiny: bool) -> list[str]:
     # A constant learning rate: the bare loop has no scheduler, and a scheduler step costs the
     # same in either loop.
     ov = ["paths.output_dir=.", "model.image_log_every_n_steps=0", "model.scheduler=null"]
+    # The data rows measure the generator itself (the sample cache has its own section).
+    ov += UNCACHED_SAMPLES
     if tiny:
         ov += TINY_OVERRIDES
     return ov
@@ -556,6 +572,7 @@ def peak_rss_mb(steps: int, tiny: bool, threads: int) -> tuple[float, float]:
             "callbacks=none",
             "test=false",
             f"hydra.run.dir={tmp}",
+            f"paths.cache_dir={tmp}/cache",
             *(["debug=tiny"] if tiny else []),
         ]
         start = time.perf_counter()
@@ -578,6 +595,206 @@ def peak_rss_mb(steps: int, tiny: bool, threads: int) -> tuple[float, float]:
 PRECISIONS = {"float32": "32-true", "bf16-mixed": "bf16-mixed"}
 
 
+#: Overrides that turn the sample cache and its prefetch off: what the other sections' data
+#: rows measure (the generator itself).
+UNCACHED_SAMPLES = [
+    "dataset.sample_cache.memory_mb=0",
+    "dataset.sample_cache.disk=false",
+    "dataset.prefetch=none",
+]
+#: The marker of the sample cache's block in throughput.md (:meth:`Report.write_section`).
+SAMPLE_CACHE_MARKER = "sample-cache"
+#: The loaders the sample cache section compares: label → (dataset overrides, whether an
+#: earlier run filled the disk tier first).
+CACHE_LOADERS: dict[str, tuple[list[str], bool]] = {
+    "no cache: every sample generated when the loader asks": (UNCACHED_SAMPLES, False),
+    "cache, `prefetch=none`": (["dataset.prefetch=none"], False),
+    "cache, `prefetch=thread` (the default)": (["dataset.prefetch=thread"], False),
+    "cache, `prefetch=worker`": (["dataset.prefetch=worker"], False),
+    "cache on disk only, filled by an earlier run (`memory_mb=0`)": (
+        ["dataset.sample_cache.memory_mb=0", "dataset.prefetch=none"],
+        True,
+    ),
+}
+
+
+def with_overrides(overrides: list[str], extra: list[str]) -> list[str]:
+    """``overrides`` then ``extra``, an earlier value of a key that ``extra`` sets left out."""
+    keys = {o.split("=", 1)[0] for o in extra}
+    return [o for o in overrides if o.split("=", 1)[0] not in keys] + extra
+
+
+def cache_datamodule(base: list[str], extra: list[str], cache_dir: Path, frames: int, batch: int):
+    """The synthetic DataModule of ``base`` + ``extra`` on 2 training trajectories of
+    ``frames`` frames, batch ``batch``, its sample cache's disk tier in ``cache_dir``."""
+    size = [
+        "dataset.train_sequences=2",
+        f"dataset.sequence_length={frames}",
+        f"dataset.batch_size={batch}",
+        f"dataset.cache_dir={cache_dir}",
+    ]
+    return datamodule(with_overrides(base, [*size, *extra]))
+
+
+def loader_epochs(dm) -> tuple[float, float]:
+    """Samples per second of iterating ``dm``'s training loader through its first epoch (after
+    its first batch: a worker's start-up) and its second."""
+    loader = dm.train_dataloader()
+    rates = []
+    for epoch in (0, 1):
+        loader.order.set_epoch(epoch)  # what Lightning does at the start of each epoch
+        batches = iter(loader)
+        if epoch == 0:
+            next(batches)
+        start, n = time.perf_counter(), 0
+        for batch in batches:
+            n += batch["flow"].shape[0]
+        rates.append(n / (time.perf_counter() - start))
+    dm.teardown("fit")
+    return rates[0], rates[1]
+
+
+def training_epochs(overrides: list[str], dm, warmup: int) -> tuple[float, float]:
+    """Training samples per second (Lightning, float32) on ``dm``'s loader in the first epoch
+    (after ``warmup`` steps) and in the second (its first step included)."""
+    import lightning as L
+
+    stamps: list[tuple[int, float, int]] = []
+
+    class Stamp(L.Callback):
+        def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx) -> None:
+            stamps.append((trainer.current_epoch, time.perf_counter(), batch["flow"].shape[0]))
+
+    model, _ = build_model(overrides)
+    trainer = L.Trainer(
+        accelerator="cpu", devices=1, max_epochs=2, max_steps=-1, logger=False,
+        enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
+        num_sanity_val_steps=0, limit_val_batches=0, callbacks=[Stamp()],
+    )  # fmt: skip
+    trainer.fit(model, datamodule=dm)
+    first = [s for s in stamps if s[0] == 0]
+    second = [s for s in stamps if s[0] == 1]
+    rate1 = sum(n for _, _, n in first[warmup:]) / (first[-1][1] - first[warmup - 1][1])
+    rate2 = sum(n for _, _, n in second) / (second[-1][1] - first[-1][1])
+    return rate1, rate2
+
+
+def quick_start_wall(tiny: bool, threads: int) -> list[list[str]]:
+    """Wall time of ``python -m mfg_lightning.train`` (the quick start; ``debug=tiny`` when
+    ``tiny``) without the sample cache, with it from empty, and with its disk tier filled by
+    the run before (a multirun's next job): table rows."""
+    rows, seconds = [], {}
+    runs = {
+        "without the cache (`memory_mb=0 disk=false prefetch=none`)": (UNCACHED_SAMPLES, "a"),
+        "the defaults, empty cache": ([], "b"),
+        "the defaults, disk tier filled by the run before": ([], "b"),
+    }
+    with tempfile.TemporaryDirectory() as tmp:
+        for i, (label, (extra, cache)) in enumerate(runs.items()):
+            cmd = [
+                sys.executable, "-m", "mfg_lightning.train", f"hydra.run.dir={tmp}/run{i}",
+                f"paths.cache_dir={tmp}/cache-{cache}", *(["debug=tiny"] if tiny else []), *extra,
+            ]  # fmt: skip
+            start = time.perf_counter()
+            proc = subprocess.run(
+                cmd, cwd=tmp, env={**os.environ, "OMP_NUM_THREADS": str(threads)},
+                capture_output=True, text=True, check=False,
+            )  # fmt: skip
+            seconds[label] = time.perf_counter() - start
+            if proc.returncode != 0:
+                raise RuntimeError(f"{' '.join(cmd)} failed: {proc.stderr[-3000:]}")
+    before = next(iter(seconds.values()))
+    for label, s in seconds.items():
+        rows.append([label, fmt(s, 1), fmt(before / s, 2)])
+    return rows
+
+
+def sample_cache_section(args: argparse.Namespace, cfg: Any) -> Path:
+    """The sample cache: the training loader alone and training on it (Lightning, float32) in
+    the first epoch (samples computed: no cache, the cache with each prefetch, the disk tier of
+    an earlier run) and the second (read back), against training on pre-collated batches;
+    with ``--quick-start`` the quick start's wall time without and with the cache. Written as
+    its own section of throughput.md (the rest kept)."""
+    torch.set_num_threads(args.threads or os.cpu_count() or 1)
+    base = base_overrides(args.tiny)
+    frames = 12 if args.tiny else args.cache_frames
+    batch = 4 if args.tiny else int(cfg.dataset.batch_size)
+    warmup = 1 if args.tiny else 3
+    repeats = 1 if args.tiny else args.candidate_repeats
+    report = Report("throughput", "Throughput: training, inference, data, memory", args.out)
+    rates: dict[str, list[tuple[float, ...]]] = {label: [] for label in CACHE_LOADERS}
+    n_train = 0
+    for _ in range(repeats):
+        for label, (extra, prefilled) in CACHE_LOADERS.items():
+            row = []
+            for measure in ("loader", "training"):
+                with tempfile.TemporaryDirectory() as cache:
+                    if prefilled:  # an earlier run's first epoch
+                        loader_epochs(cache_datamodule(base, [], Path(cache), frames, batch))
+                    dm = cache_datamodule(base, extra, Path(cache), frames, batch)
+                    n_train = len(dm.dataset("train"))
+                    if measure == "loader":
+                        row += loader_epochs(dm)
+                    else:
+                        row += training_epochs(base, dm, warmup)
+            rates[label].append(tuple(row))
+    # Training on the same samples pre-collated in memory: what the loader is measured against.
+    with tempfile.TemporaryDirectory() as cache:  # (no cache: nothing is written there)
+        ds = cache_datamodule(base, UNCACHED_SAMPLES, Path(cache), frames, batch).dataset("train")
+        samples = [{k: ds[i][k] for k in SAMPLE_KEYS} for i in range(len(ds))]
+    batches = make_batches(samples, batch)
+    in_memory = statistics.median(
+        lightning_rate(base, batches, warmup, len(batches), "32-true") for _ in range(repeats)
+    )
+    rows = []
+    for label, runs in rates.items():
+        loader1, loader2, train1, train2 = (statistics.median(r[k] for r in runs) for k in range(4))
+        rows.append(
+            [label, fmt(loader1, 0), fmt(loader2, 0), fmt(train1, 1),
+             f"{100 * (1 - train1 / in_memory):.0f} %", fmt(train2, 1),
+             f"{100 * (1 - train2 / in_memory):.0f} %"]
+        )  # fmt: skip
+    rows.append(["pre-collated batches in memory", "-", "-", fmt(in_memory, 1), "0 %", "-", "-"])
+    report.add(
+        f"MFG {cfg.dataset.height} × {cfg.dataset.width}, M = {cfg.model.net.hidden_units}, "
+        f"float32, batch {batch}; 2 training trajectories of {frames} frames ({n_train} training "
+        f"samples per epoch); {torch.get_num_threads()} torch threads; medians of {repeats} "
+        "repeats, each on an empty cache.\n\n"
+        + markdown_table(
+            [
+                "loader",
+                "loader alone, epoch 1 (samples/s)",
+                "loader alone, epoch 2",
+                "training, epoch 1 (samples/s)",
+                "epoch 1 waiting on data",
+                "training, epoch 2",
+                "epoch 2 waiting on data",
+            ],
+            rows,
+        )
+        + "\n*Loader alone*: iterating the training loader (shuffled, collated) through epoch 1 "
+        "after its first batch (a worker's start-up excluded) and through epoch 2. *Training*: "
+        f"`lightning.Trainer.fit` for 2 epochs on the DataModule, epoch 1 after {warmup} steps, "
+        "epoch 2 whole; *waiting on data* = 1 − rate / the rate on the same samples "
+        "pre-collated in memory. Epoch 1 computes every sample (the disk row reads an earlier "
+        "run's entries); from epoch 2 on the cached loaders read memory (the disk row: its "
+        "files). `prefetch=thread` computes ahead in a thread of the training process, in the "
+        "loader's order; `prefetch=worker` in one persistent loader process. Both compete with "
+        "the training step's threads for the cores."
+    )
+    if args.quick_start:
+        report.add(
+            "The quick start, `python -m mfg_lightning.train`"
+            + (" debug=tiny" if args.tiny else "")
+            + " (training, validation, test), wall time:\n\n"
+            + markdown_table(
+                ["run", "wall time (s)", "speed-up"],
+                quick_start_wall(args.tiny, torch.get_num_threads()),
+            )
+        )
+    return report.write_section(SAMPLE_CACHE_MARKER, "The sample cache: samples computed once")
+
+
 def main(argv: list[str] | None = None) -> Path:
     args = parse_args(argv)
     if args.tiny:
@@ -591,6 +808,8 @@ def main(argv: list[str] | None = None) -> Path:
     report = Report("throughput", "Throughput: training, inference, data, memory", args.out)
     base = base_overrides(args.tiny)
     _, cfg = build_model(base)
+    if args.sample_cache:
+        return sample_cache_section(args, cfg)
     height, width = cfg.dataset.height, cfg.dataset.width
     samples = render(cfg, max(args.samples, *args.batch_sizes))
     sizes = list(zip(args.batch_sizes, args.steps_per_batch_size, strict=True))
@@ -863,7 +1082,8 @@ def main(argv: list[str] | None = None) -> Path:
                     f"`python -m mfg_lightning.train trainer.max_steps={args.rss_steps} "
                     "trainer.limit_val_batches=0 logger=none callbacks=none test=false"
                     + (" debug=tiny" if args.tiny else "")
-                    + f"` (batch {4 if args.tiny else 16}, data rendered on the fly)",
+                    + f"` (batch {4 if args.tiny else 16}, the default loader: each sample "
+                    "generated once, then read from the sample cache)",
                     fmt(rss, 0),
                     fmt(seconds, 1),
                 ]
@@ -974,7 +1194,10 @@ def main(argv: list[str] | None = None) -> Path:
         "candidates are patched onto the network in the bare loop only (the same numbers: "
         "float32 is more precise, zero-padded channels add zeros)."
     )
-    return report.write()
+    path = report.write()
+    # The sample cache: a section of its own (--sample-cache reruns it).
+    sample_cache_section(args, cfg)
+    return path
 
 
 if __name__ == "__main__":

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -51,6 +52,17 @@ def _seed_global_generators() -> None:
     random.seed(0)
     np.random.seed(0)
     torch.manual_seed(0)
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _session_cache_dir(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """``paths.cache_dir`` of every test that names none (and of the processes it starts): a
+    directory of the session's, so that the flow and sample caches a test fills never land in
+    the user's ``~/.cache/mfg_lightning``."""
+    with pytest.MonkeyPatch.context() as patch:
+        path = tmp_path_factory.mktemp("cache")
+        patch.setenv("MFG_CACHE_DIR", str(path))
+        yield path
 
 
 REPO = Path(__file__).resolve().parents[1]

@@ -132,6 +132,13 @@ def test_throughput_benchmark(tmp_path: Path) -> None:
         "bf16 + first conv in float32",
         "bf16 + first conv's input padded to 8 channels",
     } <= candidates
+    # The sample cache, a section of its own: every loader's epochs 1 and 2, alone and training.
+    cache = {r[0]: r for r in _table_rows(text, "## The sample cache: samples computed once")}
+    assert len(cache) == 6 and "cache, `prefetch=worker`" in cache
+    for row in (r for r in cache.values() if r[1] != "-"):
+        assert all(_number(c) > 0 for c in (*row[1:4], row[5])), row  # samples/s
+        assert math.isfinite(_number(row[4])) and math.isfinite(_number(row[6])), row
+    assert _number(cache["pre-collated batches in memory"][3]) > 0
 
 
 def test_scaleout_benchmark(tmp_path: Path) -> None:

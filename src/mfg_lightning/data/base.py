@@ -421,7 +421,19 @@ class MFGDataModule(L.LightningDataModule):
             self.datasets[split] = ds
         return self.datasets[split]
 
-    def _loader(self, split: str, shuffle: bool, batch_size: int) -> DataLoader:
+    def _loader(
+        self,
+        split: str,
+        shuffle: bool,
+        batch_size: int,
+        num_workers: int | None = None,
+        persistent_workers: bool | None = None,
+    ) -> DataLoader:
+        """The loader of ``split``; ``num_workers``, ``persistent_workers``: the DataModule's
+        unless given (a split's own, e.g. one persistent worker that keeps its sample cache)."""
+        workers = self.num_workers if num_workers is None else num_workers
+        if persistent_workers is None:
+            persistent_workers = self.persistent_workers
         generator = torch.Generator().manual_seed(self.seed) if shuffle else None
         dataset = self.dataset(split)
         sampler = None
@@ -434,12 +446,12 @@ class MFGDataModule(L.LightningDataModule):
             batch_size=batch_size,
             shuffle=shuffle,
             sampler=sampler,
-            num_workers=self.num_workers,
+            num_workers=workers,
             collate_fn=collate_samples,
             worker_init_fn=seed_worker,
             generator=generator,
             pin_memory=self.pin_memory,
-            persistent_workers=self.persistent_workers,
+            persistent_workers=persistent_workers and workers > 0,
             drop_last=False,
         )
 

@@ -4,13 +4,10 @@ the ground truth kept beside the estimate, and the estimate's quality per image 
 
 from __future__ import annotations
 
-import ast
 import hashlib
-import importlib.util
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -19,6 +16,7 @@ import torch
 from mfg_lightning.data import transforms
 from mfg_lightning.data.driving import TrajectoryDataset
 from mfg_lightning.data.sample import sanitize_flow
+from mfg_lightning.data.sample_cache import MemoryBudget, SampleStore, source_digest
 from mfg_lightning.flow.estimators import (
     EstimatedFlow,
     FlowCache,
@@ -126,62 +124,6 @@ def summarize_quality(stats: np.ndarray) -> dict[str, dict[str, float | None]]:
     return out
 
 
-_DIGESTS: dict[tuple[str, ...], str] = {}
-
-
-def _source_digest(*modules: ModuleType) -> str:
-    """A digest of the source files of ``modules`` and of every :mod:`mfg_lightning.scene`
-    module they import, directly or not (:func:`_scene_imports`): any change to the renderer,
-    whichever of its stage modules it is in, changes it.
-
-    Read once per process, so that one process keeps one cache key even if the files are
-    edited while it runs (it runs the code it imported)."""
-    key = tuple(m.__name__ for m in modules)
-    if key not in _DIGESTS:
-        h = hashlib.sha256()
-        for module in _scene_imports(modules):
-            h.update(Path(module.__file__).read_bytes())
-        _DIGESTS[key] = h.hexdigest()[:16]
-    return _DIGESTS[key]
-
-
-def _scene_imports(modules: Sequence[ModuleType]) -> list[ModuleType]:
-    """``modules`` and every ``mfg_lightning.scene`` module their source imports (at module
-    level or in a function), directly or through one another, sorted by name (so the digest
-    is a function of the sources alone, whatever else a process has imported)."""
-    found: dict[str, ModuleType] = {}
-    todo = list(modules)
-    while todo:
-        module = todo.pop()
-        if module.__name__ in found:
-            continue
-        found[module.__name__] = module
-        for node in ast.walk(ast.parse(Path(module.__file__).read_bytes())):
-            if isinstance(node, ast.Import):
-                names = [alias.name for alias in node.names]
-            elif isinstance(node, ast.ImportFrom):
-                base = "." * node.level + (node.module or "")
-                base = importlib.util.resolve_name(base, module.__package__)
-                # ``from package import module`` names modules too.
-                names = [base, *(f"{base}.{alias.name}" for alias in node.names)]
-            else:
-                continue
-            todo += [
-                importlib.import_module(name)
-                for name in names
-                if name.startswith("mfg_lightning.scene.") and _is_module(name)
-            ]
-    return [found[name] for name in sorted(found)]
-
-
-def _is_module(name: str) -> bool:
-    """Whether ``name`` (dotted) is an importable module rather than a name inside one."""
-    try:
-        return importlib.util.find_spec(name) is not None
-    except ModuleNotFoundError:  # a name inside a module: its parent is no package
-        return False
-
-
 @dataclass
 class _Frame:
     """One rendered frame, kept while pairs still need it."""
@@ -216,6 +158,9 @@ class RenderedDrivingDataset(TrajectoryDataset):
         cache_dir: the user cache directory (``paths.cache_dir``).
         input_flow: the sample's ``flow``: ``"source"``, the estimate; ``"exact"``, the exact
             flow (both are in every cached pair: the cache key does not depend on it).
+        memory: the process's sample-cache budget
+            (:class:`~mfg_lightning.data.sample_cache.MemoryBudget`): the pairs read are kept
+            in memory while it has room, so that later epochs read no file; None: none kept.
         args, kwargs: ``trajectories``, ``frames``, ``height``, ``width``, ``seed``, ``offsets``,
             ``name`` of :class:`TrajectoryDataset`.
     """
@@ -227,12 +172,15 @@ class RenderedDrivingDataset(TrajectoryDataset):
         world: dict[str, Any] | None = None,
         cache_dir: str | Path | None = None,
         input_flow: str = "source",
+        memory: MemoryBudget | None = None,
         **kwargs: Any,
     ) -> None:
         super().__init__(*args, **kwargs)
         if input_flow not in ("source", "exact"):
             raise ValueError(f"input_flow must be 'source' or 'exact', got {input_flow!r}")
         self.input_flow = input_flow
+        # The memory tier only: the pairs' disk cache is self.cache.
+        self.memory = SampleStore({}, memory) if memory is not None else None
         self.flow_source = flow
         self.estimator = flow.estimator
         self.image_hw = flow_render_size(flow, (self.height, self.width))
@@ -255,7 +203,7 @@ class RenderedDrivingDataset(TrajectoryDataset):
                 ).hexdigest()[:16]
                 for seq, poses in sorted(self.trajectories.items())
             },
-            "renderer": _source_digest(worlds, render),
+            "renderer": source_digest(worlds, render),
             "torch": torch.__version__,
             "numpy": np.__version__,
         }
@@ -485,14 +433,27 @@ class RenderedDrivingDataset(TrajectoryDataset):
 
     # -- samples -----------------------------------------------------------------------------
 
+    def _pair_arrays(self, i: int) -> dict[str, np.ndarray]:
+        """The cached fields of pair ``i`` (:func:`_unpack`): from memory, else read from the
+        disk cache, else rendered, estimated and cached; kept in memory while the budget has
+        room (later epochs then read no file)."""
+
+        def load() -> dict[str, np.ndarray]:
+            arrays = self._cached(i)
+            if arrays is None:
+                seq, src, tgt = self.samples[i]
+                a, b = self.render(seq, src), self.render(seq, tgt)
+                arrays = self._store(i, self.compute_pair(seq, src, tgt, a, b))
+            return arrays
+
+        if self.memory is None:
+            return load()
+        return self.memory.fetch(self.samples[i], "", load)
+
     def __getitem__(self, i: int) -> dict:
         self._check_index(i)
         seq, src, tgt = self.samples[i]
-        arrays = self._cached(i)
-        if arrays is None:
-            arrays = self._store(
-                i, self.compute_pair(seq, src, tgt, self.render(seq, src), self.render(seq, tgt))
-            )
+        arrays = self._pair_arrays(i)
         key = "exact_flow" if self.input_flow == "exact" else "flow"
         flow = torch.from_numpy(np.ascontiguousarray(arrays[key].transpose(2, 0, 1)))
         flow, valid, _ = sanitize_flow(flow, torch.ones(flow.shape[1:], dtype=torch.bool))
@@ -500,7 +461,8 @@ class RenderedDrivingDataset(TrajectoryDataset):
             "flow": flow,
             "flow_valid": valid,
             "depth": torch.from_numpy(np.ascontiguousarray(arrays["depth"])),
-            "object_mask": torch.from_numpy(arrays["object_mask"]),
+            # (a copy: the arrays may be the memory tier's own)
+            "object_mask": torch.from_numpy(arrays["object_mask"].copy()),
             "object_flow": transforms.flow_to_tensor(arrays["object_flow"]),
             "exact_flow": transforms.flow_to_tensor(arrays["exact_flow"]),
             "rgb": torch.from_numpy(np.ascontiguousarray(arrays["rgb"].transpose(2, 0, 1))),

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import torch
@@ -37,6 +37,11 @@ class EpochShuffleSampler(Sampler[int]):
     Args:
         n: dataset length.
         seed: the run's seed (``dataset.seed``).
+
+    Attributes:
+        on_order: None, or called with the indices of each pass (a resumed pass: those left)
+            before the first is handed out: a prefetcher follows the order with it
+            (:class:`~mfg_lightning.data.sample_cache.Prefetcher`).
     """
 
     def __init__(self, n: int, seed: int) -> None:
@@ -44,6 +49,7 @@ class EpochShuffleSampler(Sampler[int]):
         self.seed = int(seed)
         self.epoch = 0
         self._skip = 0
+        self.on_order: Callable[[list[int]], None] | None = None
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = int(epoch)
@@ -62,7 +68,10 @@ class EpochShuffleSampler(Sampler[int]):
 
     def __iter__(self) -> Iterator[int]:
         skip, self._skip = self._skip, 0
-        return iter(self.permutation(self.epoch)[skip:].tolist())
+        order = self.permutation(self.epoch)[skip:].tolist()
+        if self.on_order is not None:
+            self.on_order(order)
+        return iter(order)
 
 
 class ResumableDataLoader(DataLoader):

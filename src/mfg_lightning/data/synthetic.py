@@ -8,13 +8,13 @@ facades and parked boxes at random distances, sky at the far plane (655.35 m, as
 and a random number of independently moving objects (cars and pedestrians) with their own 3D
 velocity.
 
-Every sample is generated on the fly from ``(seed, sequence, frame)``: the same index always
-yields the same sample, in any worker. The input flow is the *exact* reprojection flow
-(:func:`mfg_lightning.core.geometry.reprojection_flow`, not the linearised field) plus Gaussian
-noise
-and a fraction of outliers. Each sample also carries depth, the relative pose, intrinsics, the
-ground-truth moving-object mask and the flow due to object motion alone (see
-:mod:`mfg_lightning.data.sample`).
+Every sample is generated from ``(seed, sequence, frame)``: the same index always yields the
+same sample, in any worker, so it is generated once and then read back from the sample cache
+(:mod:`mfg_lightning.data.sample_cache`; ``dataset.sample_cache``). The input flow is the
+*exact* reprojection flow (:func:`mfg_lightning.core.geometry.reprojection_flow`, not the
+linearised field) plus Gaussian noise and a fraction of outliers. Each sample also carries
+depth, the relative pose, intrinsics, the ground-truth moving-object mask and the flow due to
+object motion alone (see :mod:`mfg_lightning.data.sample`).
 
 Scenes are drawn anew for every frame (the world does not persist along a trajectory): the flow of
 a frame depends only on the relative pose and the scene in front of the camera at that moment,
@@ -42,6 +42,13 @@ from mfg_lightning.data.rendered import (
     flow_render_size,
     quality_line,
     world_config,
+)
+from mfg_lightning.data.resumable_loader import ResumableDataLoader
+from mfg_lightning.data.sample_cache import (
+    MemoryBudget,
+    Prefetcher,
+    SampleCacheSettings,
+    check_prefetch,
 )
 from mfg_lightning.flow.estimators import (
     EstimatedFlow,
@@ -82,8 +89,8 @@ class SyntheticDataModule(MFGDataModule):
     Splits: ``train`` and ``test`` are disjoint sets of trajectories; ``val`` is the last
     ``val_fraction`` of every training trajectory (held out from training).
 
-    Flow (the ``flow`` config group): ``flow=exact`` (default) generates every sample on the
-    fly on a scene drawn for its frame (:class:`SyntheticDrivingDataset`); ``flow=dis`` renders
+    Flow (the ``flow`` config group): ``flow=exact`` (default) generates every sample, once, on
+    a scene drawn for its frame (:class:`SyntheticDrivingDataset`); ``flow=dis`` renders
     persistent worlds and estimates the flow on the frames (:class:`RenderedDrivingDataset`),
     precomputed into the cache by :meth:`prepare_data`, whose flow quality (EPE, Fl per region)
     is logged when training starts (``<split>/flow_epe/<region>``, ``<split>/flow_fl/<region>``
@@ -120,6 +127,22 @@ class SyntheticDataModule(MFGDataModule):
             same samples (``flow=dis``: the rendered worlds' exact flow, cached beside the
             estimate, so switching renders nothing; ``flow=exact``: without noise or outliers),
             the ground-truth flow the paper trained and tested on for Virtual KITTI.
+        sample_cache: ``{"memory_mb": …, "disk": …}``
+            (:class:`~mfg_lightning.data.sample_cache.SampleCacheSettings`; None: 1024 MB,
+            disk on): every sample is computed once, then read back bit for bit. Training and
+            validation samples are kept in memory up to ``memory_mb`` per process (test samples,
+            read once a run, are not); with ``disk``, every split's samples are also written
+            under ``cache_dir`` (none: no disk tier) and read by later epochs beyond the memory
+            and by later runs. ``flow=exact``: the generated samples
+            (``synthetic_samples/<key>/``); ``flow=dis``: the pairs read from the flow cache
+            (memory only: they are on disk already).
+        prefetch: who computes the first epoch of ``flow=exact`` ahead of the training step:
+            ``"thread"`` (a background thread of the training process, in the loader's order;
+            only with ``num_workers=0``), ``"worker"`` (the training loader gets at least one
+            persistent worker process, whose memory cache survives the epochs) or ``"none"``.
+            The same samples in the same order whichever: the results do not change. The config
+            sets ``thread``; constructed directly the default is ``"none"`` (no thread unless
+            asked for).
         Remaining arguments: see :class:`MFGDataModule`.
     """
 
@@ -141,9 +164,18 @@ class SyntheticDataModule(MFGDataModule):
         cache_dir: str | None = None,
         precompute_flow: bool = True,
         input_flow: str = "source",
+        sample_cache: SampleCacheSettings | dict[str, Any] | None = None,
+        prefetch: str = "none",
         **kwargs,
     ) -> None:
         super().__init__(**kwargs)
+        self.sample_cache = SampleCacheSettings.parse(sample_cache)
+        self.prefetch = check_prefetch(prefetch)
+        # One budget for the splits of this process (each DataLoader worker gets its share).
+        self._memory = (
+            MemoryBudget(self.sample_cache.memory_mb) if self.sample_cache.memory_mb > 0 else None
+        )
+        self._prefetchers: dict[str, Prefetcher] = {}
         if input_flow not in ("source", "exact"):
             raise ValueError(f"dataset.input_flow must be 'source' or 'exact', got {input_flow!r}")
         self.input_flow = input_flow
@@ -255,17 +287,21 @@ class SyntheticDataModule(MFGDataModule):
             "stride": self.frame_stride if split == "train" else 1,
         }
         exact = self.input_flow == "exact"
+        # Test samples are read once a run (memory would hold them for nothing) and train+val
+        # is prepare_data's pass over the flow cache: neither is kept in memory.
+        memory = self._memory if split in ("train", "val") else None
         if isinstance(self.flow, EstimatedFlow):
             ds = RenderedDrivingDataset(
                 trajs, frames, self.height, self.width, flow=self.flow, world=self.world,
-                cache_dir=self.cache_dir, input_flow=self.input_flow, **common,
+                cache_dir=self.cache_dir, input_flow=self.input_flow, memory=memory, **common,
             )  # fmt: skip
         else:
             ds = SyntheticDrivingDataset(
                 trajs, frames, self.height, self.width,
                 noise_std=0.0 if exact else self.flow.noise_std,
                 outlier_fraction=0.0 if exact else self.flow.outlier_fraction,
-                scene=self.scene, **common,
+                scene=self.scene, memory=memory,
+                cache_dir=self.cache_dir if self.sample_cache.disk else None, **common,
             )  # fmt: skip
         if split == "train+val" and self.frame_stride > 1:
             val_first = {seq: first for seq, (first, _) in self._val_frames(trajs).items()}
@@ -275,6 +311,47 @@ class SyntheticDataModule(MFGDataModule):
                 if k % self.frame_stride == 0 or k >= val_first.get(seq, k + 1)
             ]
         return ds
+
+    # -- the training loader: the first epoch computed ahead of the step ---------------------
+
+    def train_dataloader(self) -> ResumableDataLoader:
+        """The training loader (:class:`MFGDataModule`'s), with ``flow=exact``'s prefetch:
+        ``thread`` hooks a :class:`~mfg_lightning.data.sample_cache.Prefetcher` to its sampler
+        (each pass's order, a resumed one's remaining indices included), ``worker`` gives it at
+        least one persistent worker process."""
+        exact = not isinstance(self.flow, EstimatedFlow)
+        if exact and self.prefetch == "worker":
+            base = self._loader(
+                "train", True, self.batch_size, num_workers=max(1, self.num_workers),
+                persistent_workers=True,
+            )  # fmt: skip
+            return ResumableDataLoader.like(base, seed=self.seed)
+        loader = super().train_dataloader()
+        dataset = self.dataset("train")
+        if exact and self.prefetch == "thread" and loader.order is not None:
+            assert isinstance(dataset, SyntheticDrivingDataset)
+            if self.num_workers > 0:
+                # The loader's workers would read their own copies of the cache, not the one a
+                # thread of this process fills.
+                log.info("dataset.prefetch=thread needs dataset.num_workers=0: no prefetch thread")
+            elif dataset.store is not None:
+                self._stop_prefetch("train")
+                prefetcher = Prefetcher(dataset.prefetch, name="prefetch synthetic/train")
+                self._prefetchers["train"] = prefetcher
+                loader.order.on_order = prefetcher.follow
+        return loader
+
+    def _stop_prefetch(self, split: str) -> None:
+        prefetcher = self._prefetchers.pop(split, None)
+        if prefetcher is not None:
+            prefetcher.stop()
+
+    def teardown(self, stage: str | None = None) -> None:
+        # The thread holds the dataset: stop it with the stage (a multirun's next job, in the
+        # same process, then starts from a clean slate).
+        for split in list(self._prefetchers):
+            self._stop_prefetch(split)
+        super().teardown(stage)
 
     def _val_frames(self, trajs: dict[str, torch.Tensor]) -> dict[str, tuple[int, int]]:
         """Sequence → (first, last) source frame of its validation tail (none: absent)."""
