@@ -13,7 +13,7 @@ TORCH_GPU_SPEC ?= torch===2.13.0
 GPU_CHECK_ACCELERATOR ?= gpu
 GPU_CHECK_ARGS ?=
 
-.PHONY: install install-gpu gpu-check test lint format bench train clean
+.PHONY: install install-gpu gpu-check test test-fast lint format bench train clean
 
 install:
 	$(PYTHON) -c "import torch" 2>/dev/null || $(PYTHON) -m pip install $(TORCH_SPEC)
@@ -40,6 +40,11 @@ test:
 	$(PYTHON) -m ruff check src tests bench
 	$(LINT_IMPORTS)
 	$(PYTHON) -m pytest -n 2 $(PYTEST_ARGS)
+
+# The edit-test loop: every test but the `slow` ones (real trainings, multiruns, the tiny study;
+# the marker in pyproject.toml). CI runs `make test`, which includes them.
+test-fast:
+	$(PYTHON) -m pytest -n 2 -m "not slow" $(PYTEST_ARGS)
 
 lint:
 	$(PYTHON) -m ruff check src tests bench

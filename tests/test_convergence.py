@@ -80,6 +80,22 @@ def test_a_plateau_starts_the_decay_and_stops_training(tmp_path: Path) -> None:
     assert status["rule"]["min_improvement"] == 1.0
     base = float(cfg.model.optimizer.lr)
     assert _lrs(out / "checkpoints" / "last.ckpt") == pytest.approx([0.25 * base])
+    # Resumed (a study that lost its stage results trains it "again"): not one more step, and
+    # the checkpoints keep their weights.
+    def weights() -> dict[str, tuple[int, dict[str, torch.Tensor]]]:
+        loaded = {p.name: torch.load(p, map_location="cpu", weights_only=True)
+                  for p in (out / "checkpoints").iterdir()}  # fmt: skip
+        return {k: (v["global_step"], v["state_dict"]) for k, v in loaded.items()}
+
+    before = weights()
+    train(cfg)
+    status = json.loads((out / "convergence.json").read_text())
+    assert (status["reason"], status["decay_end"], status["step"]) == ("plateau", 8, 8)
+    after = weights()
+    assert after.keys() == before.keys()
+    for name, (step, state) in before.items():
+        assert after[name][0] == step == 8
+        assert all(torch.equal(state[k], after[name][1][k]) for k in state)
 
 
 def test_a_step_cap_shortens_the_schedule_and_reads_not_converged(tmp_path: Path) -> None:

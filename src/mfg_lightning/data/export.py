@@ -362,7 +362,10 @@ def export(cfg: DictConfig, progress: bool = True) -> dict[str, Any]:
                 f"version={cfg.get('version')}: 1 (Virtual KITTI 1.3.1) or 2 (2.0.3)"
             ) from None
         tree = VkittiTree(out, height, width, version)
-    datamodule = instantiate(cfg.dataset, flow={"source": "exact"})
+    # Each frame is rendered once here: a sample cache would only write what is never read.
+    datamodule = instantiate(
+        cfg.dataset, flow={"source": "exact"}, sample_cache={"memory_mb": 0, "disk": False}
+    )
     sequences = synthetic_sequences(datamodule, layout)
     worlds_config = world_config(datamodule.world)
 

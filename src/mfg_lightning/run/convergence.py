@@ -25,6 +25,7 @@ validation to ``path`` (JSON: the rule, the curve, the status), which the reprod
 from __future__ import annotations
 
 import json
+import logging
 import math
 import time
 from pathlib import Path
@@ -35,6 +36,8 @@ import lightning as L
 from mfg_lightning.core.atomic import atomic_write_text
 
 __all__ = ["ConvergenceStop", "plateau_improvement"]
+
+log = logging.getLogger(__name__)
 
 
 def plateau_improvement(curve: list[tuple[int, float]], step: int, window: float) -> float | None:
@@ -156,6 +159,17 @@ class ConvergenceStop(L.Callback):
         if capped and (more_steps or self.reason == "time cap"):
             self._reopen = True
             self.decay_start = self.decay_end = self.reason = None
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        # A run that has already decayed to its end (a finished model resumed by a study that
+        # lost its stage results) must not train on: without this it would run one more
+        # validation interval at the rate's end and overwrite its checkpoints.
+        if self.decay_end is not None and int(trainer.global_step) >= self.decay_end:
+            log.info(
+                "callbacks.convergence: the run ended at step %d (%s); nothing to train",
+                self.decay_end, self.reason,
+            )  # fmt: skip
+            trainer.should_stop = True
 
     def on_train_batch_start(
         self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any, batch_idx: int
