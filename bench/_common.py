@@ -2,9 +2,10 @@
 
 Tables and numbers are :mod:`mfg_lightning.core.tables`' (``markdown_table`` and ``fmt`` here).
 
-A results file is Markdown: a title, the exact command that produced it, the machine (cores, CPU,
-load average at the start and the end, since the machine may be shared) and the library versions,
-then the script's tables and notes. Scripts print the same text they write.
+A results file is Markdown: a title, the exact command that produced it, the machine (cores, CPU
+with its AVX2 / AVX-512 / AVX512-BF16 / AMX features, load average at the start and the end,
+since the machine may be shared) and the library versions, then the script's tables and notes.
+Scripts print the same text they write.
 """
 
 from __future__ import annotations
@@ -57,13 +58,22 @@ def load_average() -> str:
 
 def cpu_model() -> str:
     """The CPU's model name (Linux), else what :mod:`platform` knows."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
+    from mfg_lightning.core.machine import cpu_model as model
+
+    return model()
+
+
+def cpu_description() -> str:
+    """The CPU's model and whether it has AVX2, AVX-512, AVX512-BF16 and AMX, plus the CPU
+    kernels torch dispatches to, e.g. ``"AMD EPYC (AVX2 yes, AVX-512 no, AVX512-BF16 no, AMX
+    no; torch: AVX2)"``: what every CPU time of a benchmark depends on."""
+    import torch
+
+    from mfg_lightning.core.machine import cpu_vector_features
+
+    features = [f"{k} {'yes' if v else 'no'}" for k, v in cpu_vector_features().items()]
+    capability = getattr(torch.backends.cpu, "get_cpu_capability", lambda: "unknown")()
+    return f"{cpu_model()} ({', '.join(features)}; torch: {capability})"
 
 
 def versions() -> dict[str, str]:
@@ -137,7 +147,7 @@ class Report:
             ("command", f"`{command_line()}`"),
             ("date (UTC)", time.strftime("%Y-%m-%d %H:%M", time.gmtime(self.started))),
             ("wall time", f"{time.time() - self.started:.0f} s"),
-            ("CPU", cpu_model()),
+            ("CPU", cpu_description()),
             ("cores (usable / total)", f"{usable} / {os.cpu_count()}"),
             ("torch threads", str(self.threads)),
             ("load average at start (1/5/15 min)", self.load_start),

@@ -21,6 +21,11 @@ Adam), the same samples already in memory (pre-collated batches, cycled) and bat
    convolution and decoder alone (GFLOP/s, fraction of peak), and what caps bf16-mixed.
 6. the candidate speed-ups in the bare loop: fused Adam (adopted), channels-last, the first
    convolution (2 input channels) in float32 or padded to 8 channels, ``torch.compile``.
+7. the convolutions' implementations (``model.net.conv_impl``, :mod:`mfg_lightning.models.conv`):
+   each layer's forward + backward as native / im2col / channels-last at the training batch, in
+   float32 (and bfloat16 under autocast where the CPU has it natively), the one ``auto`` picks,
+   and the training step with ``auto``'s choice against native (bare loop, interleaved). Written
+   as its own section of throughput.md; ``--convolutions`` runs only it (about a minute).
 
 Every rate is the median of ``--repeats`` interleaved measurements, each over ``--steps-*``
 steps after a warm-up: the machine may be shared.
@@ -31,7 +36,8 @@ prefetch) and the second (read back), against the uncached generator and pre-col
 batches; ``--sample-cache`` runs only it (about 4 minutes), ``--quick-start`` adds the
 quick start's wall time without and with the cache (about 15 minutes more).
 
-``python bench/throughput.py`` (about 7 minutes on 2 CPU cores); ``--tiny`` for a smoke run.
+``python bench/throughput.py`` (about 8 minutes on 2 CPU cores); ``--tiny`` for a smoke run;
+``python bench/throughput.py --convolutions`` for section 7 alone.
 """
 
 from __future__ import annotations
@@ -71,6 +77,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--candidate-repeats", type=int, default=2, help="of the other measurements")
     p.add_argument("--rss-steps", type=int, default=60, help="steps of the peak-memory run")
     p.add_argument("--no-compile", action="store_true", help="skip the torch.compile candidate")
+    p.add_argument(
+        "--convolutions", action="store_true", help="only the convolution implementations (7.)"
+    )
+    p.add_argument("--conv-repeats", type=int, default=5, help="timed repeats per layer (7.)")
+    p.add_argument("--conv-steps", type=int, default=20, help="training steps per rate (7.)")
     p.add_argument("--sample-cache", action="store_true", help="only the sample cache")
     p.add_argument(
         "--quick-start", action="store_true",
@@ -83,12 +94,14 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def base_overrides(tiny: bool) -> list[str]:
-    """The quick-start model (or the tiny test model) with nothing logged per step."""
+    """The quick-start model (or the tiny test model) with nothing logged per step, on PyTorch's
+    own convolutions (section 7 compares the others)."""
     # A constant learning rate: the bare loop has no scheduler, and a scheduler step costs the
     # same in either loop.
     ov = ["paths.output_dir=.", "model.image_log_every_n_steps=0", "model.scheduler=null"]
     # The data rows measure the generator itself (the sample cache has its own section).
     ov += UNCACHED_SAMPLES
+    ov += ["model.net.conv_impl=native"]
     if tiny:
         ov += TINY_OVERRIDES
     return ov
@@ -220,16 +233,23 @@ def bare_step_fn(
     compile_net: bool = False,
     autocast: bool = False,
     first_conv: str | None = None,
+    conv_impls: dict[str, str] | None = None,
 ) -> Callable[[dict], None]:
     """One training step written in plain PyTorch, on the module's network, loss and optimiser.
 
     ``autocast``: the encoder under CPU bf16 autocast, the decoders in float32 (``MFG.decode``
     leaves autocast itself): what the module runs under ``trainer.precision=bf16-mixed``. The
     other options are the candidate speed-ups of the step; all off is the float32 reference.
+    ``conv_impls``: an implementation per convolution (its module name → ``native``, ``im2col``
+    or ``channels_last``), e.g. what ``model.net.conv_impl=auto`` chose.
     """
     from mfg_lightning.core import geometry
+    from mfg_lightning.models.conv import switchable_layers
 
     net, loss_fn = model.net, model.loss_fn
+    layers = dict(switchable_layers(net))
+    for name, impl in (conv_impls or {}).items():
+        layers[name].impl = impl
     if channels_last:
         net = net.to(memory_format=torch.channels_last)
     if first_conv:
@@ -257,7 +277,7 @@ def bare_step_fn(
 
 
 def bare_rate(
-    overrides: list[str], batches: list[dict], warmup: int, steps: int, **options: bool
+    overrides: list[str], batches: list[dict], warmup: int, steps: int, **options: Any
 ) -> float:
     """Training samples per second of :func:`bare_step_fn` (same model build and seed)."""
     model, _ = build_model(overrides)
@@ -466,7 +486,9 @@ def layer_kernels(overrides: list[str], batch: dict, bf16: bool, repeats: int) -
             t_fwd.append(mid - start)
             t_bwd.append(time.perf_counter() - mid)
         f, b = statistics.median(t_fwd), statistics.median(t_bwd)
-        label = f"{name} {type(m).__name__} {tuple(m.weight.shape)} in {tuple(x.shape[1:])}"
+        # Conv2d for every convolution, SwitchableConv2d included (its native path here)
+        kind = "Conv2d" if isinstance(m, nn.Conv2d) else type(m).__name__
+        label = f"{name} {kind} {tuple(m.weight.shape)} in {tuple(x.shape[1:])}"
         rows.append((label, 1e3 * f, 1e3 * b, flops / (f + b) / 1e9))
     return rows
 
@@ -593,6 +615,146 @@ def peak_rss_mb(steps: int, tiny: bool, threads: int) -> tuple[float, float]:
 
 
 PRECISIONS = {"float32": "32-true", "bf16-mixed": "bf16-mixed"}
+TITLE = "Throughput: training, inference, data, memory"
+#: The marker of section 7's block in throughput.md (:meth:`Report.write_section`).
+CONV_MARKER = "conv-impl"
+
+
+def with_conv_impl(overrides: list[str], impl: str) -> list[str]:
+    """``overrides`` with ``model.net.conv_impl=<impl>`` in place of any earlier value."""
+    return [o for o in overrides if not o.startswith("model.net.conv_impl=")] + [
+        f"model.net.conv_impl={impl}"
+    ]
+
+
+def conv_layer_rows(
+    overrides: list[str], shape: tuple[int, ...], dtype: torch.dtype, repeats: int
+) -> tuple[list[list[str]], dict[str, str]]:
+    """Every convolution timed alone under each implementation, as ``model.net.conv_impl=auto``
+    times it at the start of training (nothing cached): the table rows (a total row last) and
+    the choice, layer name → implementation."""
+    from mfg_lightning.models.conv import CONV_IMPLS, choose_conv_impls, switchable_layers
+
+    model, _ = build_model(with_conv_impl(overrides, "auto"))
+    net = model.net.train()
+    layers = dict(switchable_layers(net))
+    # min_cpu_share=0: the table shows what the times pick; the environment gives the load
+    choices = choose_conv_impls(net, shape, dtype, None, repeats, min_cpu_share=0.0)
+    rows, totals = [], dict.fromkeys([*CONV_IMPLS, "chosen"], 0.0)
+    for c in choices:
+        conv = layers[c.name]
+        (k, _), (s, _), (p, _) = conv.kernel_size, conv.stride, conv.padding
+        h, w = c.shape[-2:]
+        out = f"{(h + 2 * p - k) // s + 1}×{(w + 2 * p - k) // s + 1}"
+        times = [fmt(c.ms[i], 2) if i in c.ms else "-" for i in CONV_IMPLS]
+        for impl in CONV_IMPLS:
+            totals[impl] += c.ms.get(impl, float("nan"))
+        totals["chosen"] += c.ms[c.choice]
+        rows.append(
+            [f"`{c.name}` {conv.in_channels}→{conv.out_channels}, {k}×{k} / {s}",
+             f"{h}×{w} → {out}", str(dtype).removeprefix("torch."), *times, c.choice,
+             fmt(c.ms["native"] / c.ms[c.choice], 2)]
+        )  # fmt: skip
+    rows.append(
+        ["all convolutions", "", str(dtype).removeprefix("torch."),
+         *(fmt(totals[i], 2) for i in CONV_IMPLS), "per layer",
+         fmt(totals["native"] / totals["chosen"], 2)]
+    )  # fmt: skip
+    return rows, {c.name: c.choice for c in choices}
+
+
+def conv_section(
+    args: argparse.Namespace, base: list[str], cfg: Any, samples: list[dict] | None = None
+) -> Path:
+    """7. The convolutions' implementations: each layer timed alone (native, im2col,
+    channels-last) at the training batch in every dtype training may compute in on this CPU,
+    what ``model.net.conv_impl=auto`` picks, and the bare training step with that choice
+    against all native. Written as its own section of throughput.md (the rest kept)."""
+    from _common import cpu_description
+
+    from mfg_lightning.run.convolutions import measured_dtype
+
+    batch_size = 4 if args.tiny else int(cfg.dataset.batch_size)
+    if samples is None:
+        samples = render(cfg, 2 * batch_size)
+    batches = make_batches(samples, batch_size)
+    height, width = int(cfg.dataset.height), int(cfg.dataset.width)
+    dtypes = [torch.float32]
+    if measured_dtype("bf16-mixed") == torch.bfloat16:
+        dtypes.append(torch.bfloat16)
+    report = Report("throughput", TITLE, args.out)
+    report.add(
+        f"CPU: {cpu_description()}; torch threads: {torch.get_num_threads()}. MFG "
+        f"{height} × {width}, M = {cfg.model.net.hidden_units}, batch {batch_size} (the "
+        "training batch)"
+        + ("" if len(dtypes) > 1 else "; bfloat16 not measured: this CPU lacks native bfloat16 "
+           "(AVX512-BF16, AMX), so bf16-mixed training chooses for float32 only")
+        + "."
+    )  # fmt: skip
+    rows, steps = [], []
+    native = with_conv_impl(base, "native")
+    for dtype in dtypes:
+        layer_rows, choice = conv_layer_rows(
+            base, (batch_size, 2, height, width), dtype, args.conv_repeats
+        )
+        rows += layer_rows
+        bf16 = dtype == torch.bfloat16
+        runs = interleaved(
+            {
+                "native": partial(bare_rate, native, batches, args.warmup, args.conv_steps,
+                                  autocast=bf16),
+                "auto": partial(bare_rate, native, batches, args.warmup, args.conv_steps,
+                                autocast=bf16, conv_impls=choice),
+            },
+            args.repeats,
+        )  # fmt: skip
+        pairs = [a / n for a, n in zip(runs["auto"], runs["native"], strict=True)]
+        steps.append(
+            [batch_size, str(dtype).removeprefix("torch."),
+             fmt(statistics.median(runs["native"]), 1), fmt(statistics.median(runs["auto"]), 1),
+             f"{statistics.median(pairs):.3f} ({min(pairs):.3f}–{max(pairs):.3f})"]
+        )  # fmt: skip
+    report.add(
+        markdown_table(
+            [
+                "layer (C_in→C_out, kernel / stride)",
+                "map (in → out)",
+                "dtype",
+                "native (ms)",
+                "im2col (ms)",
+                "channels-last (ms)",
+                "chosen",
+                "native / chosen",
+            ],
+            rows,
+        )
+        + f"\nEach convolution alone, forward + backward (the weight gradient, and the input "
+        "gradient except for the first layer's, the flow), on a random input of the shape and "
+        "dtype it gets in the training step, timed as `model.net.conv_impl=auto` times it at "
+        f"the start of training: the best of {args.conv_repeats} after one warm-up, the three "
+        "interleaved; bfloat16: the forward under CPU autocast. The input is NCHW; an "
+        "implementation's own copies (channels-last: the input to NHWC; im2col: the padded "
+        "input and the gathered rows) are timed with it. *Chosen*: the fastest, native unless "
+        "another is at least 5 % faster; `native / chosen`: the layer's speed-up."
+    )
+    report.add(
+        "Training step with the chosen implementations against native:\n\n"
+        + markdown_table(
+            [
+                "batch",
+                "dtype",
+                "native (samples/s)",
+                "auto's choice (samples/s)",
+                "auto / native (range)",
+            ],
+            steps,
+        )
+        + f"\nThe bare training loop (section 1: the network, loss and fused Adam; bfloat16: "
+        f"the encoder under autocast), {args.warmup} warm-up then {args.conv_steps} steps per "
+        f"rate, {args.repeats} interleaved repeats, medians; the ratio of each back-to-back "
+        "pair, then their median (range)."
+    )
+    return report.write_section(CONV_MARKER, "Convolution implementations per layer")
 
 
 #: Overrides that turn the sample cache and its prefetch off: what the other sections' data
@@ -802,14 +964,17 @@ def main(argv: list[str] | None = None) -> Path:
         args.batch_sizes, args.warmup, args.rss_steps = [1, 2, 4], 2, 2
         args.repeats = args.candidate_repeats = 1
         args.no_compile = True
+        args.conv_repeats, args.conv_steps = 1, 2
     if len(args.steps_per_batch_size) != len(args.batch_sizes):
         raise SystemExit("error: give one --steps-per-batch-size per --batch-sizes")
     torch.set_num_threads(args.threads or os.cpu_count() or 1)
-    report = Report("throughput", "Throughput: training, inference, data, memory", args.out)
     base = base_overrides(args.tiny)
     _, cfg = build_model(base)
     if args.sample_cache:
         return sample_cache_section(args, cfg)
+    if args.convolutions:
+        return conv_section(args, base, cfg)
+    report = Report("throughput", TITLE, args.out)
     height, width = cfg.dataset.height, cfg.dataset.width
     samples = render(cfg, max(args.samples, *args.batch_sizes))
     sizes = list(zip(args.batch_sizes, args.steps_per_batch_size, strict=True))
@@ -1194,8 +1359,10 @@ def main(argv: list[str] | None = None) -> Path:
         "candidates are patched onto the network in the bare loop only (the same numbers: "
         "float32 is more precise, zero-padded channels add zeros)."
     )
-    path = report.write()
-    # The sample cache: a section of its own (--sample-cache reruns it).
+    report.write()
+    # 7. The convolutions' implementations: a section of its own (--convolutions reruns it).
+    path = conv_section(args, base, cfg, samples)
+    # 8. The sample cache: a section of its own (--sample-cache reruns it).
     sample_cache_section(args, cfg)
     return path
 

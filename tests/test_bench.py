@@ -139,6 +139,20 @@ def test_throughput_benchmark(tmp_path: Path) -> None:
         assert all(_number(c) > 0 for c in (*row[1:4], row[5])), row  # samples/s
         assert math.isfinite(_number(row[4])) and math.isfinite(_number(row[6])), row
     assert _number(cache["pre-collated batches in memory"][3]) > 0
+    # 7. The convolutions' implementations, a marked section: the CPU and its features named,
+    # every layer's three times and the choice, then the step with the choice against native.
+    section = text.split("<!-- conv-impl:start -->", 1)[1].split("<!-- conv-impl:end -->")[0]
+    assert "AVX2" in section and "AVX512-BF16" in section and "AMX" in section
+    layers = _table_rows(section, "## Convolution implementations per layer")
+    assert [r[0].split()[0] for r in layers[:8]] == [
+        f"`encoder.{i}`" for i in (0, 2, 4, 6, 8, 10, 12, 14)
+    ]
+    assert layers[8][0] == "all convolutions" and layers[0][2] == "float32"
+    for row in layers:
+        assert all(_number(c) > 0 for c in row[3:6]) and _number(row[7]) > 0, row
+        assert row[6] in ("native", "im2col", "channels_last", "per layer"), row
+    step = _table_rows(section, "Training step with the chosen implementations")
+    assert step[0][:2] == ["4", "float32"] and _number(step[0][3]) > 0
 
 
 def test_scaleout_benchmark(tmp_path: Path) -> None:

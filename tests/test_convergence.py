@@ -80,6 +80,7 @@ def test_a_plateau_starts_the_decay_and_stops_training(tmp_path: Path) -> None:
     assert status["rule"]["min_improvement"] == 1.0
     base = float(cfg.model.optimizer.lr)
     assert _lrs(out / "checkpoints" / "last.ckpt") == pytest.approx([0.25 * base])
+
     # Resumed (a study that lost its stage results trains it "again"): not one more step, and
     # the checkpoints keep their weights.
     def weights() -> dict[str, tuple[int, dict[str, torch.Tensor]]]:

@@ -1,1 +1,2 @@
-"""The MFG network (:mod:`.mfg`) and its LightningModule (:mod:`.mfg_module`)."""
+"""The MFG network (:mod:`.mfg`; its convolutions' implementations: :mod:`.conv`) and its
+LightningModule (:mod:`.mfg_module`)."""

@@ -9,6 +9,9 @@ Precision: under autocast (``trainer.precision=bf16-mixed`` / ``16-mixed``) the 
 the low precision; the decoders and the upsampling always run in float32, so the fields come out
 in float32: recovering (t, ω) from exact 48 × 128 fields rounded to bfloat16 errs by up to
 4.7e-4 m, against 3e-6 m from the float32 fields (the 64 motions of ``tests/test_precision.py``).
+
+Convolutions: each is a :class:`mfg_lightning.models.conv.SwitchableConv2d` (``nn.Conv2d``'s
+weights and state_dict; native, im2col or channels-last computation: ``model.net.conv_impl``).
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from mfg_lightning.core.geometry import float32_math, to_float32
+from mfg_lightning.models.conv import SwitchableConv2d, check_conv_impl
 
 
 class MFGOutput(NamedTuple):
@@ -215,6 +219,10 @@ class MFG(nn.Module):
         input_scale: the input flow (pixels) is multiplied by this before the encoder. With the
             sparsity function's fixed B, the activations' scale sets the sparsity pressure; the
             released code feeds PWC-Net's raw output (about quarter-resolution pixels / 5).
+        conv_impl: how every convolution computes (:mod:`mfg_lightning.models.conv`, the same
+            weights and state_dict whichever): ``native`` (PyTorch's ``nn.Conv2d``), ``im2col``
+            (one gather and one GEMM), ``channels_last``, or ``auto``: each layer's fastest on
+            this machine, measured at the start of training (``native`` until then).
     """
 
     def __init__(
@@ -231,6 +239,7 @@ class MFG(nn.Module):
         init: str = "xavier",
         align_corners: bool = True,
         input_scale: float = 1.0,
+        conv_impl: str = "native",
     ) -> None:
         super().__init__()
         channels, kernels, strides = list(channels), list(kernels), list(strides)
@@ -245,6 +254,7 @@ class MFG(nn.Module):
             raise ValueError(f"model.net.init must be one of {INITS}, got {init!r}")
         if not (math.isfinite(input_scale) and input_scale > 0):
             raise ValueError(f"model.net.input_scale must be a positive number, got {input_scale}")
+        check_conv_impl(conv_impl)
         self.height, self.width = height, width
         self.hidden_units = hidden_units
         self.align_corners = bool(align_corners)
@@ -255,12 +265,11 @@ class MFG(nn.Module):
         for i, (c_out, k, s) in enumerate(
             zip([*channels, hidden_units], kernels, strides, strict=True)
         ):
-            layers += [nn.Conv2d(c_in, c_out, k, stride=s, padding=k // 2), nn.ReLU(inplace=True)]
+            conv = SwitchableConv2d(c_in, c_out, k, stride=s, padding=k // 2, impl=conv_impl)
+            layers += [conv, nn.ReLU(inplace=True)]
             if i < double_blocks:
-                layers += [
-                    nn.Conv2d(c_out, c_out, k, stride=1, padding=k // 2),
-                    nn.ReLU(inplace=True),
-                ]
+                conv = SwitchableConv2d(c_out, c_out, k, stride=1, padding=k // 2, impl=conv_impl)
+                layers += [conv, nn.ReLU(inplace=True)]
             c_in = c_out
         self.encoder = nn.Sequential(*layers)
         self.out_height = max(1, round(height * decoder_scale))

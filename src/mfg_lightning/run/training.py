@@ -27,6 +27,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from mfg_lightning.core.atomic import atomic_write_text
 from mfg_lightning.run.callbacks import LastCheckpoint
 from mfg_lightning.run.checkpoints import CheckpointError
+from mfg_lightning.run.convolutions import ConvolutionChoice
 from mfg_lightning.run.precision import check_precision
 from mfg_lightning.run.runs import (
     build_model,
@@ -148,6 +149,8 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     callbacks = instantiate_list(cfg.get("callbacks"))
     # LastCheckpoint saves after ModelCheckpoint has recorded a validation's score (stable sort).
     callbacks.sort(key=lambda cb: isinstance(cb, LastCheckpoint))
+    # model.net.conv_impl=auto: each convolution's fastest implementation, measured at setup
+    callbacks.insert(0, ConvolutionChoice(cfg.dataset.batch_size, cfg.paths.get("cache_dir")))
     finish_stale_logger_runs()
     loggers = instantiate_list(cfg.get("logger"))
     if ckpt_path is not None:

@@ -1,0 +1,57 @@
+"""What the CPU is: its model name and the vector instruction sets that set the speed of every
+CPU kernel (oneDNN picks its convolution and GEMM kernels by them).
+
+Read from ``/proc/cpuinfo`` (Linux); elsewhere the model is what :mod:`platform` knows and no
+flag is reported. Kept free of torch so that light tools and the benchmarks' headers can use it.
+"""
+
+from __future__ import annotations
+
+import platform
+from functools import cache
+from pathlib import Path
+
+#: The vector features reported, by the ``/proc/cpuinfo`` flag that says the CPU has them.
+VECTOR_FEATURES: dict[str, str] = {
+    "AVX2": "avx2",
+    "AVX-512": "avx512f",
+    "AVX512-BF16": "avx512_bf16",
+    "AMX": "amx_bf16",
+}
+
+
+@cache
+def _cpuinfo() -> tuple[str, frozenset[str]]:
+    """The first processor's model name and flags from ``/proc/cpuinfo`` (empty where absent)."""
+    model, flags = "", frozenset()
+    try:
+        lines = Path("/proc/cpuinfo").read_text().splitlines()
+    except OSError:
+        return model, flags
+    for line in lines:
+        key, _, value = line.partition(":")
+        key = key.strip()
+        if key == "model name" and not model:
+            model = value.strip()
+        elif key == "flags" and not flags:
+            flags = frozenset(value.split())
+    return model, flags
+
+
+def cpu_model() -> str:
+    """The CPU's model name (Linux), else what :mod:`platform` knows."""
+    return _cpuinfo()[0] or platform.processor() or platform.machine() or "unknown"
+
+
+def cpu_vector_features() -> dict[str, bool]:
+    """Which of :data:`VECTOR_FEATURES` the CPU has, e.g. ``{"AVX2": True, "AVX-512": False,
+    "AVX512-BF16": False, "AMX": False}`` (all False where ``/proc/cpuinfo`` is unreadable)."""
+    flags = _cpuinfo()[1]
+    return {name: flag in flags for name, flag in VECTOR_FEATURES.items()}
+
+
+def describe_cpu() -> str:
+    """One line naming the CPU and its vector features, e.g. ``"AMD EPYC (AVX2 yes, AVX-512 no,
+    AVX512-BF16 no, AMX no)"``: what a measured time depends on."""
+    features = ", ".join(f"{k} {'yes' if v else 'no'}" for k, v in cpu_vector_features().items())
+    return f"{cpu_model()} ({features})"

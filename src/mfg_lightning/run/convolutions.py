@@ -1,0 +1,87 @@
+"""``model.net.conv_impl=auto`` in a training run: the hook that measures and picks each
+convolution's implementation (:func:`mfg_lightning.models.conv.choose_conv_impls`) once the
+Trainer knows the device, the precision and the thread count.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import lightning as L
+import torch
+
+from mfg_lightning.models.conv import (
+    AUTO,
+    BUSY_CPU_SHARE,
+    choose_conv_impls,
+    switchable_layers,
+)
+from mfg_lightning.run.precision import cpu_has_native_bf16
+
+log = logging.getLogger(__name__)
+
+
+def measured_dtype(precision: object) -> torch.dtype:
+    """The dtype the encoder's convolutions compute in under ``trainer.precision`` on a CPU,
+    for measuring them: bfloat16 under a mixed precision (Lightning runs ``16-mixed`` as
+    ``bf16-mixed`` on a CPU) where the CPU computes it natively, float32 otherwise: without
+    AVX512-BF16 or AMX, bfloat16 convolutions are emulated and not what a machine that trains
+    in bfloat16 would run, so the choice is made (and logged as made) for float32 only."""
+    if not str(precision).endswith("-mixed"):
+        return torch.float32
+    if cpu_has_native_bf16():
+        return torch.bfloat16
+    log.info(
+        "model.net.conv_impl=auto: this CPU lacks native bfloat16 (no AVX512-BF16 or AMX): the "
+        "convolutions are measured and chosen for float32 only, although training runs %s",
+        precision,
+    )
+    return torch.float32
+
+
+class ConvolutionChoice(L.Callback):
+    """At the start of fitting, give every ``auto`` convolution of the module's ``net`` its
+    fastest implementation on this machine (measured once per machine, then read from
+    ``<cache_dir>/conv_impl/``; logged). Networks without ``auto`` layers are left alone, and
+    nothing is measured then.
+
+    On a GPU ``auto`` is ``native`` (cuDNN chooses its own algorithms: ``trainer.benchmark``).
+    Under DDP every process measures with its own thread count (Lightning has set it by then).
+
+    Args:
+        batch_size: the training batch per process (``dataset.batch_size``).
+        cache_dir: ``paths.cache_dir``; None: measure every time, cache nothing.
+        repeats: timed repeats per implementation and layer (after one warm-up).
+        min_cpu_share: below this share of its threads' CPU time while timing, the machine
+            counts as busy and the layers keep native (:func:`choose_conv_impls`).
+    """
+
+    def __init__(
+        self,
+        batch_size: int,
+        cache_dir: str | Path | None = None,
+        repeats: int = 3,
+        min_cpu_share: float = BUSY_CPU_SHARE,
+    ) -> None:
+        self.batch_size = int(batch_size)
+        self.cache_dir = cache_dir
+        self.repeats = int(repeats)
+        self.min_cpu_share = float(min_cpu_share)
+
+    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        net = getattr(pl_module, "net", None)
+        if stage != "fit" or not isinstance(net, torch.nn.Module):
+            return
+        pending = [layer for _, layer in switchable_layers(net) if layer.impl == AUTO]
+        if not pending:
+            return
+        device = trainer.strategy.root_device
+        if device.type != "cpu":
+            for layer in pending:
+                layer.impl = "native"
+            log.info("model.net.conv_impl=auto: native on %s (measured on CPUs only)", device)
+            return
+        shape = (self.batch_size, 2, int(net.height), int(net.width))
+        dtype = measured_dtype(trainer.precision)
+        choose_conv_impls(net, shape, dtype, self.cache_dir, self.repeats, self.min_cpu_share)
