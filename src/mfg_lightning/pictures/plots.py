@@ -412,7 +412,13 @@ def top_k_figure(
 # --------------------------------------------------------------------------------------------
 
 #: One line of a :func:`line_figure` panel: label → (x values, y values); None y: not drawn.
-Lines = Mapping[str, tuple[Sequence[float], Sequence[float | None]]]
+#: ``name → (x, y)``, or ``(x, y, y error)``: an error bar of ± the error at each point (None:
+#: none there), e.g. the seeds' standard deviation.
+Lines = Mapping[
+    str,
+    tuple[Sequence[float], Sequence[float | None]]
+    | tuple[Sequence[float], Sequence[float | None], Sequence[float | None]],
+]
 
 
 def line_figure(
@@ -430,17 +436,29 @@ def line_figure(
         title: the figure's title.
         log_x, log_y: logarithmic axes.
     """
-    from matplotlib.ticker import EngFormatter
+    from matplotlib.ticker import EngFormatter, FixedLocator, FuncFormatter, NullFormatter
 
     # many lines: the legend goes beside the panels, where it hides no curve
     many = len({n for _, lines in panels for n in lines}) > 4
     fig = _new_figure(4.2 * max(len(panels), 1) + (2.6 if many else 0.0), 3.4)
     for ax, lines, index in _side_by_side(fig, panels, log_y):
-        for name, (x, y) in lines.items():
-            ax.plot(x, _nan_for_none(y), marker="o", color=method_colour(index(name)), label=name)
+        xs: set[float] = set()
+        for name, (x, y, *err) in lines.items():
+            colour = method_colour(index(name))
+            ax.plot(x, _nan_for_none(y), marker="o", color=colour, label=name)
+            if err:
+                ax.errorbar(x, _nan_for_none(y), yerr=[0.0 if e is None else float(e)
+                            for e in err[0]], fmt="none", ecolor=colour, capsize=4)  # fmt: skip
+            xs.update(float(v) for v in x)
         ax.set_xlabel(x_label)
         if log_x:
             ax.set_xscale("log")
+            if 0 < len(xs) <= 8:
+                # ticks at the measured x only: a decade's default labels (3×10³ 4×10³ …) run
+                # into each other on a short axis
+                ax.xaxis.set_major_locator(FixedLocator(sorted(xs)))
+                ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:,.0f}"))
+                ax.xaxis.set_minor_formatter(NullFormatter())
         else:
             # 20k rather than 20000: long tick labels run into each other
             ax.xaxis.set_major_formatter(EngFormatter(sep=""))

@@ -189,7 +189,7 @@ def size_section(size: Mapping[str, dict]) -> tuple[Lines, Any]:
     if not points:
         return [], None
     classical = classical_metrics(size["classical"]["classical"]) if "classical" in size else {}
-    rows, xs, rot, trans = [], [], [], []
+    rows, xs, rot, trans, rot_sd, trans_sd = [], [], [], [], [], []
     for stride, runs in points.items():
         sp_r = spread_of(dict(enumerate(runs)), lambda r: r["test"].get("rpe_rot"))
         sp_t = spread_of(dict(enumerate(runs)), lambda r: r["test"].get("rpe_trans"))
@@ -199,8 +199,11 @@ def size_section(size: Mapping[str, dict]) -> tuple[Lines, Any]:
         xs.append(pairs)
         rot.append(sp_r.mean)
         trans.append(sp_t.mean)
-    lines_r = {"MFG (seed mean)": (xs, rot)}
-    lines_t = {"MFG (seed mean)": (xs, trans)}
+        rot_sd.append(sp_r.std)
+        trans_sd.append(sp_t.std)
+    label = "MFG (seed mean ± sd)" if any(v is not None for v in rot_sd) else "MFG"
+    lines_r: dict[str, tuple] = {label: (xs, rot, rot_sd)}
+    lines_t: dict[str, tuple] = {label: (xs, trans, trans_sd)}
     for name, m in classical.items():
         lines_r[_short(name)] = (xs, [m.get("rpe_rot")] * len(xs))
         lines_t[_short(name)] = (xs, [m.get("rpe_trans")] * len(xs))

@@ -178,7 +178,9 @@ class Study:
             "time_cap": max_time,
             "batch_size": batch,
             "samples_seen": ran * batch,
-            "train_seconds": seconds,
+            # the training's own time over every session (the callback's clock: a finished
+            # model resumed here adds nothing), not this call's wall time
+            "train_seconds": float(status.get("seconds") or seconds),
             "resumed": resumed,
             # relative to work_dir: the committed result names no path of this machine
             "checkpoint": str(chosen.relative_to(self.work)),
