@@ -210,7 +210,7 @@ def test_make_gpu_check_runs_every_part_on_a_cpu(tmp_path: Path) -> None:
         "## Determinism",
         "## One checkpoint on the CPU and on the device",
         "checkpoint of the `bf16-mixed` run",
-        "provisional, to be set from the first GPU run",
+        "3x the first GPU run's largest difference",
         "## Environment",
     ):
         assert needle in text, needle
