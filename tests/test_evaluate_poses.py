@@ -423,8 +423,10 @@ def test_a_tum_estimate_takes_the_times_txt_of_kitti_s_layout(tmp_path: Path, ca
     assert got["gt_times"] == str(tmp_path / "dataset" / "sequences" / "00" / "times.txt")
     assert (got["num_poses"], got["poses_given"], got["gt_poses"]) == (110, 110, 120)
     expected = evaluate_trajectory(gt, _perturb(gt, 8)[keep], frames=keep)
+    # rel 1e-9: the estimate went through a TUM text file, whose printed digits (not the
+    # arithmetic) limit the agreement (drift_r_err differed by 6e-12 relative)
     assert {k: got[k] for k in METRIC_KEYS} == pytest.approx(
-        {k: expected[k] for k in METRIC_KEYS}, rel=1e-12
+        {k: expected[k] for k in METRIC_KEYS}, rel=1e-9
     )
     # The matches table says how each method's poses were matched.
     code, out, _ = _run(capsys, *argv)

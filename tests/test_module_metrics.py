@@ -97,7 +97,9 @@ def _compare(got: dict[str, float], expected: dict[str, float]) -> None:
         if math.isnan(value):
             assert math.isnan(got[key]), key
         else:
-            assert got[key] == pytest.approx(value, rel=1e-6, abs=1e-12), key
+            # rel 1e-5: float32 reductions differ between CPU kinds (AVX2 against AVX-512
+            # kernels) by ~1e-6 relative in a standard deviation; a real change moves far more
+            assert got[key] == pytest.approx(value, rel=1e-5, abs=1e-12), key
 
 
 @pytest.mark.slow
