@@ -138,12 +138,11 @@ def test_a_pickle_payload_is_never_unpickled(tmp_path: Path) -> None:
     assert not marker.exists()
 
 
-def test_checkpoints_written_by_training_load_safely(tmp_path: Path) -> None:
+def test_checkpoints_written_by_training_load_safely(trained: Path) -> None:
     """A real training's checkpoint (Lightning's loops, callbacks, optimiser and scheduler state)
-    holds only tensors and plain data, and its stored configs pass the allow-list."""
-    run = tmp_path / "run"
-    run_module("mfg_lightning.train", "debug=tiny", f"hydra.run.dir={run}", cwd=tmp_path)
-    path = run / "checkpoints" / "last.ckpt"
+    holds only tensors and plain data, and its stored configs pass the allow-list. (The
+    module's one tiny training, :func:`trained`, serves the crafted checkpoints below too.)"""
+    path = trained / "checkpoints" / "last.ckpt"
     ckpt = torch.load(path, map_location="cpu", weights_only=True)  # no allow-listed types
     assert ckpt["mfg_model_config"]["net"]["hidden_units"] == 64
     module = module_from_checkpoint(path)

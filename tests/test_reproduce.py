@@ -62,6 +62,7 @@ def test_bad_config_is_one_error_line(tmp_path: Path) -> None:
     assert res.stderr.strip().splitlines()[-1].startswith("error: poses_dir")
 
 
+@pytest.mark.slow  # the whole study, tiny: ~100 s on 2 cores
 @pytest.mark.skipif(not POSES.is_dir(), reason="KITTI poses not found beside the repository")
 def test_tiny_study_runs_resumes_and_rebuilds_from_committed_results(tmp_path: Path) -> None:
     """The whole tiny study; then again (every stage cached, nothing retrained); then as a fresh
