@@ -195,3 +195,29 @@ def test_report_text_follows_a_changed_stage_result(tmp_path: Path) -> None:
     # no figure of an earlier report layout is left beside it
     assert not stale.exists() and (report.with_suffix("") / "verdicts.png").is_file()
     assert not any(p.is_dir() for p in (tmp_path / "work").glob("models/*"))
+
+
+def test_the_size_paragraph_reads_its_trend_from_the_points() -> None:
+    """MFG's rotation from the smallest set to the largest, in the smallest set's seed spread,
+    and where its seed mean is below IRLS's: all from the stage results."""
+    from mfg_lightning.study.prose import _n, para_size
+
+    def point(stride: int, pairs: int, rot: float) -> dict:
+        return {"stride": stride, "train_pairs": pairs, "test": {"rpe_rot": rot}}
+
+    size = {
+        "stride24": point(24, 800, 0.0014),
+        "stride24_seed1": point(24, 800, 0.0012),
+        "stride24_seed2": point(24, 800, 0.0016),
+        "stride3": point(3, 6400, 0.0006),
+        "classical": {"classical": [{"name": "IRLS", "metrics": {"rpe_rot": 0.0010}}]},
+    }
+    text = para_size(size)
+    assert "×0.43" in text  # 0.0006 / 0.0014
+    assert "4.0 seed standard deviations of the smallest set (down)" in text  # 0.0008 / 0.0002
+    assert f"below IRLS's at {_n(6400)} pairs" in text
+    size["stride3"]["test"]["rpe_rot"] = 0.0020
+    text = para_size(size)
+    assert "(up)" in text and "above IRLS's at every size measured" in text
+    del size["stride3"]
+    assert "changes" not in para_size(size)  # one size: no trend

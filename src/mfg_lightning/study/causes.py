@@ -195,7 +195,10 @@ def size_section(size: Mapping[str, dict]) -> tuple[Lines, Any]:
         sp_t = spread_of(dict(enumerate(runs)), lambda r: r["test"].get("rpe_trans"))
         pairs = runs[0]["train_pairs"]
         conv = sum(bool((r.get("convergence") or {}).get("converged")) for r in runs)
-        rows.append([str(stride), str(pairs), sp_r.text(5), sp_t.text(4), f"{conv} of {len(runs)}"])
+        # where the seeds trained: the curve's points may come from more than one machine
+        where = sorted({f"{r.get('precision', '?')} on {r.get('cpu_kind', '?')}" for r in runs})
+        rows.append([str(stride), str(pairs), sp_r.text(5), sp_t.text(4),
+                     f"{conv} of {len(runs)}", ", ".join(where)])  # fmt: skip
         xs.append(pairs)
         rot.append(sp_r.mean)
         trans.append(sp_t.mean)
@@ -234,6 +237,7 @@ def size_section(size: Mapping[str, dict]) -> tuple[Lines, Any]:
                     "RPE rotation (rad)",
                     "RPE translation (m)",
                     "converged",
+                    "trained",
                 )
             ],
             rows,

@@ -187,9 +187,10 @@ def para_size(size: Mapping[str, dict]) -> str | None:
     if cl is not None:
         irls = next((c["metrics"].get("rpe_rot") for c in cl["classical"] if "IRLS" in c["name"]),
                     None)  # fmt: skip
-    parts = []
+    parts, spreads = [], []
     for runs in points.values():
         sp = spread_of(dict(enumerate(runs)), lambda r: r["test"].get("rpe_rot"))
+        spreads.append((int(runs[0]["train_pairs"]), sp))
         parts.append(
             f"{_n(runs[0]['train_pairs'])} pairs: {sp.text(5)} rad"
             + (f" (×{fmt(ratio(sp.mean, irls), 2)} IRLS's)" if irls is not None else "")
@@ -202,6 +203,36 @@ def para_size(size: Mapping[str, dict]) -> str | None:
         text += (
             f" The robust continuous method (IRLS), which does not train, has {fmt(irls, 5)} rad "
             "on the same test pairs."
+        )
+    return text + _size_trend(spreads, irls)
+
+
+def _size_trend(spreads: list[tuple[int, Any]], irls: float | None) -> str:
+    """How MFG's rotation moves from the smallest training set to the largest, against the
+    smallest set's seed spread, and at which sizes it is below IRLS's (``spreads``: (training
+    pairs, :class:`~mfg_lightning.study.noise.Spread`) from the smallest set on)."""
+    if len(spreads) < 2:
+        return ""
+    (n0, first), (n1, last) = spreads[0], spreads[-1]
+    if first.mean is None or last.mean is None:
+        return ""
+    text = (
+        f" From {_n(n0)} to {_n(n1)} training pairs MFG's rotation error changes "
+        f"×{fmt(ratio(last.mean, first.mean), 2)}"
+    )
+    if first.std:
+        moved = (first.mean - last.mean) / first.std
+        text += (
+            f", {fmt(abs(moved), 1)} seed standard deviations of the smallest set "
+            f"({'down' if moved > 0 else 'up'})"
+        )
+    text += "."
+    if irls is not None:
+        below = [n for n, sp in spreads if sp.mean is not None and sp.mean < irls]
+        text += (
+            f" Its seed mean is below IRLS's at {', '.join(_n(n) for n in below)} pairs."
+            if below
+            else " Its seed mean is above IRLS's at every size measured."
         )
     return text
 
