@@ -89,7 +89,8 @@ def versions() -> dict[str, str]:
     try:
         from mfg_lightning.run.runs import git_commit
 
-        out["mfg-lightning commit"] = (git_commit() or "-")[:12]
+        commit = (git_commit() or "-")[:12]
+        out["mfg-lightning commit"] = commit + ("+dirty" if commit != "-" and _dirty() else "")
     except ImportError:
         out["mfg-lightning commit"] = "-"
     return out
@@ -218,3 +219,22 @@ def replace_marked(text: str, marker: str, body: str, before: str | None = None)
     if at is None:
         return text.rstrip("\n") + "\n\n" + block
     return "".join(lines[:at]) + block + "\n" + "".join(lines[at:])
+
+
+def _dirty() -> bool:
+    """Whether the checkout has uncommitted changes to tracked files (a result measured on it
+    names its commit with ``+dirty``: that commit alone does not rebuild the code measured)."""
+    import subprocess
+
+    try:
+        out = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=Path(__file__).resolve().parent,
+            capture_output=True,
+            text=True,
+            timeout=5,
+            check=False,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return False
+    return out.returncode == 0 and bool(out.stdout.strip())

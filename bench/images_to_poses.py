@@ -405,7 +405,7 @@ def main(argv: list[str] | None = None) -> Path:
     import cv2
     import torch
 
-    from mfg_lightning.run.runs import cpu_kind
+    from mfg_lightning.core.machine import cpu_kind
 
     warnings.filterwarnings("ignore", ".*does not have many workers.*")
     if args.threads:

@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from conftest import bench_module
-from mfg_lightning.run.runs import cpu_kind
+from mfg_lightning.core.machine import cpu_kind
 
 OTHER = "# Throughput: training, inference, data, memory\n\n## Training\n\nkeep me\n\n"
 ENVIRONMENT = "## Environment\n\n| a | b |\n|---|---:|\n| c | d |\n"

@@ -214,10 +214,12 @@ def test_the_size_paragraph_reads_its_trend_from_the_points() -> None:
     }
     text = para_size(size)
     assert "×0.43" in text  # 0.0006 / 0.0014
-    assert "4.0 seed standard deviations of the smallest set (down)" in text  # 0.0008 / 0.0002
+    # 0.0008 / 0.0002
+    spread = "4.0 standard deviations of the smallest set's 3 seeds"
+    assert f"{spread} (down; the largest set has 1 seed)" in text
     assert f"below IRLS's at {_n(6400)} pairs" in text
     size["stride3"]["test"]["rpe_rot"] = 0.0020
     text = para_size(size)
-    assert "(up)" in text and "above IRLS's at every size measured" in text
+    assert "seeds (up;" in text and "above IRLS's at every size measured" in text
     del size["stride3"]
     assert "changes" not in para_size(size)  # one size: no trend

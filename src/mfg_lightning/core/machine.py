@@ -55,3 +55,14 @@ def describe_cpu() -> str:
     AVX512-BF16 no, AMX no)"``: what a measured time depends on."""
     features = ", ".join(f"{k} {'yes' if v else 'no'}" for k, v in cpu_vector_features().items())
     return f"{cpu_model()} ({features})"
+
+
+def cpu_kind() -> str:
+    """The CPU's vector kind, which sets the speed of every CPU figure: ``avx512_bf16`` (AVX-512
+    with native bfloat16, where ``precision=auto`` picks bf16-mixed), ``avx512``, ``avx2``, else
+    the machine name (a non-Linux system or another architecture)."""
+    flags = _cpuinfo()[1]
+    for kind, flag in (("avx512_bf16", "avx512_bf16"), ("avx512", "avx512f"), ("avx2", "avx2")):
+        if flag in flags:
+            return kind
+    return platform.machine() or "unknown"

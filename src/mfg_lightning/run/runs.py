@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import logging
-import platform
 import subprocess
 from pathlib import Path
 from typing import Any
@@ -18,6 +17,7 @@ from lightning.fabric.plugins.io.checkpoint_io import CheckpointIO
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from mfg_lightning.core.atomic import atomic_write_text
+from mfg_lightning.core.machine import cpu_kind
 from mfg_lightning.core.tables import finite_or_none
 from mfg_lightning.run.callbacks import AtomicCheckpointIO
 from mfg_lightning.run.precision import PRECISION_AUTO, resolve_precision, with_precision_setup
@@ -255,24 +255,6 @@ def git_commit() -> str | None:
     except (OSError, subprocess.SubprocessError):
         return None
     return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() else None
-
-
-def cpu_kind() -> str:
-    """The CPU's vector kind, which sets the speed of every CPU figure: ``avx512_bf16`` (AVX-512
-    with native bfloat16, where ``precision=auto`` picks bf16-mixed), ``avx512``, ``avx2``, else
-    the machine name (a non-Linux system or another architecture)."""
-    try:
-        flags = next(
-            line.split(":", 1)[1].split()
-            for line in Path("/proc/cpuinfo").read_text().splitlines()
-            if line.startswith("flags")
-        )
-    except (OSError, StopIteration):
-        return platform.machine() or "unknown"
-    for kind, flag in (("avx512_bf16", "avx512_bf16"), ("avx512", "avx512f"), ("avx2", "avx2")):
-        if flag in flags:
-            return kind
-    return platform.machine() or "unknown"
 
 
 def run_info() -> dict[str, Any]:

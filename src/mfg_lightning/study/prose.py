@@ -222,17 +222,20 @@ def _size_trend(spreads: list[tuple[int, Any]], irls: float | None) -> str:
     )
     if first.std:
         moved = (first.mean - last.mean) / first.std
+        way = "down" if moved > 0 else "up" if moved < 0 else "unchanged"
         text += (
-            f", {fmt(abs(moved), 1)} seed standard deviations of the smallest set "
-            f"({'down' if moved > 0 else 'up'})"
+            f", {fmt(abs(moved), 1)} standard deviations of the smallest set's {first.n} seeds "
+            f"({way}; the largest set has {last.n} seed{'s' if last.n != 1 else ''})"
         )
     text += "."
     if irls is not None:
         below = [n for n, sp in spreads if sp.mean is not None and sp.mean < irls]
         text += (
-            f" Its seed mean is below IRLS's at {', '.join(_n(n) for n in below)} pairs."
+            f" MFG (the mean where a size has several seeds) is below IRLS's at "
+            f"{', '.join(_n(n) for n in below)} pairs."
             if below
-            else " Its seed mean is above IRLS's at every size measured."
+            else " MFG (the mean where a size has several seeds) is above IRLS's at every size "
+            "measured."
         )
     return text
 

@@ -42,7 +42,8 @@ HEADLINE = (
 def _machine() -> dict[str, str]:
     import torch
 
-    from mfg_lightning.run.runs import cpu_kind, git_commit
+    from mfg_lightning.core.machine import cpu_kind
+    from mfg_lightning.run.runs import git_commit
 
     try:
         cores = len(os.sched_getaffinity(0))

@@ -163,7 +163,7 @@ class Study:
         curve = logged_curve(out)
         for p in curve:
             p["samples"] = int(p["step"]) * batch
-        from mfg_lightning.run.runs import cpu_kind
+        from mfg_lightning.core.machine import cpu_kind
 
         # the precision the run trained in (``auto`` made concrete in its config.yaml) and the
         # CPU kind: seeds trained on different machines differ in both, and the report says so
