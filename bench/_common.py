@@ -87,10 +87,10 @@ def versions() -> dict[str, str]:
         except PackageNotFoundError:
             out[dist] = "-"
     try:
-        from mfg_lightning.run.runs import git_commit
+        from mfg_lightning.run.runs import git_commit, git_dirty
 
         commit = (git_commit() or "-")[:12]
-        out["mfg-lightning commit"] = commit + ("+dirty" if commit != "-" and _dirty() else "")
+        out["mfg-lightning commit"] = commit + ("+dirty" if commit != "-" and git_dirty() else "")
     except ImportError:
         out["mfg-lightning commit"] = "-"
     return out
@@ -219,22 +219,3 @@ def replace_marked(text: str, marker: str, body: str, before: str | None = None)
     if at is None:
         return text.rstrip("\n") + "\n\n" + block
     return "".join(lines[:at]) + block + "\n" + "".join(lines[at:])
-
-
-def _dirty() -> bool:
-    """Whether the checkout has uncommitted changes to tracked files (a result measured on it
-    names its commit with ``+dirty``: that commit alone does not rebuild the code measured)."""
-    import subprocess
-
-    try:
-        out = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"],
-            cwd=Path(__file__).resolve().parent,
-            capture_output=True,
-            text=True,
-            timeout=5,
-            check=False,
-        )
-    except (OSError, subprocess.SubprocessError):
-        return False
-    return out.returncode == 0 and bool(out.stdout.strip())

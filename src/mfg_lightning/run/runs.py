@@ -241,11 +241,12 @@ def write_metrics(path: Path, metrics: dict[str, Any], extra: dict[str, Any] | N
     return payload
 
 
-def git_commit() -> str | None:
-    """The commit of the source tree the package was imported from, if it is a git checkout."""
+def _git(*args: str) -> str | None:
+    """``git <args>``'s output in the source tree the package was imported from (None where
+    that is no git checkout or git fails)."""
     try:
         out = subprocess.run(
-            ["git", "rev-parse", "HEAD"],
+            ["git", *args],
             cwd=Path(__file__).resolve().parent,
             capture_output=True,
             text=True,
@@ -254,7 +255,18 @@ def git_commit() -> str | None:
         )
     except (OSError, subprocess.SubprocessError):
         return None
-    return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() else None
+    return out.stdout if out.returncode == 0 else None
+
+
+def git_commit() -> str | None:
+    """The commit of the source tree the package was imported from, if it is a git checkout."""
+    return (_git("rev-parse", "HEAD") or "").strip() or None
+
+
+def git_dirty() -> bool:
+    """Whether that checkout has uncommitted changes to tracked files (a result measured on it
+    names its commit with ``+dirty``: that commit alone does not rebuild the code measured)."""
+    return bool((_git("status", "--porcelain", "--untracked-files=no") or "").strip())
 
 
 def run_info() -> dict[str, Any]:
