@@ -798,27 +798,51 @@ def cache_datamodule(base: list[str], extra: list[str], cache_dir: Path, frames:
     return datamodule(with_overrides(base, [*size, *extra]))
 
 
-def loader_epochs(dm) -> tuple[float, float]:
+def served(dm, before: dict[str, int] | None = None) -> dict[str, int]:
+    """How this process's training dataset has served its samples (memory, disk, computed:
+    :attr:`~mfg_lightning.data.sample_cache.SampleStore.counts`), less ``before``; empty without
+    a cache. A loader worker's own counts are not seen here."""
+    store = getattr(dm.dataset("train"), "store", None)
+    counts = {} if store is None else dict(store.counts)
+    counts.pop("prefetched", None)
+    return {k: v - (before or {}).get(k, 0) for k, v in counts.items()}
+
+
+def served_text(counts: dict[str, int], workers: bool) -> str:
+    """A table cell for :func:`served`'s counts."""
+    if workers:
+        return "(in the worker)"
+    if not counts:
+        return "computed (no cache)"
+    return ", ".join(f"{k} {v}" for k, v in counts.items() if v) or "nothing"
+
+
+def loader_epochs(dm) -> tuple[float, float, dict[str, int]]:
     """Samples per second of iterating ``dm``'s training loader through its first epoch (after
-    its first batch: a worker's start-up) and its second."""
+    its first batch: a worker's start-up) and its second, and how epoch 2's samples were served
+    (:func:`served`)."""
     loader = dm.train_dataloader()
-    rates = []
+    rates, counts = [], served(dm)
     for epoch in (0, 1):
         loader.order.set_epoch(epoch)  # what Lightning does at the start of each epoch
         batches = iter(loader)
         if epoch == 0:
             next(batches)
+        else:
+            counts = served(dm)
         start, n = time.perf_counter(), 0
         for batch in batches:
             n += batch["flow"].shape[0]
         rates.append(n / (time.perf_counter() - start))
+    epoch2 = served(dm, counts)
     dm.teardown("fit")
-    return rates[0], rates[1]
+    return rates[0], rates[1], epoch2
 
 
-def training_epochs(overrides: list[str], dm, warmup: int) -> tuple[float, float]:
-    """Training samples per second (Lightning, float32) on ``dm``'s loader in the first epoch
-    (after ``warmup`` steps) and in the second (its first step included)."""
+def training_epochs(overrides: list[str], data, warmup: int) -> tuple[float, float]:
+    """Training samples per second (Lightning, float32) on ``data`` (a DataModule: its training
+    loader; else an iterable of batches) in the first epoch (after ``warmup`` steps) and in the
+    second (its first step included)."""
     import lightning as L
 
     stamps: list[tuple[int, float, int]] = []
@@ -833,7 +857,10 @@ def training_epochs(overrides: list[str], dm, warmup: int) -> tuple[float, float
         enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
         num_sanity_val_steps=0, limit_val_batches=0, callbacks=[Stamp()],
     )  # fmt: skip
-    trainer.fit(model, datamodule=dm)
+    if isinstance(data, L.LightningDataModule):
+        trainer.fit(model, datamodule=data)
+    else:
+        trainer.fit(model, train_dataloaders=data)
     first = [s for s in stamps if s[0] == 0]
     second = [s for s in stamps if s[0] == 1]
     rate1 = sum(n for _, _, n in first[warmup:]) / (first[-1][1] - first[warmup - 1][1])
@@ -844,17 +871,23 @@ def training_epochs(overrides: list[str], dm, warmup: int) -> tuple[float, float
 def quick_start_wall(tiny: bool, threads: int) -> list[list[str]]:
     """Wall time of ``python -m mfg_lightning.train`` (the quick start; ``debug=tiny`` when
     ``tiny``) without the sample cache, with it from empty, and with its disk tier filled by
-    the run before (a multirun's next job): table rows."""
-    rows, seconds = [], {}
+    the run before (a multirun's next job), each with its training time, the precision
+    ``auto`` chose and its test metrics: table rows."""
+    import json
+
+    from omegaconf import OmegaConf
+
     runs = {
         "without the cache (`memory_mb=0 disk=false prefetch=none`)": (UNCACHED_SAMPLES, "a"),
         "the defaults, empty cache": ([], "b"),
         "the defaults, disk tier filled by the run before": ([], "b"),
     }
+    results = []
     with tempfile.TemporaryDirectory() as tmp:
         for i, (label, (extra, cache)) in enumerate(runs.items()):
+            run_dir = Path(tmp) / f"run{i}"
             cmd = [
-                sys.executable, "-m", "mfg_lightning.train", f"hydra.run.dir={tmp}/run{i}",
+                sys.executable, "-m", "mfg_lightning.train", f"hydra.run.dir={run_dir}",
                 f"paths.cache_dir={tmp}/cache-{cache}", *(["debug=tiny"] if tiny else []), *extra,
             ]  # fmt: skip
             start = time.perf_counter()
@@ -862,13 +895,18 @@ def quick_start_wall(tiny: bool, threads: int) -> list[list[str]]:
                 cmd, cwd=tmp, env={**os.environ, "OMP_NUM_THREADS": str(threads)},
                 capture_output=True, text=True, check=False,
             )  # fmt: skip
-            seconds[label] = time.perf_counter() - start
+            wall = time.perf_counter() - start
             if proc.returncode != 0:
                 raise RuntimeError(f"{' '.join(cmd)} failed: {proc.stderr[-3000:]}")
-    before = next(iter(seconds.values()))
-    for label, s in seconds.items():
-        rows.append([label, fmt(s, 1), fmt(before / s, 2)])
-    return rows
+            result = json.loads((run_dir / "metrics.json").read_text())
+            precision = OmegaConf.load(run_dir / "config.yaml").trainer.precision
+            results.append((label, wall, result, precision))
+    before = results[0][1]
+    return [
+        [label, fmt(wall, 1), fmt(before / wall, 2), fmt(result["train_seconds"], 1), precision,
+         fmt(result["metrics"]["test/ate"], 5), fmt(result["metrics"]["test/rpe_rot"], 6)]
+        for label, wall, result, precision in results
+    ]  # fmt: skip
 
 
 def sample_cache_section(args: argparse.Namespace, cfg: Any) -> Path:
@@ -878,13 +916,16 @@ def sample_cache_section(args: argparse.Namespace, cfg: Any) -> Path:
     with ``--quick-start`` the quick start's wall time without and with the cache. Written as
     its own section of throughput.md (the rest kept)."""
     torch.set_num_threads(args.threads or os.cpu_count() or 1)
-    base = base_overrides(args.tiny)
+    # The dataset's own cache settings underneath each row: base_overrides turns the cache off
+    # (for the other sections), and a row's overrides only change the keys they name.
+    base = [o for o in base_overrides(args.tiny) if o not in UNCACHED_SAMPLES]
     frames = 12 if args.tiny else args.cache_frames
     batch = 4 if args.tiny else int(cfg.dataset.batch_size)
     warmup = 1 if args.tiny else 3
     repeats = 1 if args.tiny else args.candidate_repeats
     report = Report("throughput", "Throughput: training, inference, data, memory", args.out)
     rates: dict[str, list[tuple[float, ...]]] = {label: [] for label in CACHE_LOADERS}
+    sources: dict[str, str] = {}
     n_train = 0
     for _ in range(repeats):
         for label, (extra, prefilled) in CACHE_LOADERS.items():
@@ -896,27 +937,35 @@ def sample_cache_section(args: argparse.Namespace, cfg: Any) -> Path:
                     dm = cache_datamodule(base, extra, Path(cache), frames, batch)
                     n_train = len(dm.dataset("train"))
                     if measure == "loader":
-                        row += loader_epochs(dm)
+                        *loader_rates, counts = loader_epochs(dm)
+                        row += loader_rates
+                        sources[label] = served_text(
+                            counts, dm.num_workers > 0 or "dataset.prefetch=worker" in extra
+                        )
                     else:
                         row += training_epochs(base, dm, warmup)
             rates[label].append(tuple(row))
-    # Training on the same samples pre-collated in memory: what the loader is measured against.
+    # What the loaders are measured against: training on the training loader's own batches
+    # (every field, the short last one too), collated once and held in memory, for 2 epochs
+    # timed the same way.
     with tempfile.TemporaryDirectory() as cache:  # (no cache: nothing is written there)
-        ds = cache_datamodule(base, UNCACHED_SAMPLES, Path(cache), frames, batch).dataset("train")
-        samples = [{k: ds[i][k] for k in SAMPLE_KEYS} for i in range(len(ds))]
-    batches = make_batches(samples, batch)
-    in_memory = statistics.median(
-        lightning_rate(base, batches, warmup, len(batches), "32-true") for _ in range(repeats)
-    )
+        loader = cache_datamodule(base, UNCACHED_SAMPLES, Path(cache), frames, batch)
+        loader = loader.train_dataloader()
+        batches = list(loader)
+    held = [training_epochs(base, InMemory(batches, len(batches)), warmup) for _ in range(repeats)]
+    mem1, mem2 = (statistics.median(r[k] for r in held) for k in range(2))
     rows = []
     for label, runs in rates.items():
         loader1, loader2, train1, train2 = (statistics.median(r[k] for r in runs) for k in range(4))
         rows.append(
-            [label, fmt(loader1, 0), fmt(loader2, 0), fmt(train1, 1),
-             f"{100 * (1 - train1 / in_memory):.0f} %", fmt(train2, 1),
-             f"{100 * (1 - train2 / in_memory):.0f} %"]
+            [label, fmt(loader1, 0), fmt(loader2, 0), sources[label], fmt(train1, 1),
+             f"{100 * (1 - train1 / mem1):.0f} %", fmt(train2, 1),
+             f"{100 * (1 - train2 / mem2):.0f} %", fmt(train2 / mem2, 3)]
         )  # fmt: skip
-    rows.append(["pre-collated batches in memory", "-", "-", fmt(in_memory, 1), "0 %", "-", "-"])
+    rows.append(
+        ["the same batches, collated once, in memory", "-", "-", "-", fmt(mem1, 1), "0 %",
+         fmt(mem2, 1), "0 %", "1"]
+    )  # fmt: skip
     report.add(
         f"MFG {cfg.dataset.height} × {cfg.dataset.width}, M = {cfg.model.net.hidden_units}, "
         f"float32, batch {batch}; 2 training trajectories of {frames} frames ({n_train} training "
@@ -927,22 +976,27 @@ def sample_cache_section(args: argparse.Namespace, cfg: Any) -> Path:
                 "loader",
                 "loader alone, epoch 1 (samples/s)",
                 "loader alone, epoch 2",
+                "epoch 2's samples served from",
                 "training, epoch 1 (samples/s)",
                 "epoch 1 waiting on data",
                 "training, epoch 2",
                 "epoch 2 waiting on data",
+                "epoch 2 / in memory",
             ],
             rows,
         )
         + "\n*Loader alone*: iterating the training loader (shuffled, collated) through epoch 1 "
-        "after its first batch (a worker's start-up excluded) and through epoch 2. *Training*: "
+        "after its first batch (a worker's start-up excluded) and through epoch 2; *served from*: "
+        "the training dataset's own count of where epoch 2's samples came from in the loader-"
+        "alone run (memory, its disk files, computed). *Training*: "
         f"`lightning.Trainer.fit` for 2 epochs on the DataModule, epoch 1 after {warmup} steps, "
-        "epoch 2 whole; *waiting on data* = 1 − rate / the rate on the same samples "
-        "pre-collated in memory. Epoch 1 computes every sample (the disk row reads an earlier "
-        "run's entries); from epoch 2 on the cached loaders read memory (the disk row: its "
-        "files). `prefetch=thread` computes ahead in a thread of the training process, in the "
-        "loader's order; `prefetch=worker` in one persistent loader process. Both compete with "
-        "the training step's threads for the cores."
+        "epoch 2 whole; *waiting on data* = 1 − rate / the rate of the same epoch on the "
+        "training loader's own batches (every field, the short last batch too) collated once "
+        "and held in memory, timed the same way. Epoch 1 computes every sample (the disk row "
+        "reads an earlier run's entries); from epoch 2 on the cached loaders read memory (the "
+        "disk row: its files). `prefetch=thread` computes ahead in a thread of the training "
+        "process, in the loader's order; `prefetch=worker` in one persistent loader process. "
+        "Both compete with the training step's threads for the cores."
     )
     if args.quick_start:
         report.add(
@@ -950,9 +1004,20 @@ def sample_cache_section(args: argparse.Namespace, cfg: Any) -> Path:
             + (" debug=tiny" if args.tiny else "")
             + " (training, validation, test), wall time:\n\n"
             + markdown_table(
-                ["run", "wall time (s)", "speed-up"],
+                [
+                    "run",
+                    "wall time (s)",
+                    "speed-up",
+                    "training (s)",
+                    "precision (`auto`)",
+                    "test ATE (m)",
+                    "test RPE rot (rad)",
+                ],
                 quick_start_wall(args.tiny, torch.get_num_threads()),
             )
+            + "\nOne run each, one after the other. The cache hands out the generated samples "
+            "bit for bit (tests/test_sample_cache.py): the test metrics differ only by the "
+            "training's own run-to-run variation."
         )
     return report.write_section(SAMPLE_CACHE_MARKER, "The sample cache: samples computed once")
 

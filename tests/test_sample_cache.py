@@ -6,6 +6,7 @@ samples."""
 from __future__ import annotations
 
 import logging
+import os
 import pickle
 from pathlib import Path
 from typing import Any
@@ -16,6 +17,7 @@ import torch
 from hydra.utils import instantiate
 from torch.utils.data import DataLoader, Dataset
 
+from mfg_lightning.core.atomic import atomic_write_bytes
 from mfg_lightning.core.config import compose
 from mfg_lightning.data.driving import SyntheticDrivingDataset
 from mfg_lightning.data.resumable_loader import ResumableDataLoader
@@ -161,6 +163,21 @@ def test_corrupt_entries_are_recomputed_with_a_warning_naming_the_file(
             _assert_same(fresh[i], again[i])
     assert not caplog.records and again.store.counts["disk"] == len(again)
     assert read_entry(paths[0], again.store.fields) is not None
+
+
+def test_entries_are_written_without_an_fsync(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # What a power loss can leave without it (an empty or torn file) is the corrupt entry above:
+    # recomputed. Checkpoints and results keep theirs.
+    synced: list[int] = []
+    monkeypatch.setattr(os, "fsync", synced.append)
+    ds = _train(tmp_path, sample_cache={"memory_mb": 0})
+    assert len(synced) == 1  # the directory's key file, once
+    ds[0], ds[1]
+    assert ds.store.path(ds.entry_name(1)).is_file() and len(synced) == 1
+    atomic_write_bytes(tmp_path / "result.json", b"{}")
+    assert len(synced) == 2
 
 
 def test_an_unwritable_disk_tier_is_turned_off_with_one_warning(

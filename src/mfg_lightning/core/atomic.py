@@ -10,11 +10,14 @@ import uuid
 from pathlib import Path
 
 
-def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
+def atomic_write_bytes(path: str | os.PathLike[str], data: bytes, durable: bool = True) -> Path:
     """Write ``data`` to ``path`` through a temporary file in the same directory, then rename.
 
     The temporary file is fsynced before ``os.replace`` (atomic on POSIX and Windows), so the
-    destination holds either its old content or the new one. New files get the permissions a
+    destination holds either its old content or the new one. ``durable=False`` skips the fsync:
+    a reader or a killed process still never sees half a file, but after a power loss the
+    destination may be empty or torn; only for files that are verified on read and can be
+    computed again (the sample cache's entries, each with a CRC). New files get the permissions a
     plain ``open()`` would give (the umask decides); an existing file keeps its mode. A failure
     (full disk, say) removes the temporary file and leaves the destination untouched.
     """
@@ -25,8 +28,9 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
+            if durable:
+                fh.flush()
+                os.fsync(fh.fileno())
         if path.exists():
             os.chmod(tmp, path.stat().st_mode & 0o7777)
         os.replace(tmp, path)
