@@ -277,6 +277,47 @@ def test_the_training_hook_chooses_at_fit_setup_only(tmp_path: Path) -> None:
     assert not native_cache.exists()
 
 
+def test_a_run_records_its_choice_and_a_resumed_run_takes_it(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The choice goes into the run directory's record; a run that finds one (a resume) takes
+    it without timing anything, even where timing would choose otherwise; a record of another
+    network is said and ignored."""
+    record = tmp_path / "conv_impl.json"
+    trainer = quiet_trainer(max_steps=1)
+
+    def auto_module():
+        module = small_module()
+        for _, layer in switchable_layers(module.net):
+            layer.impl = "auto"
+        return module
+
+    first = auto_module()
+    ConvolutionChoice(2, None, repeats=1, min_cpu_share=0.0, record=record).setup(
+        trainer, first, "fit"
+    )
+    chosen = {name: layer.impl for name, layer in switchable_layers(first.net)}
+    assert json.loads(record.read_text()) == {"layers": chosen}
+    # Written by hand: im2col everywhere. A busy machine (a share no process reaches) would
+    # give native to every layer it timed, so im2col can only come from the record.
+    everywhere = {name: "im2col" for name in chosen}
+    record.write_text(json.dumps({"layers": everywhere}))
+    resumed = auto_module()
+    busy = ConvolutionChoice(2, None, repeats=1, min_cpu_share=10.0, record=record)
+    with caplog.at_level(logging.INFO, logger="mfg_lightning.run.convolutions"):
+        busy.setup(trainer, resumed, "fit")
+    assert {name: layer.impl for name, layer in switchable_layers(resumed.net)} == everywhere
+    assert "the run's recorded choice" in caplog.text
+    # Another network's record: said, then the layers are chosen (here: busy, so native).
+    record.write_text(json.dumps({"layers": {"encoder.99": "im2col"}}))
+    other = auto_module()
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        busy.setup(trainer, other, "fit")
+    assert "records other layers" in caplog.text
+    assert {layer.impl for _, layer in switchable_layers(other.net)} == {"native"}
+
+
 def test_the_dtype_measured_follows_the_precision_and_the_cpu(
     caplog: pytest.LogCaptureFixture,
 ) -> None:

@@ -150,7 +150,15 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     # LastCheckpoint saves after ModelCheckpoint has recorded a validation's score (stable sort).
     callbacks.sort(key=lambda cb: isinstance(cb, LastCheckpoint))
     # model.net.conv_impl=auto: each convolution's fastest implementation, measured at setup
-    callbacks.insert(0, ConvolutionChoice(cfg.dataset.batch_size, cfg.paths.get("cache_dir")))
+    # (recorded in the run directory: a resumed run computes as it began)
+    callbacks.insert(
+        0,
+        ConvolutionChoice(
+            cfg.dataset.batch_size,
+            cfg.paths.get("cache_dir"),
+            record=output_dir / "conv_impl.json",
+        ),
+    )
     finish_stale_logger_runs()
     loggers = instantiate_list(cfg.get("logger"))
     if ckpt_path is not None:
