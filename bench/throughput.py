@@ -85,7 +85,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--sample-cache", action="store_true", help="only the sample cache")
     p.add_argument(
         "--quick-start", action="store_true",
-        help="the sample cache section also times the quick start without and with it",
+        help="time the quick start without and with the sample cache (with --sample-cache: in "
+        "its section; alone: a section of its own, per instruction set torch's kernels use)",
     )  # fmt: skip
     p.add_argument("--cache-frames", type=int, default=200,
                    help="frames of each of the 2 training trajectories (sample cache)")  # fmt: skip
@@ -909,6 +910,38 @@ def quick_start_wall(tiny: bool, threads: int) -> list[list[str]]:
     ]  # fmt: skip
 
 
+#: The environment variables that cap the instruction sets of torch's own kernels, oneDNN's
+#: and MKL's: with all three at AVX2 an AVX-512 machine imitates an AVX2 one (its instructions,
+#: not its cores or caches).
+ISA_CAPS = ("ATEN_CPU_CAPABILITY", "ONEDNN_MAX_CPU_ISA", "MKL_ENABLE_INSTRUCTIONS")
+
+
+def quick_start_section(args: argparse.Namespace) -> Path:
+    """The quick start's wall time without and with the sample cache (:func:`quick_start_wall`)
+    as a section of its own, one per instruction set torch's kernels run (``$ISA_CAPS`` set: an
+    imitated machine, said in the heading)."""
+    caps = {k: os.environ[k] for k in ISA_CAPS if k in os.environ}
+    capability = torch.backends.cpu.get_cpu_capability()
+    report = Report("throughput", TITLE, args.out)
+    imitated = ", ".join(f"`{k}={v}`" for k, v in caps.items())
+    report.add(
+        "`python -m mfg_lightning.train`" + (" debug=tiny" if args.tiny else "")
+        + f" (training, validation, test) with torch's kernels at {capability}"
+        + (f", capped by {imitated}: an imitation of that machine on this one (its instruction "
+           "set, not its cores or caches)" if caps else "")
+        + ":\n\n"
+        + markdown_table(
+            ["run", "wall time (s)", "speed-up", "training (s)", "precision (`auto`)",
+             "test ATE (m)", "test RPE rot (rad)"],
+            quick_start_wall(args.tiny, torch.get_num_threads()),
+        )
+        + "\nOne run each, one after the other."
+    )  # fmt: skip
+    marker = f"quick-start-{capability.lower()}" + ("-capped" if caps else "")
+    heading = f"The quick start at {capability}" + (" (imitated)" if caps else "")
+    return report.write_section(marker, heading)
+
+
 def sample_cache_section(args: argparse.Namespace, cfg: Any) -> Path:
     """The sample cache: the training loader alone and training on it (Lightning, float32) in
     the first epoch (samples computed: no cache, the cache with each prefetch, the disk tier of
@@ -1037,6 +1070,8 @@ def main(argv: list[str] | None = None) -> Path:
     _, cfg = build_model(base)
     if args.sample_cache:
         return sample_cache_section(args, cfg)
+    if args.quick_start:
+        return quick_start_section(args)
     if args.convolutions:
         return conv_section(args, base, cfg)
     report = Report("throughput", TITLE, args.out)

@@ -464,6 +464,14 @@ def test_auto_precision_is_bf16_on_a_cpu_with_native_bf16_and_float32_elsewhere(
     assert mfg_module.resolve_precision("auto", "cpu") == "32-true"
     monkeypatch.undo()
     assert isinstance(mfg_module.cpu_has_native_bf16(), bool)
+    # oneDNN capped below native bfloat16 (an AVX2 machine imitated): float32.
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "avx2")
+    assert mfg_module.cpu_has_native_bf16() is False
+    assert mfg_module.resolve_precision("auto", "cpu") == "32-true"
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "AVX512_CORE_BF16")  # a cap that keeps it
+    native = [mfg_module.torch.cpu._is_avx512_bf16_supported(),
+              mfg_module.torch.cpu._is_amx_tile_supported()]  # fmt: skip
+    assert mfg_module.cpu_has_native_bf16() is any(native)
 
 
 def test_auto_precision_is_recorded_in_the_run_config(tmp_path: Path) -> None:

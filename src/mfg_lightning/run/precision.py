@@ -14,6 +14,7 @@ overflows fp16 in the first steps. :class:`PrecisionSetup` applies both rules to
 from __future__ import annotations
 
 import logging
+import os
 from typing import Any
 
 import lightning as L
@@ -43,13 +44,25 @@ _TORCH_DEFAULT_INIT_SCALE = 2.0**16
 PRECISION_AUTO = "auto"
 
 
+#: oneDNN's instruction-set caps (``ONEDNN_MAX_CPU_ISA``) that still include native bfloat16.
+_BF16_ISAS = frozenset(
+    {"ALL", "DEFAULT", "AVX512_CORE_BF16", "AVX512_CORE_FP16", "AVX512_CORE_AMX",
+     "AVX512_CORE_AMX_FP16", "AVX10_1_512", "AVX10_1_512_AMX", "AVX10_1_512_AMX_FP16"}
+)  # fmt: skip
+
+
 def cpu_has_native_bf16() -> bool:
     """Whether this CPU computes bfloat16 natively (AVX512-BF16 or AMX), as oneDNN uses it.
 
     torch exposes the check only as ``torch.cpu._is_avx512_bf16_supported`` /
     ``_is_amx_tile_supported`` (private, present since torch 2.1); without them the answer is
-    False, so such a machine keeps float32.
+    False, so such a machine keeps float32. ``ONEDNN_MAX_CPU_ISA`` (or ``DNNL_MAX_CPU_ISA``)
+    set below ``AVX512_CORE_BF16`` counts as no: oneDNN then emulates bfloat16 (how an AVX2
+    machine is imitated on an AVX-512 one: docs/precision.md).
     """
+    cap = os.environ.get("ONEDNN_MAX_CPU_ISA") or os.environ.get("DNNL_MAX_CPU_ISA")
+    if cap and cap.strip().upper() not in _BF16_ISAS:
+        return False
     checks = [getattr(torch.cpu, name, None) for name in
               ("_is_avx512_bf16_supported", "_is_amx_tile_supported")]  # fmt: skip
     try:
