@@ -34,7 +34,10 @@ The sample cache (``dataset.sample_cache``, ``dataset.prefetch``), a section of 
 the loader alone and training on it in the first epoch (samples computed, with each
 prefetch) and the second (read back), against the uncached generator and pre-collated
 batches; ``--sample-cache`` runs only it (about 4 minutes), ``--quick-start`` adds the
-quick start's wall time without and with the cache (about 15 minutes more).
+quick start's wall time without and with the cache (about 10 minutes more). ``--quick-start``
+alone writes only the quick start, in a section per instruction set torch's kernels use:
+``ATEN_CPU_CAPABILITY=avx2 ONEDNN_MAX_CPU_ISA=AVX2 MKL_ENABLE_INSTRUCTIONS=AVX2`` before it
+imitates an AVX2 machine on an AVX-512 one.
 
 ``python bench/throughput.py`` (about 8 minutes on 2 CPU cores); ``--tiny`` for a smoke run;
 ``python bench/throughput.py --convolutions`` for section 7 alone.
