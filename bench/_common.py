@@ -35,6 +35,23 @@ TINY_OVERRIDES = (
 )
 
 
+#: A ratio's repeats whose range leaves ± this fraction of their median are marked noisy.
+NOISY = 0.05
+
+
+def ratio_cell(ratios: list[float], digits: int = 3) -> str:
+    """``median (min–max)`` of a ratio's repeats, followed by ``noisy`` when the range leaves
+    ±:data:`NOISY` of the median (more repeats, or a quieter machine, would be needed to
+    trust the median to that)."""
+    import statistics
+
+    mid = statistics.median(ratios)
+    cell = f"{mid:.{digits}f} ({min(ratios):.{digits}f}–{max(ratios):.{digits}f})"
+    if min(ratios) < (1 - NOISY) * mid or max(ratios) > (1 + NOISY) * mid:
+        cell += " noisy"
+    return cell
+
+
 def add_common_arguments(
     parser: argparse.ArgumentParser,
     threads: str = "torch threads (default: all)",

@@ -60,7 +60,14 @@ from typing import Any
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import TINY_OVERRIDES, Report, add_common_arguments, fmt, markdown_table
+from _common import (
+    TINY_OVERRIDES,
+    Report,
+    add_common_arguments,
+    fmt,
+    markdown_table,
+    ratio_cell,
+)
 
 #: The optimiser settings compared: the default build and the faster one.
 VARIANTS = {
@@ -716,7 +723,7 @@ def conv_section(
         steps.append(
             [batch_size, str(dtype).removeprefix("torch."),
              fmt(statistics.median(runs["native"]), 1), fmt(statistics.median(runs["auto"]), 1),
-             f"{statistics.median(pairs):.3f} ({min(pairs):.3f}–{max(pairs):.3f})"]
+             ratio_cell(pairs)]
         )  # fmt: skip
     report.add(
         markdown_table(
@@ -1152,7 +1159,7 @@ def main(argv: list[str] | None = None) -> Path:
                     name,
                     fmt(r["lightning"], 1),
                     fmt(r["bare"], 1),
-                    f"{statistics.median(pairs):.3f} ({min(pairs):.3f}–{max(pairs):.3f})",
+                    ratio_cell(pairs),
                     fmt(1e3 * batch_size / r["lightning"], 1),
                     fmt(1e3 * batch_size / r["lightning"] - 1e3 * batch_size / r["bare"], 2),
                     frac(r["lightning"], name),
@@ -1182,7 +1189,9 @@ def main(argv: list[str] | None = None) -> Path:
         "logger, checkpointing or progress bar. What Lightning adds is a fixed cost per step, "
         "whatever the batch: its loop (about 40 hook calls), the optimiser closure and the "
         "result collection of `self.log`, which the module calls only on the logging steps; at "
-        "batch 1 that fixed cost is what separates the ratio from 1."
+        "batch 1 that fixed cost is what separates the ratio from 1. *Ratio*: that of each "
+        f"back-to-back pair of {args.repeats} interleaved repeats, their median (range); "
+        "*noisy*: the range leaves ±5 % of the median, here and in every ratio below."
     )
     ratio_rows = []
     for batch_size, _ in sizes:
@@ -1194,8 +1203,8 @@ def main(argv: list[str] | None = None) -> Path:
         ratio_rows.append(
             [
                 batch_size,
-                f"{statistics.median(pl):.2f} ({min(pl):.2f}–{max(pl):.2f})",
-                f"{statistics.median(pb):.2f} ({min(pb):.2f}–{max(pb):.2f})",
+                ratio_cell(pl, 2),
+                ratio_cell(pb, 2),
                 target,
             ]
         )
