@@ -33,11 +33,10 @@ steps after a warm-up: the machine may be shared.
 The sample cache (``dataset.sample_cache``, ``dataset.prefetch``), a section of its own:
 the loader alone and training on it in the first epoch (samples computed, with each
 prefetch) and the second (read back), against the uncached generator and pre-collated
-batches; ``--sample-cache`` runs only it (about 4 minutes), ``--quick-start`` adds the
-quick start's wall time without and with the cache (about 10 minutes more). ``--quick-start``
-alone writes only the quick start, in a section per instruction set torch's kernels use:
-``ATEN_CPU_CAPABILITY=avx2 ONEDNN_MAX_CPU_ISA=AVX2 MKL_ENABLE_INSTRUCTIONS=AVX2`` before it
-imitates an AVX2 machine on an AVX-512 one.
+batches; ``--sample-cache`` runs only it (about 4 minutes). ``--quick-start`` runs only the
+quick start, without and with the cache (about 10 minutes), in a section per instruction set
+torch's kernels use: ``ATEN_CPU_CAPABILITY=avx2 ONEDNN_MAX_CPU_ISA=AVX2
+MKL_ENABLE_INSTRUCTIONS=AVX2`` before it imitates an AVX2 machine on an AVX-512 one.
 
 ``python bench/throughput.py`` (about 8 minutes on 2 CPU cores); ``--tiny`` for a smoke run;
 ``python bench/throughput.py --convolutions`` for section 7 alone.
@@ -95,8 +94,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--sample-cache", action="store_true", help="only the sample cache")
     p.add_argument(
         "--quick-start", action="store_true",
-        help="time the quick start without and with the sample cache (with --sample-cache: in "
-        "its section; alone: a section of its own, per instruction set torch's kernels use)",
+        help="only the quick start, without and with the sample cache (a section per "
+        "instruction set torch's kernels use)",
     )  # fmt: skip
     p.add_argument("--cache-frames", type=int, default=200,
                    help="frames of each of the 2 training trajectories (sample cache)")  # fmt: skip
@@ -945,7 +944,9 @@ def quick_start_section(args: argparse.Namespace) -> Path:
              "test ATE (m)", "test RPE rot (rad)"],
             quick_start_wall(args.tiny, torch.get_num_threads()),
         )
-        + "\nOne run each, one after the other."
+        + "\nOne run each, one after the other. The cache hands out the generated samples bit "
+        "for bit (tests/test_sample_cache.py): the test metrics differ only by the training's "
+        "own run-to-run variation."
     )  # fmt: skip
     marker = f"quick-start-{capability.lower()}" + ("-capped" if caps else "")
     heading = f"The quick start at {capability}" + (" (imitated)" if caps else "")
@@ -955,9 +956,9 @@ def quick_start_section(args: argparse.Namespace) -> Path:
 def sample_cache_section(args: argparse.Namespace, cfg: Any) -> Path:
     """The sample cache: the training loader alone and training on it (Lightning, float32) in
     the first epoch (samples computed: no cache, the cache with each prefetch, the disk tier of
-    an earlier run) and the second (read back), against training on pre-collated batches;
-    with ``--quick-start`` the quick start's wall time without and with the cache. Written as
-    its own section of throughput.md (the rest kept)."""
+    an earlier run) and the second (read back), against training on the same batches held in
+    memory. Written as its own section of throughput.md (the rest kept); the quick start
+    without and with the cache is :func:`quick_start_section`'s."""
     torch.set_num_threads(args.threads or os.cpu_count() or 1)
     # The dataset's own cache settings underneath each row: base_overrides turns the cache off
     # (for the other sections), and a row's overrides only change the keys they name.
@@ -1041,27 +1042,6 @@ def sample_cache_section(args: argparse.Namespace, cfg: Any) -> Path:
         "process, in the loader's order; `prefetch=worker` in one persistent loader process. "
         "Both compete with the training step's threads for the cores."
     )
-    if args.quick_start:
-        report.add(
-            "The quick start, `python -m mfg_lightning.train`"
-            + (" debug=tiny" if args.tiny else "")
-            + " (training, validation, test), wall time:\n\n"
-            + markdown_table(
-                [
-                    "run",
-                    "wall time (s)",
-                    "speed-up",
-                    "training (s)",
-                    "precision (`auto`)",
-                    "test ATE (m)",
-                    "test RPE rot (rad)",
-                ],
-                quick_start_wall(args.tiny, torch.get_num_threads()),
-            )
-            + "\nOne run each, one after the other. The cache hands out the generated samples "
-            "bit for bit (tests/test_sample_cache.py): the test metrics differ only by the "
-            "training's own run-to-run variation."
-        )
     return report.write_section(SAMPLE_CACHE_MARKER, "The sample cache: samples computed once")
 
 
@@ -1078,10 +1058,10 @@ def main(argv: list[str] | None = None) -> Path:
     torch.set_num_threads(args.threads or os.cpu_count() or 1)
     base = base_overrides(args.tiny)
     _, cfg = build_model(base)
-    if args.sample_cache:
-        return sample_cache_section(args, cfg)
     if args.quick_start:
         return quick_start_section(args)
+    if args.sample_cache:
+        return sample_cache_section(args, cfg)
     if args.convolutions:
         return conv_section(args, base, cfg)
     report = Report("throughput", TITLE, args.out)

@@ -34,7 +34,8 @@ def _run_bench(script: str, out: Path, *args: str) -> str:
     path = out / f"{Path(script).stem}.md"
     text = path.read_text()
     # Printed as written, with the command, the cores and the versions.
-    assert text.splitlines()[0] in proc.stdout or text.splitlines()[2] in proc.stdout
+    tables = [line for line in text.splitlines() if line.startswith("| ")]
+    assert tables and tables[0] in proc.stdout
     for needle in ("## Environment", f"bench/{script}", "cores (usable / total)", "| torch |"):
         assert needle in text, needle
     return text
@@ -164,6 +165,21 @@ def test_throughput_benchmark(tmp_path: Path) -> None:
         assert row[6] in ("native", "im2col", "channels_last", "per layer"), row
     step = _table_rows(section, "Training step with the chosen implementations")
     assert step[0][:2] == ["4", "float32"] and _number(step[0][3]) > 0
+
+
+def test_quick_start_benchmark(tmp_path: Path) -> None:
+    """The quick start without and with the sample cache, in a section named after the
+    instruction set torch's kernels use; the cache changes no test metric."""
+    import torch
+
+    text = _run_bench("throughput.py", tmp_path, "--threads", "1", "--quick-start")
+    capability = torch.backends.cpu.get_cpu_capability()
+    rows = _table_rows(text, f"## The quick start at {capability}")
+    assert [r[0].split(" (")[0].split(",")[0] for r in rows] == [
+        "without the cache", "the defaults", "the defaults"
+    ]  # fmt: skip
+    assert all(_number(r[1]) > 0 and _number(r[3]) > 0 for r in rows)
+    assert rows[0][2] == "1.00" and len({(r[5], r[6]) for r in rows}) == 1, rows
 
 
 def test_scaleout_benchmark(tmp_path: Path) -> None:
