@@ -968,7 +968,16 @@ def sample_cache_section(args: argparse.Namespace, cfg: Any) -> Path:
     warmup = 1 if args.tiny else 3
     repeats = 1 if args.tiny else args.candidate_repeats
     report = Report("throughput", "Throughput: training, inference, data, memory", args.out)
+    # What the loaders are measured against: training on the training loader's own batches
+    # (every field, the short last one too), collated once and held in memory, for 2 epochs
+    # timed the same way, right after each loader's training (a pair: a change of the machine's
+    # speed between pairs cancels out of their ratio).
+    with tempfile.TemporaryDirectory() as cache:  # (no cache: nothing is written there)
+        loader = cache_datamodule(base, UNCACHED_SAMPLES, Path(cache), frames, batch)
+        loader = loader.train_dataloader()
+        batches = list(loader)
     rates: dict[str, list[tuple[float, ...]]] = {label: [] for label in CACHE_LOADERS}
+    held: list[tuple[float, float]] = []
     sources: dict[str, str] = {}
     n_train = 0
     for _ in range(repeats):
@@ -988,23 +997,18 @@ def sample_cache_section(args: argparse.Namespace, cfg: Any) -> Path:
                         )
                     else:
                         row += training_epochs(base, dm, warmup)
-            rates[label].append(tuple(row))
-    # What the loaders are measured against: training on the training loader's own batches
-    # (every field, the short last one too), collated once and held in memory, for 2 epochs
-    # timed the same way.
-    with tempfile.TemporaryDirectory() as cache:  # (no cache: nothing is written there)
-        loader = cache_datamodule(base, UNCACHED_SAMPLES, Path(cache), frames, batch)
-        loader = loader.train_dataloader()
-        batches = list(loader)
-    held = [training_epochs(base, InMemory(batches, len(batches)), warmup) for _ in range(repeats)]
+            held.append(training_epochs(base, InMemory(batches, len(batches)), warmup))
+            rates[label].append((*row, *held[-1]))
     mem1, mem2 = (statistics.median(r[k] for r in held) for k in range(2))
     rows = []
     for label, runs in rates.items():
         loader1, loader2, train1, train2 = (statistics.median(r[k] for r in runs) for k in range(4))
+        pairs1 = [r[2] / r[4] for r in runs]
+        pairs2 = [r[3] / r[5] for r in runs]
         rows.append(
             [label, fmt(loader1, 0), fmt(loader2, 0), sources[label], fmt(train1, 1),
-             f"{100 * (1 - train1 / mem1):.0f} %", fmt(train2, 1),
-             f"{100 * (1 - train2 / mem2):.0f} %", fmt(train2 / mem2, 3)]
+             f"{100 * (1 - statistics.median(pairs1)):.0f} %", fmt(train2, 1),
+             f"{100 * (1 - statistics.median(pairs2)):.0f} %", ratio_cell(pairs2)]
         )  # fmt: skip
     rows.append(
         ["the same batches, collated once, in memory", "-", "-", "-", fmt(mem1, 1), "0 %",
@@ -1036,7 +1040,9 @@ def sample_cache_section(args: argparse.Namespace, cfg: Any) -> Path:
         f"`lightning.Trainer.fit` for 2 epochs on the DataModule, epoch 1 after {warmup} steps, "
         "epoch 2 whole; *waiting on data* = 1 − rate / the rate of the same epoch on the "
         "training loader's own batches (every field, the short last batch too) collated once "
-        "and held in memory, timed the same way. Epoch 1 computes every sample (the disk row "
+        "and held in memory, timed the same way right after it (the median of the repeats' "
+        "pairs; *epoch 2 / in memory*: their median (range), *noisy* where the range leaves "
+        "±5 % of it). Epoch 1 computes every sample (the disk row "
         "reads an earlier run's entries); from epoch 2 on the cached loaders read memory (the "
         "disk row: its files). `prefetch=thread` computes ahead in a thread of the training "
         "process, in the loader's order; `prefetch=worker` in one persistent loader process. "
