@@ -32,8 +32,8 @@ steps after a warm-up: the machine may be shared.
 
 The sample cache (``dataset.sample_cache``, ``dataset.prefetch``), a section of its own:
 the loader alone and training on it in the first epoch (samples computed, with each
-prefetch) and the second (read back), against the uncached generator and pre-collated
-batches; ``--sample-cache`` runs only it (about 4 minutes). ``--quick-start`` runs only the
+prefetch) and the second (read back), against the uncached generator and the same batches
+held in memory; ``--sample-cache`` runs only it (about 4 minutes). ``--quick-start`` runs only the
 quick start, without and with the cache (about 10 minutes), in a section per instruction set
 torch's kernels use: ``ATEN_CPU_CAPABILITY=avx2 ONEDNN_MAX_CPU_ISA=AVX2
 MKL_ENABLE_INSTRUCTIONS=AVX2`` before it imitates an AVX2 machine on an AVX-512 one.
@@ -60,6 +60,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import (
+    NOISY,
     TINY_OVERRIDES,
     Report,
     add_common_arguments,
@@ -1042,7 +1043,7 @@ def sample_cache_section(args: argparse.Namespace, cfg: Any) -> Path:
         "training loader's own batches (every field, the short last batch too) collated once "
         "and held in memory, timed the same way right after it (the median of the repeats' "
         "pairs; *epoch 2 / in memory*: their median (range), *noisy* where the range leaves "
-        "±5 % of it). Epoch 1 computes every sample (the disk row "
+        f"±{100 * NOISY:.0f} % of it). Epoch 1 computes every sample (the disk row "
         "reads an earlier run's entries); from epoch 2 on the cached loaders read memory (the "
         "disk row: its files). `prefetch=thread` computes ahead in a thread of the training "
         "process, in the loader's order; `prefetch=worker` in one persistent loader process. "
@@ -1062,10 +1063,10 @@ def main(argv: list[str] | None = None) -> Path:
     if len(args.steps_per_batch_size) != len(args.batch_sizes):
         raise SystemExit("error: give one --steps-per-batch-size per --batch-sizes")
     torch.set_num_threads(args.threads or os.cpu_count() or 1)
+    if args.quick_start:  # (subprocesses: no model built here)
+        return quick_start_section(args)
     base = base_overrides(args.tiny)
     _, cfg = build_model(base)
-    if args.quick_start:
-        return quick_start_section(args)
     if args.sample_cache:
         return sample_cache_section(args, cfg)
     if args.convolutions:
@@ -1177,7 +1178,8 @@ def main(argv: list[str] | None = None) -> Path:
         "result collection of `self.log`, which the module calls only on the logging steps; at "
         "batch 1 that fixed cost is what separates the ratio from 1. *Ratio*: that of each "
         f"back-to-back pair of {args.repeats} interleaved repeats, their median (range); "
-        "*noisy*: the range leaves ±5 % of the median, here and in every ratio below."
+        f"*noisy*: the range leaves ±{100 * NOISY:.0f} % of the median, here and in every "
+        "ratio below."
     )
     ratio_rows = []
     for batch_size, _ in sizes:

@@ -111,17 +111,18 @@ class ConvolutionChoice(L.Callback):
         layers = dict(switchable_layers(net))
         try:
             recorded = json.loads(self.record.read_text())["layers"]
-            ok = set(recorded) == set(layers) and set(recorded.values()) <= set(CONV_IMPLS)
         except (ValueError, KeyError, TypeError, OSError) as err:
-            recorded, ok = {}, False
             log.warning("%s: unreadable (%s): the convolutions are chosen again", self.record, err)
-        else:
-            if not ok:
-                log.warning(
-                    "%s records other layers or implementations than this network's: the "
-                    "convolutions are chosen again", self.record,
-                )  # fmt: skip
-        if not ok:
+            return False
+        if not (
+            isinstance(recorded, dict)
+            and set(recorded) == set(layers)
+            and set(recorded.values()) <= set(CONV_IMPLS)
+        ):
+            log.warning(
+                "%s records other layers or implementations than this network's: the "
+                "convolutions are chosen again", self.record,
+            )  # fmt: skip
             return False
         for name, layer in layers.items():
             if layer.impl == AUTO:
