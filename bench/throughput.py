@@ -100,6 +100,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )  # fmt: skip
     p.add_argument("--cache-frames", type=int, default=200,
                    help="frames of each of the 2 training trajectories (sample cache)")  # fmt: skip
+    p.add_argument("--cache-epochs", type=int, default=3,
+                   help="epochs of each training (sample cache): the first computes the "
+                   "samples, the later ones, timed together, read them back")  # fmt: skip
     add_common_arguments(p)
     return p.parse_args(argv)
 
@@ -850,10 +853,12 @@ def loader_epochs(dm) -> tuple[float, float, dict[str, int]]:
     return rates[0], rates[1], epoch2
 
 
-def training_epochs(overrides: list[str], data, warmup: int) -> tuple[float, float]:
+def training_epochs(
+    overrides: list[str], data, warmup: int, epochs: int = 2
+) -> tuple[float, float]:
     """Training samples per second (Lightning, float32) on ``data`` (a DataModule: its training
     loader; else an iterable of batches) in the first epoch (after ``warmup`` steps) and in the
-    second (its first step included)."""
+    ``epochs - 1`` after it together (their first step included)."""
     import lightning as L
 
     stamps: list[tuple[int, float, int]] = []
@@ -864,7 +869,7 @@ def training_epochs(overrides: list[str], data, warmup: int) -> tuple[float, flo
 
     model, _ = build_model(overrides)
     trainer = L.Trainer(
-        accelerator="cpu", devices=1, max_epochs=2, max_steps=-1, logger=False,
+        accelerator="cpu", devices=1, max_epochs=epochs, max_steps=-1, logger=False,
         enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
         num_sanity_val_steps=0, limit_val_batches=0, callbacks=[Stamp()],
     )  # fmt: skip
@@ -873,9 +878,9 @@ def training_epochs(overrides: list[str], data, warmup: int) -> tuple[float, flo
     else:
         trainer.fit(model, train_dataloaders=data)
     first = [s for s in stamps if s[0] == 0]
-    second = [s for s in stamps if s[0] == 1]
+    later = [s for s in stamps if s[0] >= 1]
     rate1 = sum(n for _, _, n in first[warmup:]) / (first[-1][1] - first[warmup - 1][1])
-    rate2 = sum(n for _, _, n in second) / (second[-1][1] - first[-1][1])
+    rate2 = sum(n for _, _, n in later) / (later[-1][1] - first[-1][1])
     return rate1, rate2
 
 
@@ -957,9 +962,9 @@ def quick_start_section(args: argparse.Namespace) -> Path:
 def sample_cache_section(args: argparse.Namespace, cfg: Any) -> Path:
     """The sample cache: the training loader alone and training on it (Lightning, float32) in
     the first epoch (samples computed: no cache, the cache with each prefetch, the disk tier of
-    an earlier run) and the second (read back), against training on the same batches held in
-    memory. Written as its own section of throughput.md (the rest kept); the quick start
-    without and with the cache is :func:`quick_start_section`'s."""
+    an earlier run) and the later ones (read back: ``--cache-epochs``), against training on the
+    same batches held in memory. Written as its own section of throughput.md (the rest kept);
+    the quick start without and with the cache is :func:`quick_start_section`'s."""
     torch.set_num_threads(args.threads or os.cpu_count() or 1)
     # The dataset's own cache settings underneath each row: base_overrides turns the cache off
     # (for the other sections), and a row's overrides only change the keys they name.
@@ -968,11 +973,13 @@ def sample_cache_section(args: argparse.Namespace, cfg: Any) -> Path:
     batch = 4 if args.tiny else int(cfg.dataset.batch_size)
     warmup = 1 if args.tiny else 3
     repeats = 1 if args.tiny else args.candidate_repeats
+    epochs = 2 if args.tiny else max(2, args.cache_epochs)
+    later = "epoch 2" if epochs == 2 else f"epochs 2–{epochs}"
     report = Report("throughput", "Throughput: training, inference, data, memory", args.out)
     # What the loaders are measured against: training on the training loader's own batches
-    # (every field, the short last one too), collated once and held in memory, for 2 epochs
-    # timed the same way, right after each loader's training (a pair: a change of the machine's
-    # speed between pairs cancels out of their ratio).
+    # (every field, the short last one too), collated once and held in memory, for as many
+    # epochs, timed the same way, right after each loader's training (a pair: a change of the
+    # machine's speed between pairs cancels out of their ratio).
     with tempfile.TemporaryDirectory() as cache:  # (no cache: nothing is written there)
         loader = cache_datamodule(base, UNCACHED_SAMPLES, Path(cache), frames, batch)
         loader = loader.train_dataloader()
@@ -997,8 +1004,9 @@ def sample_cache_section(args: argparse.Namespace, cfg: Any) -> Path:
                             counts, dm.num_workers > 0 or "dataset.prefetch=worker" in extra
                         )
                     else:
-                        row += training_epochs(base, dm, warmup)
-            held.append(training_epochs(base, InMemory(batches, len(batches)), warmup))
+                        row += training_epochs(base, dm, warmup, epochs)
+            memory = InMemory(batches, len(batches))
+            held.append(training_epochs(base, memory, warmup, epochs))
             rates[label].append((*row, *held[-1]))
     mem1, mem2 = (statistics.median(r[k] for r in held) for k in range(2))
     rows = []
@@ -1028,9 +1036,9 @@ def sample_cache_section(args: argparse.Namespace, cfg: Any) -> Path:
                 "epoch 2's samples served from",
                 "training, epoch 1 (samples/s)",
                 "epoch 1 waiting on data",
-                "training, epoch 2",
-                "epoch 2 waiting on data",
-                "epoch 2 / in memory",
+                f"training, {later}",
+                f"{later} waiting on data",
+                f"{later} / in memory",
             ],
             rows,
         )
@@ -1038,12 +1046,12 @@ def sample_cache_section(args: argparse.Namespace, cfg: Any) -> Path:
         "after its first batch (a worker's start-up excluded) and through epoch 2; *served from*: "
         "the training dataset's own count of where epoch 2's samples came from in the loader-"
         "alone run (memory, its disk files, computed). *Training*: "
-        f"`lightning.Trainer.fit` for 2 epochs on the DataModule, epoch 1 after {warmup} steps, "
-        "epoch 2 whole; *waiting on data* = 1 − rate / the rate of the same epoch on the "
-        "training loader's own batches (every field, the short last batch too) collated once "
-        "and held in memory, timed the same way right after it (the median of the repeats' "
-        "pairs; *epoch 2 / in memory*: their median (range), *noisy* where the range leaves "
-        f"±{100 * NOISY:.0f} % of it). Epoch 1 computes every sample (the disk row "
+        f"`lightning.Trainer.fit` for {epochs} epochs on the DataModule, epoch 1 after "
+        f"{warmup} steps, {later} whole; *waiting on data* = 1 − rate / the rate of the same "
+        "epochs on the training loader's own batches (every field, the short last batch too) "
+        "collated once and held in memory, timed the same way right after it (the median of the "
+        f"repeats' pairs; *{later} / in memory*: their median (range), *noisy* where the range "
+        f"leaves ±{100 * NOISY:.0f} % of it). Epoch 1 computes every sample (the disk row "
         "reads an earlier run's entries); from epoch 2 on the cached loaders read memory (the "
         "disk row: its files). `prefetch=thread` computes ahead in a thread of the training "
         "process, in the loader's order; `prefetch=worker` in one persistent loader process. "

@@ -86,6 +86,12 @@ def test_cached_samples_are_the_generated_ones_bit_for_bit(
     for i, want in enumerate(fresh):
         _assert_same(want, disk[i])
     assert disk.store.counts == {"memory": 0, "disk": n, "computed": 0, "prefetched": 0}
+    # Read from disk and kept in memory (decoded), then from memory.
+    both = _train(tmp_path, **settings)
+    for _ in range(2):
+        for i, want in enumerate(fresh):
+            _assert_same(want, both[i])
+    assert both.store.counts == {"memory": n, "disk": n, "computed": 0, "prefetched": 0}
     # Handed-out tensors are copies: changing one changes no later read.
     cached[0]["flow"].add_(1.0)
     _assert_same(fresh[0], cached[0])

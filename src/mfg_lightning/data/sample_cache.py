@@ -3,7 +3,8 @@ background thread that fills them ahead of the training loader.
 
 A ``flow=exact`` sample is a pure function of ``(scene seed, sequence, source, target)`` and its
 dataset's settings, so every epoch would regenerate the same samples: a :class:`SampleStore`
-keeps each one, encoded as a few numpy arrays (:data:`Arrays`), the first time it is computed.
+keeps each one the first time it is computed: in memory as its dataset hands it out, on disk
+encoded as a few numpy arrays (:data:`Arrays`, :class:`Codec`).
 
 * **Memory**: up to :class:`MemoryBudget` bytes per process, which the splits of a DataModule
   share (first come, first kept: nothing is evicted). A DataLoader worker process gets
@@ -39,7 +40,7 @@ from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
-from typing import Any
+from typing import Any, Generic, TypeVar
 
 import numpy as np
 
@@ -51,6 +52,8 @@ log = logging.getLogger(__name__)
 Arrays = dict[str, np.ndarray]
 #: The fields an entry must have: name → (dtype, shape), ``None`` for a dimension of any length.
 FieldSpec = Mapping[str, tuple[np.dtype, tuple[int | None, ...]]]
+#: A sample in the form a :class:`SampleStore` keeps it in memory (:class:`Codec`).
+V = TypeVar("V")
 #: How ``dataset.prefetch`` may fill the first epoch ahead of the training step.
 PREFETCH_MODES = ("thread", "worker", "none")
 
@@ -271,20 +274,48 @@ def write_entry(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
 _DONE: Future = Future()
 
 
-class SampleStore(_PerProcess):
+class Codec(Generic[V]):
+    """How a :class:`SampleStore` turns what it keeps in memory (a sample in the form its
+    dataset hands out, ``V``) into the arrays of a disk entry and back.
+
+    The default keeps the arrays themselves in memory. A dataset whose entries are compressed
+    (bits for masks, the sparse object flow) gives its own: its memory tier then holds the
+    decoded sample, so that a later epoch's read is a copy instead of a decoding.
+    """
+
+    def encode(self, value: V) -> Arrays:
+        """The arrays of the disk entry of ``value`` (:func:`write_entry`)."""
+        return value  # type: ignore[return-value]
+
+    def decode(self, arrays: Arrays) -> V:
+        """The sample of a disk entry's verified arrays (read-only views of the file's bytes)."""
+        return arrays  # type: ignore[return-value]
+
+    def nbytes(self, value: V) -> int:
+        """The bytes ``value`` (a dict of arrays or tensors) holds, what the memory budget
+        counts: a tensor's whole storage (a view keeps all of it)."""
+        return sum(
+            a.nbytes if isinstance(a, np.ndarray) else a.untyped_storage().nbytes()
+            for a in value.values()  # type: ignore[attr-defined]
+        )
+
+
+class SampleStore(_PerProcess, Generic[V]):
     """The memory and disk tiers of one dataset, around the function that computes a sample.
 
-    :meth:`fetch` returns a sample's arrays from memory, else from disk, else computed (then
-    kept in memory if the budget has room, and written to disk); :meth:`prefetch` does the same
-    from a background thread without returning them. A sample being computed by one thread is
-    waited for by the others, never computed twice. The arrays returned are the stored ones:
-    callers copy before handing them out.
+    :meth:`fetch` returns a sample from memory, else read from disk, else computed (then kept in
+    memory if the budget has room, and written to disk); :meth:`prefetch` does the same from a
+    background thread without returning it. A sample being computed by one thread is waited for
+    by the others, never computed twice. The sample returned is the stored one: callers copy
+    before handing it out.
 
     Args:
-        fields: what every entry holds (verified on every disk read).
+        fields: what every disk entry holds (verified on every disk read).
         memory: the process's budget (None: no memory tier).
         root: the disk tier's directory (None: no disk tier).
         validate: a further check of an entry read from disk (what is wrong, or None).
+        codec: the sample's form in memory and as a disk entry (None: the entry's arrays
+            themselves, :class:`Codec`).
     """
 
     def __init__(
@@ -293,11 +324,13 @@ class SampleStore(_PerProcess):
         memory: MemoryBudget | None = None,
         root: Path | None = None,
         validate: Callable[[Arrays], str | None] | None = None,
+        codec: Codec[V] | None = None,
     ) -> None:
         self.fields = dict(fields)
         self.budget = memory
         self.root = root
         self.validate = validate
+        self.codec: Codec[V] = codec or Codec()
         super().__init__()
 
     _process_local = (*_PerProcess._process_local, "_inflight")
@@ -306,7 +339,7 @@ class SampleStore(_PerProcess):
         super()._reset()
         # Memory entries of a parent are dropped in a pickled copy (__getstate__) but kept by a
         # fork, whose pages are shared; in-flight work is the parent's own.
-        self.memory: dict[Hashable, Arrays] = getattr(self, "memory", {})
+        self.memory: dict[Hashable, V] = getattr(self, "memory", {})
         self._inflight: dict[Hashable, Future] = {}
         self.memory_full = self.budget is None
         #: How samples were served: from memory, read from disk, computed (by any thread), and
@@ -322,17 +355,17 @@ class SampleStore(_PerProcess):
         """The disk entry ``<root>/<name>`` (None: no disk tier)."""
         return None if self.root is None else self.root / name
 
-    def fetch(self, key: Hashable, name: str, compute: Callable[[], Arrays]) -> Arrays:
-        """The arrays of sample ``key`` (disk entry ``name``), computing them at most once."""
+    def fetch(self, key: Hashable, name: str, compute: Callable[[], V]) -> V:
+        """Sample ``key`` (disk entry ``name``), computing it at most once."""
         self._here()
-        arrays, future, owned = self._claim(key)
-        if arrays is not None:
-            return arrays
+        value, future, owned = self._claim(key)
+        if value is not None:
+            return value
         if not owned:  # another thread is on it
             return future.result()
         return self._produce(key, future, name, compute, prefetched=False)
 
-    def prefetch(self, key: Hashable, name: str, compute: Callable[[], Arrays]) -> bool:
+    def prefetch(self, key: Hashable, name: str, compute: Callable[[], V]) -> bool:
         """Put sample ``key`` in memory (or on disk when memory is full) ahead of :meth:`fetch`.
 
         Returns False when nothing more can be kept (memory full and no disk tier): a
@@ -347,15 +380,15 @@ class SampleStore(_PerProcess):
             self._produce(key, future, name, compute, prefetched=True)
         return True
 
-    def _claim(self, key: Hashable, count: bool = True) -> tuple[Arrays | None, Future, bool]:
-        """``(arrays, _, False)`` if ``key`` is in memory (counted as served from memory when
+    def _claim(self, key: Hashable, count: bool = True) -> tuple[V | None, Future, bool]:
+        """``(sample, _, False)`` if ``key`` is in memory (counted as served from memory when
         ``count``); ``(None, future, False)`` if another thread is producing it; ``(None,
         future, True)`` if the caller now owns its production and must resolve ``future``."""
         with self._lock:
-            arrays = self.memory.get(key)
-            if arrays is not None:
+            value = self.memory.get(key)
+            if value is not None:
                 self.counts["memory"] += count
-                return arrays, _DONE, False
+                return value, _DONE, False
             if key in self._inflight:
                 return None, self._inflight[key], False
             future = self._inflight[key] = Future()
@@ -366,19 +399,21 @@ class SampleStore(_PerProcess):
         key: Hashable,
         future: Future,
         name: str,
-        compute: Callable[[], Arrays],
+        compute: Callable[[], V],
         prefetched: bool,
-    ) -> Arrays:
+    ) -> V:
         """Read or compute the claimed ``key``, keep it, and hand it to any waiting thread."""
         try:
             path = self.path(name)
             arrays = None if path is None else read_entry(path, self.fields, self.validate)
             read = arrays is not None
-            if arrays is None:
-                arrays = compute()
+            if arrays is not None:
+                value = self.codec.decode(arrays)
+            else:
+                value = compute()
                 if path is not None:
-                    self._write(path, arrays)
-            kept = self._keep(arrays)
+                    self._write(path, self.codec.encode(value))
+            kept = self._keep(value)
         except BaseException as err:
             with self._lock:
                 del self._inflight[key]
@@ -386,18 +421,18 @@ class SampleStore(_PerProcess):
             raise
         with self._lock:
             if kept:
-                self.memory[key] = arrays
+                self.memory[key] = value
             del self._inflight[key]
             self.counts["disk" if read else "computed"] += 1
             self.counts["prefetched"] += prefetched
-        future.set_result(arrays)
-        return arrays
+        future.set_result(value)
+        return value
 
-    def _keep(self, arrays: Arrays) -> bool:
-        """Whether the memory budget takes ``arrays`` (once it refuses one, the tier is full)."""
+    def _keep(self, value: V) -> bool:
+        """Whether the memory budget takes ``value`` (once it refuses one, the tier is full)."""
         if self.memory_full or self.budget is None:
             return False
-        if self.budget.reserve(sum(a.nbytes for a in arrays.values())):
+        if self.budget.reserve(self.codec.nbytes(value)):
             return True
         self.memory_full = True
         return False
