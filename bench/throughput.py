@@ -58,6 +58,8 @@ from typing import Any
 
 import torch
 
+from mfg_lightning.models.conv import ISA_CAP_VARIABLES
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import (
     NOISY,
@@ -925,17 +927,13 @@ def quick_start_wall(tiny: bool, threads: int) -> list[list[str]]:
     ]  # fmt: skip
 
 
-#: The environment variables that cap the instruction sets of torch's own kernels, oneDNN's
-#: and MKL's: with all three at AVX2 an AVX-512 machine imitates an AVX2 one (its instructions,
-#: not its cores or caches).
-ISA_CAPS = ("ATEN_CPU_CAPABILITY", "ONEDNN_MAX_CPU_ISA", "MKL_ENABLE_INSTRUCTIONS")
-
-
 def quick_start_section(args: argparse.Namespace) -> Path:
     """The quick start's wall time without and with the sample cache (:func:`quick_start_wall`)
-    as a section of its own, one per instruction set torch's kernels run (``$ISA_CAPS`` set: an
-    imitated machine, said in the heading)."""
-    caps = {k: os.environ[k] for k in ISA_CAPS if k in os.environ}
+    as a section of its own, one per instruction set torch's kernels run (one of the
+    ``ISA_CAP_VARIABLES`` set: an imitated machine, said in the heading; all three of
+    ``ATEN_CPU_CAPABILITY``, ``ONEDNN_MAX_CPU_ISA`` and ``MKL_ENABLE_INSTRUCTIONS`` at AVX2 make
+    an AVX-512 machine imitate an AVX2 one: its instructions, not its cores or caches)."""
+    caps = {k: os.environ[k] for k in ISA_CAP_VARIABLES if os.environ.get(k)}
     capability = torch.backends.cpu.get_cpu_capability()
     report = Report("throughput", TITLE, args.out)
     imitated = ", ".join(f"`{k}={v}`" for k, v in caps.items())

@@ -16,9 +16,12 @@ from torch import Tensor, nn
 from conftest import quiet_trainer
 from mfg_lightning.models.conv import (
     CONV_IMPLS,
+    ISA_CAP_VARIABLES,
     SwitchableConv2d,
+    cache_path,
     choose_conv_impls,
     im2col_conv2d,
+    machine_key,
     pick,
     switchable_layers,
 )
@@ -239,6 +242,19 @@ def test_auto_measures_once_per_machine_then_reads_the_cache(
     third = choose_conv_impls(MFG(**SMALL, conv_impl="auto"), (1, 2, 16, 32), cache_dir=tmp_path,
                               repeats=1, min_cpu_share=0.0)  # fmt: skip
     assert not any(c.cached for c in third)
+
+
+def test_an_instruction_set_cap_is_another_machine(monkeypatch: pytest.MonkeyPatch) -> None:
+    """oneDNN capped below the CPU (an AVX2 machine imitated on an AVX-512 one) runs other
+    kernels: its times are cached under another key, and the cap is recorded in it."""
+    for name in ISA_CAP_VARIABLES:
+        monkeypatch.delenv(name, raising=False)
+    plain = machine_key(2)
+    assert plain["isa_caps"] == {}
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "AVX2")
+    capped = machine_key(2)
+    assert capped["isa_caps"] == {"ONEDNN_MAX_CPU_ISA": "AVX2"}
+    assert cache_path("c", capped) != cache_path("c", plain)
 
 
 def test_times_taken_on_a_busy_machine_are_neither_used_nor_cached(

@@ -27,6 +27,7 @@ import copy
 import hashlib
 import json
 import logging
+import os
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -223,15 +224,24 @@ class ConvChoice:
         return f"{self.name} ({self.key}): {times} -> {self.choice}"
 
 
+#: Environment variables that cap the instruction sets of the kernels a convolution runs
+#: (torch's own, oneDNN's, MKL's): a machine imitating a smaller CPU times other kernels.
+ISA_CAP_VARIABLES = (
+    "ATEN_CPU_CAPABILITY", "ONEDNN_MAX_CPU_ISA", "DNNL_MAX_CPU_ISA", "MKL_ENABLE_INSTRUCTIONS"
+)  # fmt: skip
+
+
 def machine_key(threads: int | None = None) -> dict[str, object]:
     """What a measured time depends on besides the layer: the CPU model and vector features,
-    the CPU kernels torch dispatches to, torch's version, the thread count and the version of
-    these implementations."""
+    the CPU kernels torch dispatches to and the instruction-set caps set in the environment
+    (:data:`ISA_CAP_VARIABLES`), torch's version, the thread count and the version of these
+    implementations."""
     capability = getattr(torch.backends.cpu, "get_cpu_capability", lambda: "unknown")()
     return {
         "cpu": cpu_model(),
         "features": dict(cpu_vector_features()),
         "torch_cpu_capability": capability,
+        "isa_caps": {k: os.environ[k] for k in ISA_CAP_VARIABLES if os.environ.get(k)},
         "torch": torch.__version__,
         "threads": threads if threads is not None else torch.get_num_threads(),
         "version": CACHE_VERSION,
