@@ -58,7 +58,7 @@ from typing import Any
 
 import torch
 
-from mfg_lightning.models.conv import ISA_CAP_VARIABLES
+from mfg_lightning.core.machine import isa_caps
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import (
@@ -929,11 +929,10 @@ def quick_start_wall(tiny: bool, threads: int) -> list[list[str]]:
 
 def quick_start_section(args: argparse.Namespace) -> Path:
     """The quick start's wall time without and with the sample cache (:func:`quick_start_wall`)
-    as a section of its own, one per instruction set torch's kernels run (one of the
-    ``ISA_CAP_VARIABLES`` set: an imitated machine, said in the heading; all three of
-    ``ATEN_CPU_CAPABILITY``, ``ONEDNN_MAX_CPU_ISA`` and ``MKL_ENABLE_INSTRUCTIONS`` at AVX2 make
-    an AVX-512 machine imitate an AVX2 one: its instructions, not its cores or caches)."""
-    caps = {k: os.environ[k] for k in ISA_CAP_VARIABLES if os.environ.get(k)}
+    as a section of its own, one per instruction set torch's kernels run (an instruction-set cap
+    set, :func:`~mfg_lightning.core.machine.isa_caps`: an imitated machine, said in the
+    heading)."""
+    caps = isa_caps()
     capability = torch.backends.cpu.get_cpu_capability()
     report = Report("throughput", TITLE, args.out)
     imitated = ", ".join(f"`{k}={v}`" for k, v in caps.items())

@@ -14,9 +14,9 @@ import torch
 from torch import Tensor, nn
 
 from conftest import quiet_trainer
+from mfg_lightning.core.machine import ISA_CAP_VARIABLES
 from mfg_lightning.models.conv import (
     CONV_IMPLS,
-    ISA_CAP_VARIABLES,
     SwitchableConv2d,
     cache_path,
     choose_conv_impls,

@@ -7,6 +7,7 @@ flag is reported. Kept free of torch so that light tools and the benchmarks' hea
 
 from __future__ import annotations
 
+import os
 import platform
 from functools import cache
 from pathlib import Path
@@ -18,6 +19,20 @@ VECTOR_FEATURES: dict[str, str] = {
     "AVX512-BF16": "avx512_bf16",
     "AMX": "amx_bf16",
 }
+
+#: Environment variables that cap the instruction sets of torch's own kernels, oneDNN's and
+#: MKL's below what the CPU has. With ``ATEN_CPU_CAPABILITY``, ``ONEDNN_MAX_CPU_ISA`` and
+#: ``MKL_ENABLE_INSTRUCTIONS`` at AVX2 an AVX-512 machine imitates an AVX2 one: its instructions,
+#: not its cores or caches. (``DNNL_MAX_CPU_ISA`` is oneDNN's older name.)
+ISA_CAP_VARIABLES = (
+    "ATEN_CPU_CAPABILITY", "ONEDNN_MAX_CPU_ISA", "DNNL_MAX_CPU_ISA", "MKL_ENABLE_INSTRUCTIONS"
+)  # fmt: skip
+
+
+def isa_caps() -> dict[str, str]:
+    """The :data:`ISA_CAP_VARIABLES` set (non-empty) in this process's environment, e.g.
+    ``{"ONEDNN_MAX_CPU_ISA": "AVX2"}``; empty where the kernels run at the CPU's own level."""
+    return {k: os.environ[k] for k in ISA_CAP_VARIABLES if os.environ.get(k)}
 
 
 @cache

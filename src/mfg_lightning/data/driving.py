@@ -342,11 +342,9 @@ class _SampleCodec(Codec[dict[str, torch.Tensor]]):
     """A ``flow=exact`` sample's tensor fields in the memory tier, :func:`_encode`'s arrays on
     disk.
 
-    A later epoch's read is then a copy of each tensor instead of a decoding: the training
-    loader reads an epoch of 378 samples at 48 × 128 from memory in about 30 ms (the "loader
-    alone, epoch 2" column of bench/results/throughput.md: 11,500-12,700 samples/s, 2 cores,
-    avx512_bf16), where decoding them took 46 ms on the same kind of machine; for 153 kB a
-    sample in memory instead of 94 kB."""
+    A later epoch's read is then a copy of each tensor instead of a decoding (its rate: the
+    "loader alone, epoch 2" column of bench/results/throughput.md), for 153 kB a sample in
+    memory instead of 94 kB."""
 
     def __init__(self, height: int, width: int) -> None:
         self.height, self.width = height, width

@@ -2,11 +2,11 @@
 choice among them (``model.net.conv_impl``).
 
 On small feature maps oneDNN's convolution kernels run far below the machine's GEMM peak (the
-per-layer table of ``bench/results/throughput.md``: the 1000 × 512 3 × 3 hidden convolution on
-its 2 × 4 map at 31 % of the bfloat16 peak on AVX-512), and which lowering is fastest depends on
-the layer, the CPU, the dtype and the batch. So every convolution of the encoder is a
-:class:`SwitchableConv2d`, an ``nn.Conv2d`` with the same parameters (checkpoints are the same
-whatever runs) whose forward is one of:
+per-layer tables of ``bench/results/throughput.md``: the 1000 × 512 3 × 3 hidden convolution on
+its 2 × 4 map, forward and backward, at under a tenth of the bfloat16 GEMM peak on AVX-512),
+and which lowering is fastest depends on the layer, the CPU, the dtype and the batch. So every
+convolution of the encoder is a :class:`SwitchableConv2d`, an ``nn.Conv2d`` with the same
+parameters (checkpoints are the same whatever runs) whose forward is one of:
 
 * ``native``: PyTorch's own ``nn.Conv2d`` on a contiguous (NCHW) input: oneDNN on a CPU;
 * ``im2col``: :func:`im2col_conv2d`, every output pixel's receptive field gathered into one row
@@ -27,7 +27,6 @@ import copy
 import hashlib
 import json
 import logging
-import os
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -38,7 +37,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from mfg_lightning.core.atomic import atomic_write_text
-from mfg_lightning.core.machine import cpu_model, cpu_vector_features, describe_cpu
+from mfg_lightning.core.machine import cpu_model, cpu_vector_features, describe_cpu, isa_caps
 
 log = logging.getLogger(__name__)
 
@@ -224,24 +223,18 @@ class ConvChoice:
         return f"{self.name} ({self.key}): {times} -> {self.choice}"
 
 
-#: Environment variables that cap the instruction sets of the kernels a convolution runs
-#: (torch's own, oneDNN's, MKL's): a machine imitating a smaller CPU times other kernels.
-ISA_CAP_VARIABLES = (
-    "ATEN_CPU_CAPABILITY", "ONEDNN_MAX_CPU_ISA", "DNNL_MAX_CPU_ISA", "MKL_ENABLE_INSTRUCTIONS"
-)  # fmt: skip
-
-
 def machine_key(threads: int | None = None) -> dict[str, object]:
     """What a measured time depends on besides the layer: the CPU model and vector features,
     the CPU kernels torch dispatches to and the instruction-set caps set in the environment
-    (:data:`ISA_CAP_VARIABLES`), torch's version, the thread count and the version of these
+    (:func:`~mfg_lightning.core.machine.isa_caps`: a machine imitating a smaller CPU times
+    other kernels), torch's version, the thread count and the version of these
     implementations."""
     capability = getattr(torch.backends.cpu, "get_cpu_capability", lambda: "unknown")()
     return {
         "cpu": cpu_model(),
         "features": dict(cpu_vector_features()),
         "torch_cpu_capability": capability,
-        "isa_caps": {k: os.environ[k] for k in ISA_CAP_VARIABLES if os.environ.get(k)},
+        "isa_caps": isa_caps(),
         "torch": torch.__version__,
         "threads": threads if threads is not None else torch.get_num_threads(),
         "version": CACHE_VERSION,
