@@ -32,13 +32,13 @@ quoted beside MFG's rows as reference values: they are on real KITTI images with
 on this synthetic data.
 
 ``python bench/accuracy.py`` (a few minutes on 2 CPU cores); ``--tiny`` runs a seconds-long
-version (what the test suite runs).
+version (what the test suite runs). What the stages share and the DIS source's own stages with
+``flow_quality.md`` are modules of ``bench/accuracy_stages/``.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
 import sys
@@ -49,15 +49,14 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import (
-    DEFAULT_POSES_DIR,
-    REPO,
-    TINY_OVERRIDES,
-    Report,
-    fmt,
-    load_average,
-    markdown_table,
+from _common import DEFAULT_POSES_DIR, REPO, Report, fmt, load_average, markdown_table
+from accuracy_stages.flow_quality import (
+    stage_breakdown,
+    stage_loading,
+    stage_render,
+    write_flow_quality,
 )
+from accuracy_stages.settings import frames_tag, overrides, read_stage, write_stage
 
 #: The paper's Table 1 (ATE mean ± std, metres, frame-by-frame snippets †) on real KITTI images.
 PAPER_TABLE_1 = {
@@ -120,59 +119,6 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         help="render and estimate the dis run's flow and write flow_quality.md; train nothing",
     )
     return p.parse_args(argv)
-
-
-def flow_overrides(args: argparse.Namespace, flow: str) -> list[str]:
-    """The ``flow`` group overrides of one source."""
-    if flow == "exact":
-        return ["flow=exact"]
-    cache = args.flow_cache or args.work / "cache"
-    ov = ["flow=dis", f"flow.preset={args.dis_preset}", f"dataset.cache_dir={cache}"]
-    if args.render_size:
-        ov += [f"flow.height={args.render_size[0]}", f"flow.width={args.render_size[1]}"]
-    return ov
-
-
-def overrides(
-    args: argparse.Namespace, output_dir: Path, flow: str = "exact", max_frames: int | None = None
-) -> list[str]:
-    """The Hydra overrides of the training run (the quick-start optimiser, KITTI trajectories)."""
-    ov = [
-        *flow_overrides(args, flow),
-        "dataset.trajectory=kitti",
-        f"dataset.poses_dir={args.poses_dir}",
-        "dataset.train_sequences=[0,1,2,3,4,5,6,7,8]",
-        "dataset.test_sequences=[9,10]",
-        f"dataset.batch_size={args.batch_size}",
-        f"dataset.eval_batch_size={args.eval_batch_size}",
-        f"trainer.max_steps={args.steps}",
-        # Validation is not what this benchmark measures: no validation loop, no checkpoints.
-        "trainer.limit_val_batches=0",
-        "++trainer.num_sanity_val_steps=0",
-        "++trainer.enable_progress_bar=false",
-        "++trainer.enable_checkpointing=false",
-        "trainer.enable_model_summary=false",
-        "logger=none",
-        "callbacks=none",
-        "model.image_log_every_n_steps=0",
-        f"seed={args.seed}",
-        f"paths.output_dir={output_dir}",
-    ]
-    if max_frames:
-        ov.append(f"dataset.max_frames={max_frames}")
-    if args.tiny:
-        ov += TINY_OVERRIDES
-    return ov
-
-
-def datamodule_for(args: argparse.Namespace, flow: str, max_frames: int | None):
-    """The config and the DataModule of one flow source, as ``mfg_lightning.train`` builds them."""
-    from hydra.utils import instantiate
-
-    from mfg_lightning.core.config import compose
-
-    cfg = compose("train", overrides(args, args.work / "run", flow, max_frames))
-    return cfg, instantiate(cfg.dataset)
 
 
 def train_mfg(
@@ -269,179 +215,15 @@ def table(results: list[dict]) -> str:
 
 
 # --------------------------------------------------------------------------------------------
-# Stages: each caches its result as JSON under --work, so that a rerun resumes
+# Stages: each caches its result as JSON under --work, so that a rerun resumes (the DIS
+# source's own: accuracy_stages/flow_quality.py)
 # --------------------------------------------------------------------------------------------
-
-
-def _read(path: Path) -> dict | None:
-    try:
-        return json.loads(path.read_text())
-    except (FileNotFoundError, json.JSONDecodeError):
-        return None
-
-
-def _write(path: Path, payload: dict) -> None:
-    from mfg_lightning.core.atomic import atomic_write_text
-
-    atomic_write_text(path, json.dumps(payload, indent=2) + "\n")
-
-
-def _frames_tag(max_frames: int | None) -> str:
-    return "all" if not max_frames else str(max_frames)
-
-
-def _cpu_seconds() -> float:
-    """User + system CPU seconds of this process and of its children that have ended."""
-    import resource
-
-    own, children = (
-        resource.getrusage(resource.RUSAGE_SELF),
-        resource.getrusage(resource.RUSAGE_CHILDREN),
-    )
-    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
-
-
-def stage_render(args: argparse.Namespace, max_frames: int | None) -> dict:
-    """Render every frame of 00–10 and estimate the DIS flow of every pair into the cache.
-
-    The cost is recorded per part and run (``render-<frames>.json``: the seconds and pairs of
-    the train + validation part and of the test part), so an interrupted run keeps the pairs
-    and what it measured, and the next one adds to it.
-    """
-    path = args.work / f"render-{_frames_tag(max_frames)}.json"
-    ledger = _read(path) or {"runs": []}
-    if ledger.get("done"):
-        return ledger
-    _, dm = datamodule_for(args, "dis", max_frames)
-    parts = {}
-    for part in ("train+val", "test"):
-        ds = dm.build_dataset(part)
-        parts[part] = {
-            "pairs": len(ds),
-            "frames": sum(int(t.shape[0]) for t in ds.trajectories.values()),
-        }
-        load_start = load_average()
-        start, cpu_start = time.perf_counter(), _cpu_seconds()
-        n = ds.precompute_flow(progress=not args.tiny, workers=args.workers)
-        if n:
-            ledger["runs"].append(
-                {
-                    "part": part,
-                    "pairs": n,
-                    "frames": ds.rendered_frames,
-                    "seconds": time.perf_counter() - start,
-                    # this process and its finished workers: what contention does not change
-                    "cpu_seconds": _cpu_seconds() - cpu_start,
-                    "workers": args.workers,
-                    "load_start": load_start,
-                    "load_end": load_average(),
-                }
-            )
-            _write(path, ledger)
-    ledger["parts"] = parts
-    ledger["image_hw"] = list(dm.build_dataset("test").image_hw)
-    ledger["preset"] = args.dis_preset
-    ledger["max_frames"] = max_frames
-    # The quality summaries and the pictures (every pair is cached now).
-    dm.prepare_data()
-    ledger["quality"] = {
-        split: json.loads(dm.quality_path(split).read_text()) for split in ("train", "val", "test")
-    }
-    ledger["done"] = True
-    _write(path, ledger)
-    return ledger
-
-
-def stage_breakdown(args: argparse.Namespace, max_frames: int | None, pairs: int = 20) -> dict:
-    """CPU time (``time.process_time``, one thread: what contention does not change) of each
-    step of a pair, on ``pairs`` consecutive pairs of sequence 00 (training data), rendered
-    into a scratch cache."""
-    path = args.work / f"breakdown-{_frames_tag(max_frames)}.json"
-    done = _read(path)
-    if done:
-        return done
-    import cv2
-
-    from mfg_lightning.scene import render
-
-    threads = torch.get_num_threads(), cv2.getNumThreads()
-    torch.set_num_threads(1)
-    cv2.setNumThreads(1)
-    _, dm = datamodule_for(args, "dis", max_frames)
-    dm.cache_dir = str(args.work / "breakdown-cache")
-    ds = dm.build_dataset("train+val")
-    seq = next(iter(ds.trajectories))
-    first = ds.sequences()[seq][0]
-    clock = time.process_time
-    spent = {"render": 0.0, "exact flow": 0.0, "DIS": 0.0, "quality, resize": 0.0, "write": 0.0}
-    t = clock()
-    a = ds.render(seq, ds.samples[first][1])
-    spent["render"] += clock() - t  # the first frame: one render per pair from here on
-    for i in range(first, first + pairs):
-        _, src, tgt = ds.samples[i]
-        t = clock()
-        b = ds.render(seq, tgt)
-        spent["render"] += clock() - t
-        t = clock()
-        world, K, hw = ds.world(seq), ds.image_intrinsics, ds.image_hw
-        render.exact_flow(world, src, tgt, K, *hw, source=a.rendered)
-        spent["exact flow"] += clock() - t
-        t = clock()
-        ds.estimator(a.image, b.image)
-        spent["DIS"] += clock() - t
-        t = clock()
-        pair = ds.compute_pair(seq, src, tgt, a, b)  # exact flow + DIS again, then the rest
-        spent["quality, resize"] += clock() - t
-        t = clock()
-        ds._store(i, pair)
-        spent["write"] += clock() - t
-        a = b
-    spent["quality, resize"] -= spent["exact flow"] + spent["DIS"]
-    torch.set_num_threads(threads[0])
-    cv2.setNumThreads(threads[1])
-    result = {
-        "pairs": pairs,
-        "sequence": seq,
-        "ms_per_pair": {k: 1e3 * v / pairs for k, v in spent.items()},
-        "image_hw": list(ds.image_hw),
-    }
-    _write(path, result)
-    return result
-
-
-def stage_loading(args: argparse.Namespace, max_frames: int | None) -> dict:
-    """Data-loading passes over the cached training split (what every epoch after the first
-    costs), against the first pass (rendering and estimating, from ``render.json``)."""
-    path = args.work / f"loading-{_frames_tag(max_frames)}.json"
-    done = _read(path)
-    if done:
-        return done
-    from torch.utils.data import DataLoader
-
-    from mfg_lightning.data.base import collate_samples
-
-    cfg, dm = datamodule_for(args, "dis", max_frames)
-    ds = dm.dataset("train")
-    passes = []
-    for _ in range(2):
-        loader = DataLoader(ds, batch_size=cfg.dataset.batch_size, collate_fn=collate_samples)
-        start = time.perf_counter()
-        n = sum(b["flow"].shape[0] for b in loader)
-        passes.append(time.perf_counter() - start)
-    result = {
-        "samples": n,
-        "cached_passes": passes,
-        "rendered": ds.rendered_frames,
-        "load": load_average(),
-    }
-    _write(path, result)
-    return result
 
 
 def stage_accuracy(args: argparse.Namespace, flow: str, max_frames: int | None) -> dict:
     """Train MFG on one flow source and score every method on its test flow."""
-    path = args.work / f"accuracy-{flow}-{_frames_tag(max_frames)}.json"
-    done = _read(path)
+    path = args.work / f"accuracy-{flow}-{frames_tag(max_frames)}.json"
+    done = read_stage(path)
     if done:
         return done
     load_start = load_average()
@@ -464,113 +246,13 @@ def stage_accuracy(args: argparse.Namespace, flow: str, max_frames: int | None) 
         "moving_objects": cfg.dataset.scene.moving_objects,
         "load": [load_start, load_average()],
     }
-    _write(path, result)
+    write_stage(path, result)
     return result
 
 
 # --------------------------------------------------------------------------------------------
 # Report
 # --------------------------------------------------------------------------------------------
-
-QUALITY_ORDER = ("road", "structure", "moving", "far", "all")
-
-
-def _frames_note(max_frames: int | None) -> str:
-    return f"the first {max_frames} frames of every sequence, " if max_frames else ""
-
-
-def quality_table(rendered: dict) -> str:
-    hw = "×".join(str(x) for x in rendered["image_hw"])
-    header = ["split", "DIS preset", "render size", "pixels / pair"]
-    for region in QUALITY_ORDER:
-        header += [f"EPE {region} (px)", f"Fl {region} (%)"]
-    header.append("non-finite px")
-    body = []
-    for split, q in rendered["quality"].items():
-        pairs = rendered["parts"]["test" if split == "test" else "train+val"]["pairs"]
-        regions = q["regions"]
-        row = [split, rendered["preset"], hw, fmt(regions["all"]["pixels"] / max(pairs, 1), 0)]
-        for region in QUALITY_ORDER:
-            row += [fmt(regions[region]["epe"], 2), fmt(regions[region]["fl"], 1)]
-        row.append(str(q["nonfinite_pixels"]))
-        body.append(row)
-    return markdown_table(header, body)
-
-
-def full_split_pairs(poses_dir: Path) -> int:
-    """Pairs of the whole 00–08 split (train + validation: every frame but the last)."""
-    return sum(len((poses_dir / f"{s:02d}.txt").read_text().splitlines()) - 1 for s in range(9))
-
-
-def breakdown_section(breakdown: dict, rendered: dict, train_pairs: int) -> str:
-    ms = breakdown["ms_per_pair"]
-    total = sum(ms.values())
-    rows = [[k, fmt(v, 1), f"{100 * v / total:.0f} %"] for k, v in ms.items()]
-    rows.append(["**total**", fmt(total, 1), "100 %"])
-    size = "×".join(str(x) for x in breakdown["image_hw"])
-    return (
-        markdown_table(["step", "CPU ms / pair", "share"], rows)
-        + f"\n{breakdown['pairs']} consecutive pairs of sequence {breakdown['sequence']} at "
-        f"{size}, one thread, `time.process_time` (CPU time: what a shared machine's "
-        "contention does not change, unlike the wall time below). A frame is rendered once per "
-        "pair (each is the target of one pair and the source of the next). The whole 00–08 "
-        f"split ({train_pairs} pairs) at this CPU cost: "
-        f"{total * train_pairs / 6e4:.0f} CPU-minutes, "
-        f"**{total * train_pairs / 12e4:.0f} min on 2 cores** with `dataset.num_workers=2` "
-        "(two processes, one sequence each at a time; target ≤ 30 min)."
-    )
-
-
-def cost_section(rendered: dict, loading: dict | None, train_pairs: int) -> str:
-    runs = rendered["runs"]
-    seconds = sum(r["seconds"] for r in runs)
-    pairs = sum(r["pairs"] for r in runs)
-    frames = sum(r["frames"] for r in runs)
-    per_pair = seconds / max(pairs, 1)
-    rows = [
-        [
-            r["part"],
-            r["pairs"],
-            r["frames"],
-            r["workers"],
-            fmt(r["seconds"] / 60, 1),
-            fmt(1e3 * r["seconds"] / max(r["pairs"], 1), 1),
-            f"{r['load_start']} → {r['load_end']}",
-        ]
-        for r in runs
-    ]
-    text = markdown_table(
-        ["part", "pairs", "frames rendered", "processes", "minutes", "ms / pair", "load average"],
-        rows,
-    )
-    cpu = [r for r in runs if r.get("cpu_seconds")]
-    if cpu:
-        cpu_per_pair = sum(r["cpu_seconds"] for r in cpu) / sum(r["pairs"] for r in cpu)
-        text += (
-            f"\nCPU time (user + system, every process): {1e3 * cpu_per_pair:.1f} ms per pair, "
-            f"so the 00–08 split takes **{cpu_per_pair * train_pairs / 120:.1f} min on 2 idle "
-            "cores** whatever the load was.\n"
-        )
-    text += (
-        f"\nIn all {frames} frames rendered and {pairs} pairs estimated in {seconds / 60:.1f} min "
-        f"({1e3 * per_pair:.1f} ms per pair: rendering, exact flow, DIS, the quality, the "
-        "resizing and the cache write; one torch and OpenCV thread per process). The whole "
-        f"00–08 split (train + validation, {train_pairs} pairs) at that contended rate: "
-        f"**{per_pair * train_pairs / 60:.1f} min** (target ≤ 30 min on 2 cores). Load average "
-        "(1/5/15 min) at the start → end of each part above: the machine is shared."
-    )
-    if loading:
-        first = per_pair * loading["samples"]
-        cached = min(loading["cached_passes"])
-        text += (
-            f"\n\nData-loading pass over the training split ({loading['samples']} samples, batch "
-            f"16, `num_workers=0`): first pass (render + estimate + write, at the rate above) "
-            f"{first:.0f} s; a pass over the cache {cached:.2f} s "
-            f"({', '.join(f'{x:.2f}' for x in loading['cached_passes'])} s for two passes; "
-            f"{loading['rendered']} frames rendered during them): "
-            f"**{first / max(cached, 1e-9):.0f}× faster** (target ≥ 50×)."
-        )
-    return text
 
 
 def accuracy_intro(result: dict, args: argparse.Namespace) -> str:
@@ -680,38 +362,6 @@ def run(args: argparse.Namespace) -> Path:
         "whatever the input flow: the floor of the pipeline."
     )
     return report.write()
-
-
-def write_flow_quality(
-    args: argparse.Namespace, rendered: dict, loading: dict | None, breakdown: dict | None
-) -> Path:
-    """``flow_quality.md``: the DIS flow's quality by region and the cost of the split."""
-    quality = Report(
-        "flow_quality",
-        "Flow of rendered worlds: quality of DIS against the exact flow, and its cost",
-        args.out,
-    )
-    quality.add(
-        "Worlds rendered along the real KITTI trajectories 00–10 "
-        f"(`flow=dis flow.preset={rendered['preset']}`, "
-        f"{_frames_note(rendered['max_frames'])}"
-        "seed 0), DIS at the render size, compared with the exact flow from the same ray "
-        "casts at that size. EPE: mean end-point error (pixels of the render size). Fl: "
-        "KITTI's outlier rate, pixels with EPE > 3 px and > 5 % of the exact flow's "
-        "magnitude. Pooled over every pixel of every pair whose exact flow is known "
-        "(`quality-<split>-<pairs>pairs-<digest>.json` beside the cache). Regions are the "
-        "renderer's: road, structure (facades, parked cars, crates), moving objects, far "
-        "field (sky)."
-    )
-    quality.add("## Quality by region\n\n" + quality_table(rendered))
-    full = full_split_pairs(args.poses_dir)
-    steps = breakdown_section(breakdown, rendered, full)
-    quality.add("## CPU time per pair, by step\n\n" + steps)
-    quality.add(
-        "## Cost of rendering and estimating, and of a cached pass\n\n"
-        + cost_section(rendered, loading, full)
-    )
-    return quality.write()
 
 
 if __name__ == "__main__":

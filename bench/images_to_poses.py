@@ -11,15 +11,16 @@ irrelevant here, its cost is the trained model's.
 
 Measured per image size, interleaved, the median of ``--repeats`` after one warm-up round:
 
-1. end to end: :func:`mfg_lightning.predict.predict` (what ``python -m mfg_lightning.predict
-   dataset=image_folder`` runs, in this process: the checkpoint, the DataModule, Lightning's
-   predict loop, the DIS and RGB caches, the output files) on the whole folder, each run with
-   an empty cache (a first run on a folder); and on its first two frames, the call's start-up.
+1. end to end: :func:`mfg_lightning.run.prediction.predict` (what ``python -m
+   mfg_lightning.predict dataset=image_folder`` runs, in this process: the checkpoint, the
+   DataModule, Lightning's predict loop, the DIS and RGB caches, the output files) on the whole
+   folder, each run with an empty cache (a first run on a folder); and on its first two frames,
+   the call's start-up.
 2. the stages, on the same frames with the same functions the predict path calls: read (the
    dataset's frame decoding, as its loader does it: PNG, resize to the input, grey), flow (DIS
    and the resize to the input), network (the module's forward at the predict batch size),
    recovery (:func:`~mfg_lightning.core.geometry.recover_motion`), composition
-   (:meth:`mfg_lightning.predict.PredictedSequence.trajectory`); and the classical method
+   (:meth:`mfg_lightning.run.prediction.PredictedSequence.trajectory`); and the classical method
    frame by frame on the same flows (:func:`mfg_lightning.motion.baselines.
    essential_matrix_motion` with MAGSAC++, as ``mfg_lightning.analysis.scoring`` scores it),
    composed the same way.
@@ -178,8 +179,8 @@ def predict_config(ckpt: Path, folder: Path, camera: list[float], work: Path, ar
 
 
 def time_predict(cfg: Any) -> float:
-    """Seconds of one :func:`mfg_lightning.predict.predict` call."""
-    from mfg_lightning.predict import predict
+    """Seconds of one :func:`mfg_lightning.run.prediction.predict` call."""
+    from mfg_lightning.run.prediction import predict
 
     start = time.perf_counter()
     predict(cfg)
@@ -208,8 +209,8 @@ def time_stages(cfg: Any) -> Stages:
     from mfg_lightning.data.sample import sanitize_flow
     from mfg_lightning.models.mfg import validate_top_k
     from mfg_lightning.motion.baselines import essential_matrix_motion
-    from mfg_lightning.predict import PredictedSequence
     from mfg_lightning.run.checkpoints import module_from_checkpoint
+    from mfg_lightning.run.prediction import PredictedSequence
 
     module = module_from_checkpoint(cfg.ckpt_path, top_k=validate_top_k(cfg.model.get("top_k")))
     module.eval()
@@ -440,7 +441,7 @@ def main(argv: list[str] | None = None) -> Path:
     )
     report.add(rates_table(results, kind))
     report.add(
-        "*End to end*: `mfg_lightning.predict.predict` in this process, what `python -m "
+        "*End to end*: `mfg_lightning.run.prediction.predict` in this process, what `python -m "
         "mfg_lightning.predict dataset=image_folder` runs after its imports: the checkpoint, "
         "the DataModule, Lightning's predict loop, DIS and its cache, the network, the "
         "recovery, the composition and the output files (KITTI and TUM poses, motions CSV). "

@@ -228,7 +228,7 @@ def test_gpu_check_fits_the_loader_workers_to_dev_shm(tmp_path: Path, monkeypatc
     roomy = gpu_check.plan_workers(6, 16, 64, kb, tmp_path)
     assert roomy.workers == 6 and "enough" in roomy.note
     Usage = type(shutil.disk_usage(tmp_path))
-    monkeypatch.setattr(gpu_check.shutil, "disk_usage", lambda _: Usage(64 << 20, 0, 64 << 20))
+    monkeypatch.setattr(shutil, "disk_usage", lambda _: Usage(64 << 20, 0, 64 << 20))
     small = gpu_check.plan_workers(6, 16, 64, kb, Path("/dev/shm"))  # Docker's default 64 MB
     assert 0 <= small.workers < 6
     assert f"dataset.num_workers={small.workers}" in small.note and "--shm-size=" in small.note

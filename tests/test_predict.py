@@ -20,7 +20,7 @@ from mfg_lightning.core import geometry
 from mfg_lightning.core.data_errors import DataRootError
 from mfg_lightning.data.image_folder import ImageFolderDataModule, NoGroundTruthError
 from mfg_lightning.data.kitti import KittiDataModule
-from mfg_lightning.predict import MOTION_COLUMNS, PredictionError, gather
+from mfg_lightning.run.prediction import MOTION_COLUMNS, PredictionError, gather
 from mfg_lightning.trajectory import trajectories
 from mfg_lightning.trajectory.pose_io import read_kitti_poses, read_poses, read_tum_poses
 

@@ -13,140 +13,21 @@ trajectory before the figures are drawn (their titles name it) and before the wh
 metrics are computed: ``ate_traj*``, RPE and drift are then those of the aligned trajectory of each
 sequence (:func:`~mfg_lightning.metrics.aligned_trajectory_metrics`, as ``mfg-eval-poses
 --align``), the snippet ATE (which aligns each snippet itself) and the pose files are unchanged.
-``docs/evaluation.md`` lists the files. Trainer and loggers are configured as in training."""
+``docs/evaluation.md`` lists the files. Trainer and loggers are configured as in training; the
+tasks themselves are :mod:`mfg_lightning.analysis.evaluation`'s."""
 
 from __future__ import annotations
 
-import logging
 from pathlib import Path
-from typing import Any
 
 import hydra
 import lightning as L
-import numpy as np
-from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from mfg_lightning.analysis.result_tables import object_motion_table, sequence_table, top_k_table
-from mfg_lightning.core.atomic import atomic_write_bytes
+from mfg_lightning.analysis.evaluation import evaluate
 from mfg_lightning.core.config import CONFIG_DIR
 from mfg_lightning.core.errors import exit_on_unknown_choice, exit_on_user_error
-from mfg_lightning.core.tables import Table
-from mfg_lightning.metrics.alignment import ALIGN_MODES
-from mfg_lightning.metrics.ate_traj import aligned_trajectory_metrics
-from mfg_lightning.metrics.evaluator import EvaluationResult
-from mfg_lightning.models.mfg import validate_top_k
-from mfg_lightning.models.mfg_module import MFGLitModule
-from mfg_lightning.pictures import plots
 from mfg_lightning.run import runs
-from mfg_lightning.run.checkpoints import module_from_checkpoint
-from mfg_lightning.trajectory.pose_io import write_trajectory
-
-log = logging.getLogger("mfg_lightning.evaluate")
-
-
-def build(cfg: DictConfig) -> tuple[MFGLitModule, L.LightningDataModule, L.Trainer]:
-    """The model from the checkpoint, the dataset (given, or the checkpoint's), the Trainer."""
-    model = module_from_checkpoint(cfg.ckpt_path, top_k=validate_top_k(cfg.model.get("top_k")))
-    datamodule = runs.checkpoint_datamodule(
-        cfg.get("dataset"), model.dataset_config, cfg.ckpt_path, eval_batch_size=cfg.eval.batch_size
-    )
-    return model, datamodule, runs.build_trainer(cfg, [], runs.instantiate_list(cfg.get("logger")))
-
-
-def eval_align(cfg: DictConfig) -> str:
-    """``eval.align``, checked (``none`` when the config has none)."""
-    align = str(cfg.eval.get("align") or "none")
-    if align not in ALIGN_MODES:
-        raise ValueError(f"eval.align={align!r}: use one of {', '.join(ALIGN_MODES)}")
-    return align
-
-
-def aligned_metrics(evaluation: EvaluationResult | None, align: str) -> dict[str, float]:
-    """The ``test/`` whole-trajectory metrics of each sequence's trajectory after ``align``
-    (nothing for ``none``: the test loop's own, unaligned, stand)."""
-    if evaluation is None or align == "none":
-        return {}
-    sequences = {s: (sp.pred, sp.gt) for s, sp in sorted(evaluation.sequences.items())}
-    return {f"test/{k}": v for k, v in aligned_trajectory_metrics(sequences, align).items()}
-
-
-def frame_times(
-    datamodule: L.LightningDataModule, seq: str, frames: np.ndarray, frame_rate: float
-) -> np.ndarray:
-    """``(N,)`` TUM timestamps (s) of ``frames``: the test split's own clock where it has one
-    (KITTI's ``times.txt``, so ``mfg-eval-poses`` matches the files to KITTI's ground truth by
-    time), else ``frame / frame_rate``."""
-    dataset = datamodule.dataset("test") if hasattr(datamodule, "dataset") else None
-    clock = getattr(dataset, "timestamps", None)
-    times = clock(seq) if clock is not None else None
-    if times is not None and len(times) > int(frames.max()):
-        return np.asarray(times, np.float64)[frames]
-    return frames.astype(np.float64) / frame_rate
-
-
-def evaluate_egomotion(
-    cfg: DictConfig, model: MFGLitModule, datamodule: L.LightningDataModule, trainer: L.Trainer
-) -> tuple[dict[str, Any], Table, dict[str, Any]]:
-    """Test every k of the sweep; write poses, figures, tables. Returns the metrics and extra
-    keys for ``metrics.json`` and the table to print (the sweep's, else the sequences')."""
-    align = eval_align(cfg)
-    out, extra = Path(cfg.paths.output_dir), {"eval_align": align}
-    sweep = list(cfg.eval.top_k_sweep) if cfg.eval.get("top_k_sweep") else [model.net.top_k]
-    results: dict[float, dict[str, Any]] = {}  # k → test metrics
-    evaluations: dict[float, EvaluationResult | None] = {}  # k → per-sequence trajectories
-    for k in sweep:
-        model.net.top_k = validate_top_k(k)
-        trainer.test(model, datamodule=datamodule, verbose=len(sweep) == 1)
-        key = 1.0 if k is None else float(k)
-        results[key] = runs.test_metrics(trainer)
-        evaluations[key] = model.last_evaluation.get("test")
-        results[key].update(aligned_metrics(evaluations[key], align))
-        log.info("top_k=%s: ATE %s m", k, results[key].get("test/ate"))
-    # Everything is computed; only now are files written (each atomically). metrics.json, the
-    # sequence table and the pose files all describe the full model (k = 1) when the sweep has
-    # it, else its largest k: never whichever k happened to run last.
-    final, evaluation = results[k := 1.0 if 1.0 in results else max(results)], evaluations[k]
-    per_sequence = dict(sorted(evaluation.sequences.items())) if evaluation else {}
-    for s, sp in per_sequence.items() if cfg.eval.write_poses else ():
-        times = frame_times(datamodule, s, sp.frames.numpy(), float(cfg.eval.frame_rate))
-        write_trajectory(out, s, times, sp.pred.numpy())
-        write_trajectory(out, f"{s}_gt", times, sp.gt.numpy())
-    trajectories = {s: (sp.pred, sp.gt) for s, sp in per_sequence.items()}
-    plots.write_trajectory_figures(
-        trajectories, out / "trajectories", runs.tensorboard_writer(trainer), align=align
-    )
-    (table := sequence_table(final, seqs := list(per_sequence))).write(out / "sequences")
-    if len(results) > 1:
-        (table := top_k_table(results, seqs)).write(out / "top_k")
-        atomic_write_bytes(out / "top_k.png", plots.figure_png(plots.top_k_figure(results, seqs)))
-        extra["top_k_sweep"] = {f"{k:g}": m for k, m in sorted(results.items(), reverse=True)}
-    return final, table, extra
-
-
-def evaluate_object_motion(
-    cfg: DictConfig, model: MFGLitModule, datamodule: L.LightningDataModule, trainer: L.Trainer
-) -> tuple[dict[str, Any], Table, dict[str, Any]]:
-    """Score the object masks and fields; draw the first test batch in Figure 1's layout."""
-    from mfg_lightning.motion.object_motion import require_ground_truth
-    from mfg_lightning.pictures.grids import save_png
-    from mfg_lightning.pictures.object_motion import object_motion_pictures
-
-    model.object_motion = instantiate(cfg.object_motion)
-    datamodule.setup("test")
-    require_ground_truth(datamodule.dataset("test")[0])
-    trainer.test(model, datamodule=datamodule, verbose=False)
-    metrics = runs.test_metrics(trainer)
-    batch, n = next(iter(datamodule.test_dataloader())), int(cfg.eval.num_pictures)
-    grid = object_motion_pictures(model.eval(), batch, model.object_motion, n)
-    (table := object_motion_table(metrics)).write(Path(cfg.paths.output_dir) / "object_motion")
-    save_png(grid, Path(cfg.paths.output_dir) / "pictures" / "object_motion.png")
-    if (writer := runs.tensorboard_writer(trainer)) is not None:
-        writer.add_image("test/object_motion", grid, 0, dataformats="HWC")
-    return metrics, table, {}
-
-
-TASKS = {"egomotion": evaluate_egomotion, "object_motion": evaluate_object_motion}
 
 
 @exit_on_unknown_choice
@@ -154,9 +35,7 @@ TASKS = {"egomotion": evaluate_egomotion, "object_motion": evaluate_object_motio
 @exit_on_user_error
 def main(cfg: DictConfig) -> None:
     L.seed_everything(cfg.seed, workers=True)
-    if cfg.task not in TASKS:
-        raise ValueError(f"task must be 'egomotion' or 'object_motion', got {cfg.task!r}")
-    metrics, table, extra = TASKS[cfg.task](cfg, *build(cfg))
+    metrics, table, extra = evaluate(cfg)
     print(table.markdown())
     info = {"ckpt_path": str(cfg.ckpt_path), "task": cfg.task, **runs.run_info(), **extra}
     runs.write_metrics(Path(cfg.paths.output_dir) / "metrics.json", metrics, info)

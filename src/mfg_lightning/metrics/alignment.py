@@ -69,6 +69,7 @@ __all__ = [
     "Alignment",
     "align_trajectory",
     "check_align_options",
+    "configured_align",
     "umeyama",
 ]
 
@@ -156,6 +157,22 @@ class Alignment:
     scale: Tensor
     mode: str
     num_aligned: int
+
+
+def configured_align(value: str | None, key: str) -> str:
+    """An alignment mode read from a config, checked: ``none`` where it is unset.
+
+    Args:
+        value: the configured mode, or None.
+        key: the setting's name, for the error (``predict.align``).
+
+    Raises:
+        ValueError: ``<key>='<value>': use one of …``, a mode not in :data:`ALIGN_MODES`.
+    """
+    align = str(value or "none")
+    if align not in ALIGN_MODES:
+        raise ValueError(f"{key}={align!r}: use one of {', '.join(ALIGN_MODES)}")
+    return align
 
 
 def check_align_options(mode: str, n_to_align: int | None) -> None:

@@ -110,23 +110,20 @@ class TensorBoardFigures(L.Callback):
         trajectory_align: str = "none",
         legacy_images: bool = False,
     ) -> None:
-        from mfg_lightning.metrics.alignment import ALIGN_MODES
+        from mfg_lightning.metrics.alignment import configured_align
 
         if num_samples < 0 or basis_units < 0:
             raise ValueError(
                 "callbacks.figures.num_samples and basis_units must be >= 0, got "
                 f"{num_samples} and {basis_units}"
             )
-        if trajectory_align not in ALIGN_MODES:
-            raise ValueError(
-                f"callbacks.figures.trajectory_align={trajectory_align!r}: use one of "
-                f"{', '.join(ALIGN_MODES)}"
-            )
         self.num_samples = int(num_samples)
         self.basis_units = int(basis_units)
         self.trajectory = bool(trajectory)
         self.trajectory_sequence = None if trajectory_sequence is None else str(trajectory_sequence)
-        self.trajectory_align = trajectory_align
+        self.trajectory_align = configured_align(
+            trajectory_align, "callbacks.figures.trajectory_align"
+        )
         self.legacy_images = bool(legacy_images)
         self._plan: dict[int, list[int]] = {}
         self._samples: list[_Sample] = []

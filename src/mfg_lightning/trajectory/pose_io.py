@@ -45,6 +45,7 @@ __all__ = [
     "PoseFormat",
     "check_increasing",
     "detect_pose_format",
+    "frame_times",
     "read_kitti_poses",
     "read_kitti_times",
     "read_poses",
@@ -440,3 +441,23 @@ def write_trajectory(
     write_kitti_poses(kitti, poses)
     write_tum_poses(tum, timestamps, poses)
     return kitti, tum
+
+
+def frame_times(dataset: object, seq: str, frames: np.ndarray, frame_rate: float) -> np.ndarray:
+    """``(N,)`` TUM timestamps (s) of ``frames`` of sequence ``seq``: the dataset's own clock
+    where it has one (``dataset.timestamps(seq)``, KITTI's ``times.txt``, so that
+    ``mfg-eval-poses`` matches the files to KITTI's ground truth by time), else
+    ``frame / frame_rate``.
+
+    Args:
+        dataset: the split's dataset, or None; any object with a ``timestamps(seq)`` method
+            returning one time (s) per frame of the sequence, or None, has a clock.
+        seq: the sequence name.
+        frames: ``(N,)`` frame indices.
+        frame_rate: frames per second of the fallback clock.
+    """
+    clock = getattr(dataset, "timestamps", None)
+    times = clock(seq) if clock is not None else None
+    if times is not None and len(times) > int(frames.max()):
+        return np.asarray(times, np.float64)[frames]
+    return frames.astype(np.float64) / frame_rate
