@@ -11,6 +11,11 @@ to convergence" a rule fixed before training rather than a schedule's length:
 * **Decay.** Then the rate falls linearly to 0 over ``decay_fraction · s`` further steps (rounded
   up to the next validation) and training stops after that validation; the checkpoint callback
   keeps the best by ``monitor`` as always.
+* **Budget.** With ``budget_steps`` the plateau test is off: the rate is constant until
+  ``budget_steps − ⌈decay_fraction · budget_steps⌉`` and falls linearly to 0 at
+  ``budget_steps`` (``reason``: ``budget``). Models compared with each other (seeds, flows,
+  training sets) then train for the same steps whatever their curves do: an equal budget stated
+  before training, for measurements that validation's ``monitor`` does not cover.
 * **Caps.** When the decay would overrun ``trainer.max_steps`` or ``trainer.max_time`` (projected
   from the seconds per step so far), it starts early instead, and the run is reported as
   **not converged at N steps** (``reason``: ``step cap`` / ``time cap``): a budget shortens the
@@ -73,6 +78,9 @@ class ConvergenceStop(L.Callback):
         min_improvement: relative improvement below which the model has converged (0.02).
         decay_fraction: the decay's length as a fraction of the steps at convergence (0.1).
         min_steps: no convergence is declared before this step.
+        budget_steps: an equal budget instead of the rule (None: the rule): constant rate, then
+            the decay over the last ``decay_fraction`` of these steps (``trainer.max_steps``
+            should equal it; the study sets both).
         path: where the status JSON is written (None: nowhere).
 
     Needs a constant rate: a run with a learning-rate scheduler is refused at the start.
@@ -86,6 +94,7 @@ class ConvergenceStop(L.Callback):
         decay_fraction: float = 0.1,
         min_steps: int = 1000,
         path: str | None = None,
+        budget_steps: int | None = None,
     ) -> None:
         if not 0 < window < 1:
             raise ValueError(f"callbacks.convergence.window must be in (0, 1), got {window}")
@@ -100,6 +109,11 @@ class ConvergenceStop(L.Callback):
         self.monitor, self.window = monitor, float(window)
         self.min_improvement, self.decay_fraction = float(min_improvement), float(decay_fraction)
         self.min_steps = int(min_steps)
+        if budget_steps is not None and int(budget_steps) < 2:
+            raise ValueError(
+                f"callbacks.convergence.budget_steps must be at least 2, got {budget_steps}"
+            )
+        self.budget_steps = None if budget_steps is None else int(budget_steps)
         self.path = Path(path) if path else None
         self.curve: list[tuple[int, float]] = []
         self.decay_start: int | None = None
@@ -122,6 +136,7 @@ class ConvergenceStop(L.Callback):
             "min_improvement": self.min_improvement,
             "decay_fraction": self.decay_fraction,
             "min_steps": self.min_steps,
+            "budget_steps": self.budget_steps,
         }
 
     def status(self, trainer: L.Trainer | None = None) -> dict[str, Any]:
@@ -175,6 +190,11 @@ class ConvergenceStop(L.Callback):
         self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any, batch_idx: int
     ) -> None:
         groups = [g for opt in trainer.optimizers for g in opt.param_groups]
+        if self.budget_steps is not None and self.decay_start is None:
+            # the schedule is known from the start: no test, no cap (max_steps is the budget)
+            span = max(1, math.ceil(self.decay_fraction * self.budget_steps))
+            self.decay_start = max(0, self.budget_steps - span)
+            self.decay_end, self.reason = self.budget_steps, "budget"
         if self._reopen:
             for g, base in zip(groups, self.base_lrs, strict=True):
                 g["lr"] = base
@@ -184,7 +204,8 @@ class ConvergenceStop(L.Callback):
         if not self.base_lrs:
             self.base_lrs = [float(g["lr"]) for g in groups]
         span = max(1, self.decay_end - self.decay_start)
-        factor = max(0.0, 1.0 - (int(trainer.global_step) - self.decay_start) / span)
+        # clamped at 1: under a budget the decay's start is set before the run reaches it
+        factor = min(1.0, max(0.0, 1.0 - (int(trainer.global_step) - self.decay_start) / span))
         for g, base in zip(groups, self.base_lrs, strict=True):
             g["lr"] = base * factor
 

@@ -1,18 +1,17 @@
-"""The seed spread of the study's measurements, and the tolerance of every verdict drawn from it.
+"""The seed spread of the study's measurements, and the print precision of the paper's numbers.
 
 The main model is trained at several seeds (seed 0 is stage ``main``, the others stage
 ``seeds/seed<n>``: the same pairs, convergence rule and step cap; the seed sets the
 initialisation and the data order). Every measurement a verdict uses is taken from each seed's
-model, so each has a mean and a spread over seeds (:class:`Spread`).
+model, so each has a mean and a spread over seeds (:class:`Spread`); the verdicts' intervals are
+built from it by :mod:`mfg_lightning.study.intervals`.
 
-A verdict compares a measurement with a bound in one direction (:func:`bounded_verdict`). Its
-tolerance (:class:`Tolerance`) is the larger of
-
-* the paper's print precision: a number printed as 0.012 stands for anything in [0.0115,
-  0.0125), so a ratio of two printed numbers is known to within the sum of their relative
-  half-units (:func:`print_precision`; 0.012 / 0.012 is known to ±8.3 %), and
-* our seed spread: two sample standard deviations over the seeds, relative to their mean (a
-  difference smaller than that cannot be told from the seed's effect with this many seeds).
+* :func:`print_precision`: a number printed as 0.012 stands for anything in [0.0115, 0.0125),
+  so a ratio of two printed numbers is known to within the sum of their relative half-units
+  (0.012 / 0.012 is known to ±8.3 %).
+* :func:`tolerance` (:class:`Tolerance`): the larger of a print precision and two sample
+  standard deviations of a spread, relative to its mean: the margin a configuration choice (the
+  input scale) must beat on validation to be adopted.
 
 Nothing here reads files: the views of each seed's results are built by
 :func:`mfg_lightning.study.sentences.seed_views`.
@@ -33,7 +32,6 @@ __all__ = [
     "SEED_SIGMAS",
     "Spread",
     "Tolerance",
-    "bounded_verdict",
     "print_precision",
     "ratio",
     "spread_of",
@@ -42,8 +40,6 @@ __all__ = [
 
 #: Standard deviations of the seed spread that a verdict tolerates.
 SEED_SIGMAS = 2.0
-
-HOLDS, NOT_HOLD, NOT_MEASURED = "holds", "does not hold", "not measured"
 
 
 @dataclass(frozen=True)
@@ -142,19 +138,6 @@ def tolerance(spread: Spread | None, printed: float = 0.0) -> Tolerance:
     rel = spread.relative_std if spread is not None else None
     seeds = None if rel is None else SEED_SIGMAS * rel
     return Tolerance(max(printed, seeds or 0.0), printed, seeds, spread.n if spread else 0)
-
-
-def bounded_verdict(value: float | None, bound: float, direction: str, tol: Tolerance) -> str:
-    """Whether ``value`` is on the claimed side of ``bound`` or within the tolerance:
-    ``direction`` ``"<="`` holds when ``value ≤ bound · (1 + tol)``, ``">="`` when ``value ≥
-    bound · (1 − tol)``; an undefined value is not measured."""
-    if value is None or not math.isfinite(value):
-        return NOT_MEASURED
-    if direction == "<=":
-        return HOLDS if value <= bound * (1 + tol.value) + 1e-15 else NOT_HOLD
-    if direction == ">=":
-        return HOLDS if value >= bound * (1 - tol.value) - 1e-15 else NOT_HOLD
-    raise ValueError(f"direction must be '<=' or '>=', got {direction!r}")
 
 
 def ratio(a: float | None, b: float | None) -> float | None:

@@ -14,9 +14,9 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
+from mfg_lightning.study import settle as T
 from mfg_lightning.study import stages as S
 from mfg_lightning.study.report import write_report
-from mfg_lightning.study.verdicts import Thresholds
 
 
 def check(cfg: DictConfig) -> None:
@@ -58,7 +58,6 @@ def check(cfg: DictConfig) -> None:
             f"size.seeds: {list(cfg.size.seeds)} must not hold the study's seed ({cfg.seed}), "
             "whose run at each stride is the curve's own"
         )
-    Thresholds(**cfg.thresholds)
 
 
 STAGES = (
@@ -73,6 +72,8 @@ STAGES = (
     "twin",
     "table2",
     "table2_exact",
+    "settle_classical",
+    "settle",
     "size",
     "sparsity",
     "balance",
@@ -89,7 +90,6 @@ def run(study: S.Study, report: Path) -> Path:
     and evaluated in its own stage.
     """
     cfg = study.cfg
-    th = Thresholds(**cfg.thresholds)
     main_extra = list(cfg.main)
     budget = cfg.budget
 
@@ -100,7 +100,7 @@ def run(study: S.Study, report: Path) -> Path:
         # study whose stages are all cached writes its report once, not once per stage
         if final or len(study.ran) != written[0]:
             written[0] = len(study.ran)
-            return write_report(study, report, th)
+            return write_report(study, report)
         return report
 
     study.stage("data", lambda: stage_data(study, main_extra))
@@ -131,6 +131,15 @@ def run(study: S.Study, report: Path) -> Path:
     write()
     study.stage("table2_exact", lambda: stage_table2(study, exact=True))
     write()
+    for flow in cfg.settle.flows:
+        study.stage(f"settle_classical/{flow}", partial(T.stage_classical, study, str(flow)))
+        write()
+    for flow, seed in T.seed_runs(cfg):
+        study.stage(f"settle/{flow}_seed{seed}", partial(T.stage_seed, study, flow, seed))
+        write()
+    for seed in T.strided_runs(cfg):
+        study.stage(f"settle/strided_seed{seed}", partial(T.stage_strided, study, seed))
+        write()
     for stride, seed in S.size_runs(cfg):
         study.stage(f"size/{S.size_name(stride, seed)}", partial(stage_size, study, stride, seed))
         write()

@@ -156,7 +156,11 @@ class Study:
         start = time.perf_counter()
         train(cfg)
         seconds = time.perf_counter() - start
-        chosen, selected_on = chosen_checkpoint(out)
+        if cfg.callbacks.convergence.get("budget_steps"):
+            # an equal budget: the schedule's end is the model, nothing is selected
+            chosen, selected_on = out / "checkpoints" / "last.ckpt", "last (equal budget)"
+        else:
+            chosen, selected_on = chosen_checkpoint(out)
         status = json.loads((out / "convergence.json").read_text())
         ran = int(status["step"] or 0)
         batch = int(cfg.dataset.batch_size)

@@ -1,0 +1,233 @@
+"""Verdicts that can fail: a 95 % interval per judged value and three outcomes.
+
+Every part of a sentence's verdict (:mod:`mfg_lightning.study.sentences`) is a value with a
+95 % interval (:class:`Interval`) compared with a bound in the direction the sentence claims:
+
+* **holds**: the whole interval lies on the claimed side of the bound;
+* **does not hold**: the whole interval lies on the other side;
+* **inconclusive**: the interval straddles the bound, or it covers every value the quantity can
+  take (a fraction's [0, 1]: no measurement could have decided it).
+
+The interval (:func:`interval`) is built from what varies:
+
+* **over seeds**, where several models were trained: Student's t at ``n − 1`` degrees of freedom
+  on the seeds' mean, ``t · sd / √n``;
+* **over test pairs**, where the stage kept per-pair values: the paired bootstrap's standard
+  error of the value (:func:`bootstrap_se`: the same resampled pairs for both sides of a
+  comparison), ``1.96 · se``, since every seed is tested on the same pairs and their spread
+  does not contain the test set's sampling;
+* **a stand-in seed spread** where one model is judged: the sample sd of the same measurement
+  over the seeds of another model at the same data size, ``t · sd`` (one draw, not a mean);
+
+and the parts present add in quadrature. A bound read off the paper's printed numbers is itself
+known only to their print precision (:func:`mfg_lightning.study.noise.print_precision`: 0.012 /
+0.012 is known to ±8.3 %), so the interval is widened by that fraction of the bound on each
+side (:meth:`Interval.widened`).
+
+A ratio is judged only when its denominator is at least a stated floor (:data:`FLOORS`);
+below it the part is **no verdict** and says so. A sentence holds when every part holds, does
+not hold when at least one part does not hold, and is otherwise **partly** (some parts hold,
+the rest are inconclusive) or **inconclusive** (none holds) (:func:`combine`).
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+__all__ = [
+    "BOOTSTRAP_DRAWS",
+    "FLOORS",
+    "HOLDS",
+    "INCONCLUSIVE",
+    "NOT_HOLD",
+    "NO_VERDICT",
+    "PARTLY",
+    "Interval",
+    "bootstrap_se",
+    "combine",
+    "construction",
+    "interval",
+    "interval_verdict",
+    "t_quantile",
+]
+
+HOLDS, NOT_HOLD, INCONCLUSIVE, PARTLY = "holds", "does not hold", "inconclusive", "partly"
+NO_VERDICT = "no verdict"
+#: Resamples of the paired bootstrap (its own generator, seeded: the report is repeatable).
+BOOTSTRAP_DRAWS = 2000
+_Z95 = 1.959963984540054
+
+#: The smallest denominator a judged ratio may have, per quantity: below it the ratio says more
+#: about the floor of the measurement than about the methods. Rotation: 1e-5 rad is the float32
+#: recovery's own error on exact fields (the oracle row, ~1e-6–1e-5 rad); a recall or a fraction:
+#: 0.05 (one pixel in twenty); a mean object speed: 0.5 px/frame (DIS's error on the road).
+FLOORS: dict[str, float] = {"rotation": 1e-5, "translation": 1e-4, "fraction": 0.05, "pairs": 10}
+
+
+@lru_cache(maxsize=64)
+def t_quantile(df: int, level: float = 0.95) -> float:
+    """The two-sided Student's t quantile at ``level`` for ``df`` degrees of freedom (df ≥ 1).
+
+    The inverse of the regularised incomplete beta function by bisection: no SciPy needed, exact
+    to 1e-10 (t(2) = 4.303, t(4) = 2.776)."""
+    if df < 1:
+        raise ValueError(f"t_quantile needs at least one degree of freedom, got {df}")
+    p = 1 - (1 - level) / 2
+
+    def cdf(t: float) -> float:
+        # P(T ≤ t) for t ≥ 0 by Simpson's rule on the density: df ≥ 1 keeps it smooth
+        n = 2000
+        h = t / n
+        c = math.gamma((df + 1) / 2) / (math.sqrt(df * math.pi) * math.gamma(df / 2))
+
+        def f(x: float) -> float:
+            return c * (1 + x * x / df) ** (-(df + 1) / 2)
+
+        s = f(0) + f(t) + sum((4 if i % 2 else 2) * f(i * h) for i in range(1, n))
+        return 0.5 + s * h / 3
+
+    lo, hi = 0.0, 1000.0
+    for _ in range(60):
+        mid = (lo + hi) / 2
+        lo, hi = (mid, hi) if cdf(mid) < p else (lo, mid)
+    return (lo + hi) / 2
+
+
+@dataclass(frozen=True)
+class Interval:
+    """A value and its 95 % interval ``[lo, hi]``; ``how`` says what it was built from."""
+
+    value: float
+    lo: float
+    hi: float
+    how: str = ""
+
+    def widened(self, fraction: float, bound: float) -> Interval:
+        """Widened by ``fraction · |bound|`` on each side (the bound's print precision)."""
+        if fraction <= 0:
+            return self
+        w = fraction * abs(bound)
+        how = f"{self.how}; ±{100 * fraction:.1f} % of the bound (the paper's print precision)"
+        return Interval(self.value, self.lo - w, self.hi + w, how.lstrip("; "))
+
+    def text(self, fmt_value: Callable[[float], str]) -> str:
+        return f"{fmt_value(self.value)} [{fmt_value(self.lo)}, {fmt_value(self.hi)}]"
+
+
+def bootstrap_se(
+    stat: Callable[[np.ndarray], np.ndarray],
+    n_pairs: int,
+    draws: int = BOOTSTRAP_DRAWS,
+    seed: int = 0,
+) -> float | None:
+    """The standard error of a statistic over test pairs by the paired bootstrap.
+
+    Args:
+        stat: the statistic of every resample at once: ``(draws, n)`` indices of the pairs
+            (one resample a row) → ``(draws,)`` values. Every side of a comparison reads the
+            same rows, which makes it paired.
+        n_pairs: the test pairs.
+        draws, seed: resamples and the generator's seed.
+
+    Returns:
+        The sd of the finite values (None with fewer than two pairs, or fewer than half of the
+        resamples finite).
+    """
+    if n_pairs < 2:
+        return None
+    idx = np.random.default_rng(seed).integers(0, n_pairs, (draws, n_pairs))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        vals = np.asarray(stat(idx), dtype=float)
+    vals = vals[np.isfinite(vals)]
+    return float(np.std(vals, ddof=1)) if len(vals) >= max(2, draws // 2) else None
+
+
+def construction(n_seeds: int, boot: bool, proxy: tuple[int, str] | None = None) -> str:
+    """The interval's construction in words (the report prints it beside each part)."""
+    parts = []
+    if n_seeds >= 2:
+        parts.append(f"t over {n_seeds} seeds")
+    if proxy is not None:
+        parts.append(f"the sd of {proxy[1]} over {proxy[0]} seeds")
+    if boot:
+        parts.append("paired bootstrap over the test pairs")
+    return " + ".join(parts) if parts else "one value, no spread measured"
+
+
+def interval(
+    values: Sequence[float],
+    boot_se: Sequence[float | None] = (),
+    proxy: tuple[float, int, str] | None = None,
+) -> Interval | None:
+    """The 95 % interval of the mean of ``values`` (one per seed).
+
+    Args:
+        values: the value of every seed (finite ones are kept).
+        boot_se: per seed, the paired bootstrap's standard error over the test pairs (None where
+            not computed); their root mean square is the test pairs' part.
+        proxy: ``(sd, n, what)``: where ``values`` has one seed, the sample sd of the same
+            measurement over ``n`` seeds of another model at the same data size (``what``).
+
+    Returns:
+        The :class:`Interval`, or None when no value is finite.
+    """
+    xs = [float(v) for v in values if v is not None and math.isfinite(v)]
+    if not xs:
+        return None
+    mean = statistics.fmean(xs)
+    var = 0.0
+    if len(xs) >= 2:
+        var += (t_quantile(len(xs) - 1) * statistics.stdev(xs) / math.sqrt(len(xs))) ** 2
+    used_proxy = None
+    if len(xs) == 1 and proxy is not None and proxy[1] >= 2 and math.isfinite(proxy[0]):
+        var += (t_quantile(proxy[1] - 1) * proxy[0]) ** 2
+        used_proxy = (proxy[1], proxy[2])
+    ses = [float(s) for s in boot_se if s is not None and math.isfinite(s)]
+    if ses:
+        var += (_Z95 * math.sqrt(statistics.fmean(s * s for s in ses))) ** 2
+    half = math.sqrt(var)
+    return Interval(mean, mean - half, mean + half, construction(len(xs), bool(ses), used_proxy))
+
+
+def interval_verdict(
+    iv: Interval | None,
+    bound: float,
+    direction: str,
+    domain: tuple[float, float] | None = None,
+) -> str:
+    """holds / does not hold / inconclusive (see the module docstring); ``domain``: the values
+    the quantity can take (an interval covering all of it is inconclusive whatever its side).
+    No interval (nothing measured): :data:`NO_VERDICT`."""
+    if direction not in ("<=", ">="):
+        raise ValueError(f"direction must be '<=' or '>=', got {direction!r}")
+    if iv is None or not (math.isfinite(iv.lo) and math.isfinite(iv.hi)):
+        return NO_VERDICT
+    if domain is not None and iv.lo <= domain[0] and iv.hi >= domain[1]:
+        return INCONCLUSIVE
+    # a mean of equal values (0.05, 0.05, 0.05) is 0.05000000000000001: not beyond its bound
+    eps = 1e-12 * max(1.0, abs(bound))
+    if direction == "<=":
+        claimed, other = iv.hi <= bound + eps, iv.lo > bound + eps
+    else:
+        claimed, other = iv.lo >= bound - eps, iv.hi < bound - eps
+    return HOLDS if claimed else NOT_HOLD if other else INCONCLUSIVE
+
+
+def combine(verdicts: Sequence[str]) -> str:
+    """A sentence's verdict from its parts' (parts without a verdict left out): every part
+    holds, holds; one does not hold, does not hold; some hold and the rest are inconclusive,
+    partly; none holds, inconclusive."""
+    judged = [v for v in verdicts if v != NO_VERDICT]
+    if not judged:
+        return NO_VERDICT
+    if any(v == NOT_HOLD for v in judged):
+        return NOT_HOLD
+    if all(v == HOLDS for v in judged):
+        return HOLDS
+    return PARTLY if any(v == HOLDS for v in judged) else INCONCLUSIVE
