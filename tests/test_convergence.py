@@ -126,6 +126,33 @@ def test_a_step_cap_shortens_the_schedule_and_reads_not_converged(tmp_path: Path
     assert {1, 3, 5, 7, 9, 11} <= steps
 
 
+def test_an_equal_budget_ignores_the_rule_and_decays_over_its_last_tenth(tmp_path: Path) -> None:
+    """budget_steps 10 with decay_fraction 0.2: whatever the curve does (min_improvement 1.0
+    would call any curve a plateau at step 4), the rate is constant to step 8 and falls
+    linearly to 0 at 10, where training stops; the status says "budget", not converged. Resumed
+    in the middle of its decay, it carries on from the same schedule."""
+    out = tmp_path / "run"
+    extra = (
+        "callbacks.convergence.budget_steps=10",
+        "callbacks.convergence.decay_fraction=0.2",
+        "callbacks.convergence.min_improvement=1.0",
+    )
+    cfg = _config(out, 9, *extra)
+    train(cfg)
+    status = json.loads((out / "convergence.json").read_text())
+    assert (status["reason"], status["decay_start"], status["decay_end"]) == ("budget", 8, 10)
+    assert status["converged"] is False and status["rule"]["budget_steps"] == 10
+    base = float(cfg.model.optimizer.lr)
+    # the step-8 update ran at the full rate (a factor of 1 - 0/2), step 9 not yet taken
+    assert _lrs(out / "checkpoints" / "last.ckpt") == pytest.approx([base])
+    train(_config(out, 10, *extra))
+    status = json.loads((out / "convergence.json").read_text())
+    assert (status["reason"], status["step"]) == ("budget", 10)
+    assert _lrs(out / "checkpoints" / "last.ckpt") == pytest.approx([0.5 * base])
+    with pytest.raises(ValueError, match="budget_steps must be at least 2"):
+        ConvergenceStop(budget_steps=1)
+
+
 def test_a_scheduler_is_refused(tmp_path: Path) -> None:
     """The rule decays the rate itself: a configured schedule would fight it."""
     cfg = _config(tmp_path / "run", 4)
