@@ -539,7 +539,7 @@ def _verdict_figure(judged: list[Judged]) -> Any:
         return None
     lim = 6.0
     colour = {"holds": "tab:green", "does not hold": "tab:red"}
-    fig = Figure(figsize=(9, 0.32 * len(parts) + 1.4))
+    fig = Figure(figsize=(10, 0.32 * len(parts) + 1.8))
     ax = fig.subplots()
     for i, (_, p) in enumerate(parts):
         iv = p.judged
@@ -556,9 +556,14 @@ def _verdict_figure(judged: list[Judged]) -> Any:
     ax.set_xlim(-lim - 0.5, lim + 0.5)
     ax.set_yticks(range(len(parts)))
     ax.set_yticklabels([f"{k} {p.label[:70]}" for k, p in parts], fontsize=7)
-    ax.set_xlabel("distance from the bound in half-widths of the 95 % interval (claimed side left)")
+    ax.set_xlabel(
+        "distance from the bound, in half-widths of the part's 95 % interval\n"
+        "(left of 0: the claimed side; a triangle: beyond the axis)"
+    )
     ax.invert_yaxis()
-    ax.set_title("Verdicts per part: green holds, red does not hold, grey inconclusive")
+    ax.set_title(
+        "Verdicts per part\ngreen holds · red does not hold · grey inconclusive", fontsize=10
+    )
     fig.tight_layout()
     return fig
 

@@ -674,6 +674,11 @@ def one_motion_fraction(v: View, decoder: str, residual: float, firing: bool) ->
     return sum(r <= residual for r in res) / len(res) if res else None
 
 
+def _interval_text(p: Part) -> str:
+    iv = p.judged
+    return "–" if iv is None else f"{p.show(iv.value)} [{p.show(iv.lo)}, {p.show(iv.hi)}]"
+
+
 def _s8(views: Mapping[int, View], residual: float, one_motion: float) -> Judged:
     j = Judged(SENTENCES["S8"])
     if not views:
@@ -689,8 +694,9 @@ def _s8(views: Mapping[int, View], residual: float, one_motion: float) -> Judged
             _over_seeds(views, f"{label}, all top units",
                         lambda v, dec=dec: one_motion_fraction(v, dec, residual, False),
                         one_motion, ">=", domain=(0.0, 1.0),
-                        note=f"of the top units {fired.text(2)} fire; of those, "
-                        f"{firing.text().split(': ', 1)[1]} (not the verdict)")
+                        note=f"of the top units {fired.text(2)} fire; of those one motion fits "
+                        f"{_interval_text(firing)} ({firing.verdict} against the same bound; "
+                        "not the verdict)")
         )  # fmt: skip
     j.beside = (
         "The verdict reads every top unit (by column norm), the reading stated before any "
