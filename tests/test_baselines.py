@@ -131,6 +131,57 @@ def test_essential_matrix_with_ransac_rejects_outliers() -> None:
     torch.testing.assert_close(w_hat, w, atol=1e-3, rtol=0)
 
 
+@pytest.mark.parametrize("method", ["RANSAC", "USAC_MAGSAC"])
+@pytest.mark.parametrize(
+    "t_true,w_true,near,far",
+    [
+        # the first rendered pair of KITTI 10: 0.13 m per frame, turning, a backdrop far away
+        ((0.012, 0.0, 0.127), (0.0, 0.0155, 0.0), 300.0, 650.0),
+        # slowing down in a street (KITTI 10 near frame 1150): 0.06 m per frame, 5 to 40 m
+        ((0.002, 0.0, 0.06), (0.0, 0.0008, 0.0), 5.0, 40.0),
+    ],
+)
+def test_essential_matrix_keeps_the_right_decomposition_when_every_point_is_far(
+    method: str, t_true, w_true, near: float, far: float
+) -> None:
+    # Every point lies beyond 50 baselines, where cv2.recoverPose's default distance limit
+    # drops it from the cheirality vote: all four decompositions of E then tie at zero and the
+    # first one came back, its rotation turned by π or its translation reversed. The exact flow
+    # gives every point's side, so the vote has to count them.
+    t = torch.tensor([t_true], dtype=torch.float64)
+    w = torch.tensor([w_true], dtype=torch.float64)
+    gen = torch.Generator().manual_seed(0)
+    depth = near + (far - near) * torch.rand(1, H, W, generator=gen, dtype=torch.float64)
+    assert float(depth.min()) > 50 * float(t.norm())
+    pose = geometry.motion_to_pose(t, w)
+    flow = geometry.reprojection_flow(depth, pose, K[None])
+    t_hat, w_hat = baselines.essential_matrix_motion(flow, K, method=method)
+    rotation_error = geometry.rotation_angle(
+        geometry.so3_exp(w_hat).transpose(-1, -2) @ pose[:, :3, :3]
+    )
+    # The parallax is a fraction of the 0.5 px threshold and RANSAC keeps an unrefined
+    # minimal-sample model: its rotation is off by about 1e-3 rad and its direction by about
+    # 20°. A wrong decomposition is off by π (rotation) or about 180° (direction).
+    assert float(rotation_error) < 5e-3
+    assert _angle(t_hat[0], t[0]) < math.pi / 4
+
+
+def test_essential_matrix_of_five_points_keeps_the_solution_with_most_points_in_front() -> None:
+    # With exactly five correspondences cv2.findEssentialMat returns every solution of the
+    # five-point solver stacked (four here). The first puts two of the points behind a camera
+    # and is off by 0.73 rad; only the true motion puts all five in front.
+    t = torch.tensor([MOTIONS[2][0]], dtype=torch.float64)
+    w = torch.tensor([MOTIONS[2][1]], dtype=torch.float64)
+    rows, cols = [21, 34, 15, 15, 26], [72, 92, 36, 55, 2]
+    depth = torch.full((1, H, W), 20.0, dtype=torch.float64)
+    depth[0, rows, cols] = torch.tensor([31.73, 14.99, 33.69, 17.12, 15.97], dtype=torch.float64)
+    valid = torch.zeros(1, H, W, dtype=torch.bool)
+    valid[0, rows, cols] = True
+    flow = geometry.reprojection_flow(depth, geometry.motion_to_pose(t, w), K[None])
+    _, w_hat = baselines.essential_matrix_motion(flow, K, valid, pixel_stride=1)
+    torch.testing.assert_close(w_hat, w, atol=1e-6, rtol=0)
+
+
 def test_essential_matrix_without_motion_or_points_returns_zeros() -> None:
     flow = torch.zeros(1, 2, H, W, dtype=torch.float64)
     t_hat, w_hat = baselines.essential_matrix_motion(flow, K)

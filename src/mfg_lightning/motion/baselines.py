@@ -138,6 +138,9 @@ def essential_matrix_motion(
     OpenCV's ``(R, t)`` with ``X₂ = R X₁ + t``; in this package's convention the relative pose
     is ``T_k,k+1 = [Rᵀ | −Rᵀ t]``.
 
+    The cheirality vote counts every inlier however far, and of stacked solutions keeps the one
+    with the most points in front (:func:`_cheirality_pose` says why).
+
     Args:
         flow: ``(B, 2, H, W)`` flow from frame k to k+1, pixels.
         intrinsics: ``(B, 4)`` or ``(4,)`` ``(fx, fy, cx, cy)`` pixels at the flow's resolution.
@@ -202,15 +205,51 @@ def essential_matrix_motion(
             if "solvePoly" not in str(err):
                 raise
             continue
-        # Several stacked 3×3 solutions can come back; a missing one means no motion to find.
+        # A missing solution means no motion to find.
         if E is None or E.shape[0] < 3:
             continue
-        _, R, t, _ = cv2.recoverPose(E[:3], p1, p2, cam, mask=inliers)
+        R, t = _cheirality_pose(E, p1, p2, cam, inliers)
         R_rel = torch.from_numpy(R).T
         t_rel = -(R_rel @ torch.from_numpy(t).reshape(3))
         t_out[b] = t_rel / t_rel.norm().clamp_min(1e-12)
         w_out[b] = geometry.so3_log(R_rel)
     return _scaled(t_out, translation_norm), w_out
+
+
+def _cheirality_pose(
+    E: np.ndarray, p1: np.ndarray, p2: np.ndarray, cam: np.ndarray, inliers: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV's ``(R, t)`` of the decomposition of ``E`` (one or several stacked 3 × 3 solutions)
+    that puts the most inliers in front of both cameras, the first of those that tie.
+
+    Without a ``distanceThresh``, ``cv2.recoverPose`` leaves out the points it triangulates
+    beyond 50 baselines, as points at infinity. A slow camera can have its whole scene that far:
+    at 0.06 m per frame, 50 baselines is 3 m (KITTI 10 slowing down near frame 1150, or its
+    first frame, 0.13 m before a backdrop at 655 m). No point is then left, the four
+    decompositions tie at zero and OpenCV returns the first one, with the rotation turned by π
+    or the translation reversed. Far points are not at infinity: exact flow gives each one's
+    side. Noisy flow's far points split between ``t`` and ``−t`` of the same rotation, so the
+    near points still decide.
+
+    With exactly five correspondences the five-point solver's solutions (up to ten) all come
+    back stacked; five points can fit several of them exactly, so such an estimate may still be
+    wrong.
+    """
+    import cv2
+
+    best: tuple[int, np.ndarray, np.ndarray] | None = None
+    for k in range(E.shape[0] // 3):
+        # No distance limit: with the default 50 baselines a slow pair in a far scene keeps no
+        # point, and the vote between the four decompositions is a tie at zero (the docstring).
+        # recoverPose also writes its mask: a copy for every solution.
+        mask = None if inliers is None else inliers.copy()
+        good, R, t = cv2.recoverPose(
+            E[3 * k : 3 * k + 3], p1, p2, cam, distanceThresh=np.inf, mask=mask
+        )[:3]
+        if best is None or good > best[0]:
+            best = (good, R, t)
+    assert best is not None  # E has at least one solution (the caller checks)
+    return best[1], best[2]
 
 
 # --------------------------------------------------------------------------------------------

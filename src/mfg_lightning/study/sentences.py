@@ -41,6 +41,7 @@ from mfg_lightning.study.intervals import (
     interval_verdict,
 )
 from mfg_lightning.study.noise import print_precision, ratio, spread_of
+from mfg_lightning.study.quotes import SENTENCES, Sentence
 from mfg_lightning.study.verdicts import NOT_RUN
 
 __all__ = ["SENTENCES", "Judged", "Part", "Sentence", "Settled", "judge_all", "seed_views"]
@@ -60,123 +61,6 @@ PRINTED_TABLE2_ROT = ("0.0011", "0.0014")
 PRINTED_TABLE2_TRANS = ("0.1769", "0.1788")
 #: The name stems of the classical rows S4, S6 and S7 read.
 IRLS, PLAIN_LS = "IRLS", "continuous least squares"
-
-
-@dataclass(frozen=True)
-class Sentence:
-    """One sentence of the paper: where it is, its words, and how it is measured here."""
-
-    key: str
-    where: str
-    quote: str
-    measured: str
-    short: str = ""
-
-
-SENTENCES: dict[str, Sentence] = {
-    s.key: s
-    for s in (
-        Sentence(
-            "S1", "§1, Introduction",
-            "Further, only 5% of the hidden layer neurons are required on the KITTI test set for "
-            "predicting rotation and translation of the camera without any drop in performance.",
-            "on 09 / 10 (central test, every frame): ATE †(k = 5 %) / ATE †(all units) per "
-            "sequence, and RPE translation and rotation at 5 % over all units', each ≤ 1 + the "
-            "paper's print precision of Table 1's ratio (a drop the paper could not have printed)",
-            "5 % of the units, no drop on KITTI's test",
-        ),
-        Sentence(
-            "S2", "supplement, §2.3",
-            "As shown in Figure 4(a), the network prediction is not much affected while using "
-            "top k = 2% (or more) of the hidden layer neurons for both Sequence 09 and 10 of the "
-            "KITTI odometry split test set.",
-            "ATE †(2 %) / ATE †(all units) ≤ the paper's own ratio at 2 % (Table 1: 0.018 / "
-            "0.012 on 09, 0.017 / 0.013 on 10), per sequence: no more affected than the paper",
-            "not much affected down to k = 2 %",
-        ),
-        Sentence(
-            "S3", "Abstract",
-            "The sparse latent space egomotion representation learned by the model is robust and "
-            "requires only 5% of the hidden layer neurons to maintain the best trajectory "
-            "prediction accuracy on KITTI dataset.",
-            "chosen on validation: the smallest k whose validation ATE † is within the tolerance "
-            "of all units' is ≤ 5 % (the seeds' median k)",
-            "5 % of the units keep the best accuracy (chosen on validation)",
-        ),
-        Sentence(
-            "S4", "§5.4, Table 2",
-            "The proposed model outperforms the state of art in terms of rotation error. The "
-            "robust continuous egomotion estimation method by Jaegle et al. serves as the "
-            "baseline.",
-            "the Table-2-sized set at every seed, per flow (exact, the paper's protocol; DIS): "
-            "MFG's mean rotation error over the robust continuous method's (IRLS, the paper's "
-            "kind of baseline; the paper: 0.0011 / 0.0014 = 0.79) ≤ 1, and over the best "
-            "classical method's ≤ 1, both on the same flow and test pairs",
-            "rotation better than the state of the art (Table-2-sized set)",
-        ),
-        Sentence(
-            "S5", "§5.4, Table 2",
-            "This reflects in the sparsity evaluation, as at least 20% hidden neurons are "
-            "required to predict egomotion without translation performance drop, whereas the "
-            "basis learnt from KITTI data requires only 5% active neurons to maintain "
-            "performance.",
-            "comparative: the smallest k keeping the Table-2-sized model's test RPE translation "
-            "within Table 2's print precision of all units' is larger, by at least one step of "
-            "the k grid, than the smallest k keeping the main model's test ATE † (both "
-            "sequences) within Table 1's; per seed, on exact flow",
-            "the small set needs more units than KITTI",
-        ),
-        Sentence(
-            "S6", "§5.4, Table 2",
-            "However, rotation accuracy is still better than the existing methods using only "
-            "15% of the hidden neurons.",
-            "the Table-2-sized set at every seed, per flow: MFG's mean rotation error at "
-            "k = 15 % over the best classical method's ≤ 1, on the same flow and test pairs",
-            "rotation still better at k = 15 %",
-        ),
-        Sentence(
-            "S7", "§6, Conclusion",
-            "Another advantage of our approach is that sparse representations are robust to "
-            "outliers, such as independent object motion.",
-            "an advantage over the same motion-field fit without a sparse representation: "
-            "MFG's error growth from the least to the most covered bin of moving-object "
-            "coverage (the +1 test pairs) over the continuous least-squares methods' (§3, plain "
-            "and IRLS) ≤ 1, for rotation and translation; MFG's own growth ≤ 1 beside",
-            "robust to independently moving objects",
-        ),
-        Sentence(
-            "S8", "§1, Introduction",
-            "Finally, the learned egomotion representations by individual hidden neurons are "
-            "meaningful in terms of their selectivity for a particular type of camera "
-            "translation and rotation.",
-            "per decoder, of its top units (by column norm), the fraction whose field one "
-            "motion fits (relative residual ≤ basis.residual) ≥ basis.one_motion; the units "
-            "that fire on validation beside",
-            "units selective for one translation or rotation",
-        ),
-        Sentence(
-            "S9", "§5.5, Object motion",
-            "The results show that the proposed object motion extraction method is effective in "
-            "finding moving objects by automatically suppressing the background residual flow "
-            "vectors, even when the background residual flow is large.",
-            "exact flow, the Table-2-sized models at every seed (a VKITTI-sized set, as the "
-            "paper's object experiment), the +1 test pairs: the filters' mask IoU and precision "
-            "minus a plain threshold's ≥ 0, both chosen on validation",
-            "the filters find movers, suppress the background",
-        ),
-        Sentence(
-            "S10", "Abstract",
-            "Additionally, in presence of depth information, the proposed method demonstrates "
-            "faithful object velocity prediction for wide range of object sizes and speeds by "
-            "global compensation of predicted egomotion and a divisive normalization procedure.",
-            "exact flow, the Table-2-sized models at every seed, the +1 test pairs: the object "
-            "velocity error (px/frame, extracted against true object flow over the true "
-            "objects' pixels) of the filters minus a plain threshold's ≤ 0, in every object "
-            "size × speed bin with enough objects",
-            "object velocity for a wide range of sizes and speeds",
-        ),
-    )
-}  # fmt: skip
 
 
 @dataclass
