@@ -366,7 +366,9 @@ def para_robustness(cached: Cached, views: Mapping[int, View]) -> str | None:
         f"+1 pairs) MFG's rotation error changes ×{fmt(rot.mean, 2)} and its translation error "
         f"×{fmt(trans.mean, 2)} (seed means). The classical methods' rotation errors change "
         f"{'; '.join(others)}: the essential-matrix methods' fall because their least covered "
-        "bin holds their failures, not because moving objects help them."
+        "bin holds their failures (slow pairs in far scenes; the note under the method "
+        "comparison says whether these rows predate the cheirality fix), not because moving "
+        "objects help them."
     )
 
 
