@@ -688,8 +688,11 @@ def _object_sentences(settled: Settled) -> list[Judged]:
         return [j9, j10]
     j9.parts += [_mask_part(seeds, "iou", "mask IoU, filters − threshold"),
                  _mask_part(seeds, "precision", "precision, filters − threshold")]  # fmt: skip
-    first = seeds[min(seeds)]
-    j10.parts += [_velocity_part(seeds, b) for b in velocity_bins(first)]
+    if len(seeds) < MIN_SEEDS:
+        label = "velocity error, filters − threshold (px), every size × speed bin"
+        j10.parts.append(Part(label, None, 0.0, "<=", floor=_few_seeds(len(seeds))))
+    else:
+        j10.parts += [_velocity_part(seeds, b) for b in velocity_bins(seeds[min(seeds)])]
     beside = (
         f"The exact-flow Table-2-sized models ({len(seeds)} seeds), the threshold and the "
         "filters' constants chosen on validation for each; the exact-flow twin's masks (one "

@@ -31,6 +31,11 @@ def rot_summary(errors: np.ndarray) -> tuple[float, float, float]:
     return float(errors.mean()), float(np.median(errors)), float((errors > FAILURE_RAD).mean())
 
 
+def _sig(x: float) -> str:
+    """Three significant digits: the methods' errors span 1e-5 to 1e-2 rad."""
+    return f"{x:.3g}"
+
+
 def _seed_errors(settled: Settled, flow: str, k: str) -> list[np.ndarray]:
     return [np.asarray(r["mfg"][k]["rot_err"]) for _, r in sorted(settled.seeds[flow].items())
             if k in r["mfg"]]  # fmt: skip
@@ -50,8 +55,8 @@ def _mfg_row(flow: str, label: str, errs: list[np.ndarray], irls: np.ndarray | N
     vs = _ratio_text(log_ratio_part(label, errs, irls)) if irls is not None else "–"
     return [
         _FLOW[flow], label, str(len(errs)),
-        fmt(mean, 5) + (f" ± {fmt(sd, 5)}" if sd is not None else ""),
-        fmt(statistics.fmean(s[1] for s in stats), 5),
+        _sig(mean) + (f" ± {_sig(sd)}" if sd is not None else ""),
+        _sig(statistics.fmean(s[1] for s in stats)),
         f"{100 * statistics.fmean(s[2] for s in stats):.1f} %", vs,
     ]  # fmt: skip
 
@@ -66,7 +71,7 @@ def _rows(settled: Settled) -> list[list[str]]:
                 rows.append(_mfg_row(flow, label, errs, irls))
         for name, e in rot.items():
             mean, median, fail = rot_summary(e)
-            rows.append([_FLOW[flow], name, "–", fmt(mean, 5), fmt(median, 5),
+            rows.append([_FLOW[flow], name, "–", _sig(mean), _sig(median),
                          f"{100 * fail:.1f} %", "×1" if IRLS in name else "–"])  # fmt: skip
     return rows
 
@@ -145,8 +150,8 @@ def settle_section(settled: Settled) -> tuple[list[str], Any]:
     lines = [
         "## Table 2's setting at every seed: flow × method",
         "",
-        f"The Table-2-sized model ({some['train_pairs']} training pairs) trained at every seed "
-        f"({seeds}) for the same budget, stated before training ({steps} steps: a constant rate, "
+        f"The Table-2-sized model ({some['train_pairs']:,} training pairs) trained at every seed "
+        f"({seeds}) for the same budget, stated before training ({steps:,} steps: a constant rate, "
         "then a linear decay to 0 over the last tenth; the last checkpoint evaluated; 32-true), "
         f"each tested on the same {some['test_pairs']} +1 pairs of 09 and 10 as the classical "
         f"methods on the same flow. A failure is a rotation error above {FAILURE_RAD:g} rad. "
