@@ -48,7 +48,7 @@ def test_interval_over_seeds_bootstrap_and_stand_in_by_hand() -> None:
     assert "paired bootstrap" in both.how
     # one model: a stand-in seed spread (one draw, not a mean: no √n)
     one = interval([2.0], proxy=(0.1, 5, "the same measurement"))
-    assert one.hi - one.value == pytest.approx(2.776 * 0.1, rel=1e-3)
+    assert one.hi - one.value == pytest.approx(2.776 * 0.1 * math.sqrt(1.2), rel=1e-3)
     assert interval([2.0]).lo == interval([2.0]).hi == 2.0
     assert interval([math.nan, None]) is None  # type: ignore[list-item]
 
@@ -56,11 +56,17 @@ def test_interval_over_seeds_bootstrap_and_stand_in_by_hand() -> None:
 def test_paired_bootstrap_standard_error() -> None:
     rng = np.random.default_rng(1)
     x = rng.normal(0.0, 1.0, 400)
-    se = bootstrap_se(lambda i: x[i].mean(1), len(x))
+    se = bootstrap_se(lambda i: x[i].mean(1), len(x), block=1)
     assert se == pytest.approx(1 / math.sqrt(400), rel=0.1)
+    # independent pairs: blocks change little (10 blocks: the estimate itself varies by ~20 %);
+    # correlated ones (runs of equal errors) need them: the plain bootstrap underestimates
+    assert bootstrap_se(lambda i: x[i].mean(1), len(x)) == pytest.approx(se, rel=0.4)
+    walk = np.repeat(rng.normal(0.0, 1.0, 20), 20)  # 20 runs of 20 equal errors
+    plain = bootstrap_se(lambda i: walk[i].mean(1), len(walk), block=1)
+    assert bootstrap_se(lambda i: walk[i].mean(1), len(walk), block=20) > 2.5 * plain
     # pairing: a difference of two errors sharing their noise has a far smaller error
     y = x + 0.01 * rng.normal(size=400)
-    paired = bootstrap_se(lambda i: y[i].mean(1) - x[i].mean(1), len(x))
+    paired = bootstrap_se(lambda i: y[i].mean(1) - x[i].mean(1), len(x), block=1)
     assert paired < se / 20
     assert bootstrap_se(lambda i: i.mean(1), 1) is None
 

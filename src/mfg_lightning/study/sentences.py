@@ -33,6 +33,7 @@ import numpy as np
 from mfg_lightning.core.tables import fmt
 from mfg_lightning.study.intervals import (
     FLOORS,
+    NO_SPREAD,
     NO_VERDICT,
     Interval,
     bootstrap_se,
@@ -89,6 +90,9 @@ class Part:
     verdict: str = field(init=False)
 
     def __post_init__(self) -> None:
+        if self.iv is not None and self.iv.how == NO_SPREAD and not self.floor:
+            # one value and nothing that varies: a zero-width interval would decide anything
+            self.floor = "one seed and no other spread measured: no interval"
         if self.floor:
             self.verdict = NO_VERDICT
             return
@@ -428,6 +432,12 @@ def _s4(settled: Settled) -> Judged:
     return j
 
 
+def _k_changes_nothing(settled: Settled, flow: str, k: str) -> bool:
+    """Whether MFG at ``k`` has all units' errors on every pair of every seed of ``flow``."""
+    at_k, full = _mfg_rot(settled, flow, k), _mfg_rot(settled, flow, "1")
+    return bool(at_k) and all(np.array_equal(a, b) for a, b in zip(at_k, full, strict=True))
+
+
 def _s6(settled: Settled) -> Judged:
     j = Judged(SENTENCES["S6"])
     for flow in settled.flows():
@@ -441,6 +451,12 @@ def _s6(settled: Settled) -> Judged:
             )  # fmt: skip
     if j.parts:
         j.beside = _table2_beside(settled)
+        same = [f for f in settled.flows() if _k_changes_nothing(settled, f, "0.15")]
+        if same:
+            j.beside += (
+                f" On {', '.join(same)} flow k = 15 % keeps every unit that fires (its errors "
+                "are all units' to the last digit), so S6 measures what S4 measures there."
+            )
     return j
 
 
@@ -453,16 +469,19 @@ def _s5(settled: Settled, main: Mapping[int, View]) -> Judged:
     if not seeds or not main:
         return j
     tol2 = print_precision(*PRINTED_TABLE2_TRANS)
-    small = []
-    for _, r in sorted(seeds.items()):
-        mfg = r["mfg"]
-        full = mfg["1"]["metrics"].get("rpe_trans")
-        k = smallest_k_by_ratio(
-            {float(k): ratio(m["metrics"].get("rpe_trans"), full) for k, m in mfg.items()}, tol2
-        )
-        if k is not None:
-            small.append(k)
     tol1 = print_precision(PRINTED_TABLE1[0.05][0], PRINTED_TABLE1[1.0][0])
+
+    def small_ks(tol: float) -> list[float]:
+        out = []
+        for _, r in sorted(seeds.items()):
+            mfg = r["mfg"]
+            full = mfg["1"]["metrics"].get("rpe_trans")
+            ratios = {float(k): ratio(m["metrics"].get("rpe_trans"), full) for k, m in mfg.items()}
+            if (k := smallest_k_by_ratio(ratios, tol)) is not None:
+                out.append(k)
+        return out
+
+    small, symmetric = small_ks(tol2), small_ks(tol1)
     kitti = []
     for _, v in sorted(main.items()):
         ks = sorted({float(k) for k in v["table1"]["test"]}, reverse=True)
@@ -487,7 +506,9 @@ def _s5(settled: Settled, main: Mapping[int, View]) -> Judged:
              scale="log", note=f"per seed {', '.join(f'{100 * k:g} %' for k in small)} against "
              f"{', '.join(f'{100 * k:g} %' for k in kitti)}, each within its table's print "
              f"precision of all units' (Table 2's RPE translation ±{100 * tol2:.2f} %, Table "
-             f"1's ATE ±{100 * tol1:.1f} %); the bound is half the k grid's smallest step")
+             f"1's ATE ±{100 * tol1:.1f} %); the bound is half the k grid's smallest step; with "
+             f"Table 1's ±{100 * tol1:.1f} % on both sides the small set's k are "
+             f"{', '.join(f'{100 * k:g} %' for k in symmetric)}")
     )  # fmt: skip
     j.beside = (
         "Its k on exact flow (the paper's protocol) against the DIS-trained main model's, as the "
@@ -511,41 +532,47 @@ def _growth_of(bins: list) -> tuple[float, float] | None:
 
 
 def _s7(views: Mapping[int, View]) -> Judged:
+    """The reading stated before any number was seen is the verdict: MFG's own error growth
+    from the least to the most covered bin of moving-object coverage ≤ 1, rotation and
+    translation (log, t over the seeds). The comparative reading (its growth over the
+    continuous least-squares methods') is printed beside, not judged: it was proposed after the
+    growths were seen (changes.json)."""
     j = Judged(SENTENCES["S7"])
     if not views:
         return j
     floors = {"rot_bins": ("rotation", "rad"), "trans_bins": ("translation", "m")}
-    own = []
+    beside = []
     for key, label in (("rot_bins", "rotation"), ("trans_bins", "translation")):
+        kind, unit = floors[key]
+        least = spread_of(views, lambda v, key=key: _growth_of(_mfg_bins(v)[key])[1])
+        part_label = f"{label} error, most / least covered"
+        if least.mean is not None and least.mean < FLOORS[kind]:
+            j.parts.append(Part(part_label, None, 0.0, "<=", scale="log",
+                                floor=_floor_text(least.mean, kind, unit)))  # fmt: skip
+            continue
         g = spread_of(views, lambda v, key=key: growth(v, key))
-        iv = interval([math.log(x) for x in g.values if x > 0])
-        own.append(f"{label} ×{fmt(math.exp(iv.value), 2)} [×{fmt(math.exp(iv.lo), 2)}, "
-                   f"×{fmt(math.exp(iv.hi), 2)}]" if iv else f"{label} –")  # fmt: skip
+        logs = [math.log(x) for x in g.values if x > 0]
+        j.parts.append(Part(part_label, interval(logs), 0.0, "<=", scale="log"))
         for stem in (PLAIN_LS, IRLS):
             found = _classical_growth(views, stem, key)
-            if found is None:
-                continue
-            name, bins = found
-            ends = _growth_of(bins)
-            kind, unit = floors[key]
-            label_c = f"{label} growth, MFG over {name}"
-            if ends is None:
-                continue
-            if ends[1] < FLOORS[kind]:
-                j.parts.append(Part(label_c, None, 0.0, "<=", scale="log",
-                                    floor=_floor_text(ends[1], kind, unit)))  # fmt: skip
+            ends = _growth_of(found[1]) if found else None
+            if ends is None or ends[1] < FLOORS[kind]:
                 continue
             theirs = math.log(ends[0] / ends[1])
-            vals = [math.log(x) - theirs for x in g.values if x > 0]
-            j.parts.append(Part(label_c, interval(vals), 0.0, "<=", scale="log",
-                                note=f"theirs ×{fmt(math.exp(theirs), 2)}"))  # fmt: skip
+            iv = interval([x - theirs for x in logs])
+            if iv is not None:
+                beside.append(
+                    f"{label}, MFG's growth over {found[0]}'s (×{fmt(math.exp(theirs), 2)}): "
+                    f"×{fmt(math.exp(iv.value), 2)} [×{fmt(math.exp(iv.lo), 2)}, "
+                    f"×{fmt(math.exp(iv.hi), 2)}]"
+                )
     j.beside = (
-        "The verdict is the comparative reading: 'an advantage of our approach' is robustness "
-        "beside the same motion-field fit without a sparse representation (§3's least squares, "
-        "plain and IRLS), and no estimator's error can stay flat as moving objects cover the "
-        "image. MFG's own growth (most / least covered, 95 % interval over seeds), the absolute "
-        f"reading: {'; '.join(own)}. The essential-matrix methods (a different, discrete model "
-        "with its own robust estimator) are in diagnostic 4."
+        "The verdict is the reading stated before the numbers were seen: robust means MFG's "
+        "errors do not grow as moving objects cover more of the image. The comparative "
+        "reading ('an advantage' over methods without a sparse representation), proposed after "
+        "the growths were seen and therefore not the verdict, 95 % interval over MFG's seeds "
+        "with the classical growth taken as measured: " + ("; ".join(beside) or "–") + ". The "
+        "essential-matrix methods' growths are in diagnostic 4."
     )
     return j
 
@@ -679,6 +706,25 @@ def _velocity_part(seeds: Mapping[int, dict], b: dict) -> Part:
     return Part(label, interval(vals, ses), 0.0, "<=", note=note)
 
 
+def _grid_edges(seeds: Mapping[int, dict]) -> str:
+    """A warning for the seeds whose filter constants were chosen at the edge of their grid (a
+    larger value might have done better on validation), or nothing."""
+    edge = []
+    for s, r in sorted(seeds.items()):
+        fc = r["objects"].get("filters_choice") or {}
+        grid = [tuple(float(x) for x in k.split(",")) for k in fc.get("iou", {})]
+        for i, name in enumerate(("theta_d", "theta_p")):
+            values = [g[i] for g in grid]
+            if values and float(fc[name]) in (min(values), max(values)):
+                edge.append(f"seed {s} {name} {fc[name]:g}")
+    if not edge:
+        return ""
+    return (
+        f" At the edge of the filters' grid: {', '.join(edge)}; a wider grid might favour the "
+        "filters."
+    )
+
+
 def _object_sentences(settled: Settled) -> list[Judged]:
     """S9 and S10 on the exact-flow Table-2-sized models' object masks and velocities (every
     seed, per-pair counts: t over the seeds plus the paired bootstrap)."""
@@ -696,12 +742,14 @@ def _object_sentences(settled: Settled) -> list[Judged]:
     beside = (
         f"The exact-flow Table-2-sized models ({len(seeds)} seeds), the threshold and the "
         "filters' constants chosen on validation for each; the exact-flow twin's masks (one "
-        "model, 25,838 pairs) are diagnostic 6."
+        "model) are diagnostic 6." + _grid_edges(seeds)
     )
     j9.beside = beside
     j10.beside = beside + (
         " An object is an 8-connected component of the true mask, binned by its area and mean "
         "true speed; a pixel's velocity error is |extracted − true object flow|, a missed "
-        "object costing its whole speed."
+        "object costing its whole speed. Both methods extract the same residual flow and differ "
+        "in the pixels they keep, so the difference prices their masks' misses and false "
+        "pixels in velocity units; no absolute bound for 'faithful' is judged."
     )
     return [j9, j10]

@@ -15,7 +15,7 @@ bin), so that the verdicts (:mod:`mfg_lightning.study.intervals`) can resample t
 (a paired bootstrap) as well as the seeds. The stages:
 
 * ``settle/<flow>_seed<n>``: one model of the 2 × 2 (:func:`stage_seed`);
-* ``settle/classical_<flow>``: every classical method on the same test pairs
+* ``settle_classical/<flow>``: every classical method on the same test pairs
   (:func:`stage_classical`; they do not train, so one stage per flow);
 * ``settle/strided_seed<n>``: Table 2's size drawn as every ``settle.strided.stride``-th source
   frame of the whole training split instead of 224 contiguous frames of 00–07, on the exact flow
@@ -130,7 +130,7 @@ def stage_seed(study: S.Study, flow: str, seed: int) -> dict:
 
 
 def stage_classical(study: S.Study, flow: str) -> dict:
-    """``settle/classical_<flow>``: every classical method on the 2 × 2's test pairs of
+    """``settle_classical/<flow>``: every classical method on the 2 × 2's test pairs of
     ``flow``, with per-pair errors."""
     from mfg_lightning.analysis.scoring import classical_methods, score_methods, scored_rows
 
