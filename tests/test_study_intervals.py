@@ -191,6 +191,8 @@ def _objects(good: bool, rng: np.random.Generator) -> dict:
         "pairs": {
             "filters": method(better, 40 if good else 20, 5 if good else 30),
             "threshold": method(worse, 30, 20),
+            # reporting no motion costs the objects' speed: 2 px a pixel
+            "speed": (pixels * 2.0).tolist(),
         },
     }
 
@@ -206,10 +208,12 @@ def test_every_sentence_can_hold_and_can_fail(good: bool) -> None:
     for key, j in judged.items():
         assert j.parts, key
         for p in j.parts:
-            if p.verdict == NO_VERDICT:
-                assert key == "S10" and "below the floor" in p.floor, (key, p.label)
+            if key == "S10" and "below the floor" in p.floor:
+                assert p.verdict == INCONCLUSIVE  # a bin not measured: no wide range shown
             elif good:
                 assert p.verdict == HOLDS, (key, p.text())
             else:
                 assert p.verdict in (NOT_HOLD, INCONCLUSIVE), (key, p.text())
-        assert j.verdict == (HOLDS if good else NOT_HOLD), (key, j.verdict)
+        # S10 has a bin without objects: it cannot hold whole
+        expected = (PARTLY if key == "S10" else HOLDS) if good else NOT_HOLD
+        assert j.verdict == expected, (key, j.verdict)

@@ -118,8 +118,9 @@ SENTENCES: dict[str, Sentence] = {
             "global compensation of predicted egomotion and a divisive normalization procedure.",
             "exact flow, the Table-2-sized models at every seed, the +1 test pairs: the object "
             "velocity error (px/frame, extracted against true object flow over the true "
-            "objects' pixels) of the filters minus a plain threshold's ≤ 0, in every object "
-            "size × speed bin with enough objects",
+            "objects' pixels) of the filters minus the error of reporting no motion ≤ 0, and "
+            "minus a plain threshold's ≤ 0, in every object size × speed bin (a bin without "
+            "enough objects is inconclusive)",
             "object velocity for a wide range of sizes and speeds",
         ),
     )

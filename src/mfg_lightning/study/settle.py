@@ -200,7 +200,9 @@ def object_velocity_pairs(
 
     Per pair and method: the mask's true positive, false positive and false negative pixels
     (S9's IoU and precision, pooled over resampled pairs), and per object size × speed bin the
-    sum of the object-velocity error over the true objects' pixels and their count (S10). An
+    sum of the object-velocity error over the true objects' pixels and their count (S10), and
+    per bin the sum of the true speed over the same pixels (``speed``: the error of reporting
+    no motion, the bound of S10's absolute reading). An
     object is an 8-connected component of the true moving-object mask; its size is its area as
     a fraction of the image, its speed the mean length of its true object flow (px/frame at the
     model input); ``object_motion.size_bins`` and ``speed_bins`` give the edges. The velocity
@@ -228,7 +230,10 @@ def object_velocity_pairs(
     speed_edges = [float(x) for x in om.speed_bins]
     n_bins = (len(size_edges) - 1) * (len(speed_edges) - 1)
     methods = ("filters", "threshold")
-    per = {m: {"tp": [], "fp": [], "fn": [], "err": [], "pixels": []} for m in methods}
+    per: dict[str, Any] = {
+        m: {"tp": [], "fp": [], "fn": [], "err": [], "pixels": []} for m in methods
+    }
+    per["speed"] = []
     for batch in test:
         if batch is None:
             continue
@@ -255,6 +260,9 @@ def object_velocity_pairs(
                 speed, speed_edges
             )
             pixel_bin = bins[labels[g]]
+            # the error of reporting no motion at all: the true objects' own speed
+            still = gt_flow[b].norm(dim=0).numpy()[g]
+            per["speed"].append(_rounded(np.bincount(pixel_bin, still, n_bins).tolist()))
             for m in methods:
                 mask, field = fields[m]
                 p = mask[b].numpy() & res.valid[b].numpy()
