@@ -61,8 +61,8 @@ def test_tiny_study_runs_resumes_and_rebuilds_from_committed_results(tmp_path: P
     assert [r.split("|")[1].strip() for r in rows] == [f"S{i}" for i in range(1, 11)]
     for r in rows:
         assert r.split("|")[-2].strip() in VERDICTS, r
-        # every judged part gives its 95 % interval, or says why it is no verdict
-        assert "“" in r and ("] " in r or "no verdict" in r), r
+        # every judged part gives its 95 % interval, or says why it has none
+        assert "“" in r and any(x in r for x in ("] ", "no verdict", "not measured")), r
     # the main model at its two seeds in the headline table
     assert "| quantity | seed 0 | seed 1 | mean ± sd |" in text
     # the diagnostics, each with its figure and without a verdict
