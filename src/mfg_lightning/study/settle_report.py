@@ -123,14 +123,14 @@ def _figure(settled: Settled) -> Any:
     flows = settled.flows()
     if not flows:
         return None
-    fig = Figure(figsize=(4.2 * len(flows) + 1.5, 3.6))
+    fig = Figure(figsize=(4.2 * len(flows) + 3.0, 3.6))
     axes = fig.subplots(1, len(flows), squeeze=False)[0]
     for ax, flow in zip(axes, flows, strict=True):
         for x, k in enumerate(("1", "0.15")):
             errs = [float(e.mean()) for e in _seed_errors(settled, flow, k)]
             ax.plot([x] * len(errs), errs, "o", color="tab:blue", alpha=0.7)
         for i, (name, e) in enumerate(settled.classical_rot(flow).items()):
-            ax.axhline(float(e.mean()), color=f"C{i + 1}", lw=1.2, label=name[:34])
+            ax.axhline(float(e.mean()), color=f"C{i + 1}", lw=1.2, label=name)
         if flow == "exact" and settled.strided:
             errs = [float(np.mean(r["mfg"]["1"]["rot_err"])) for r in settled.strided.values()]
             ax.plot([2] * len(errs), errs, "s", color="tab:purple", alpha=0.7)
