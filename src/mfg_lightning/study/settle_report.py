@@ -254,8 +254,9 @@ def para_settle(settled: Settled) -> str | None:
         mean = statistics.fmean(float(e.mean()) for e in errs)
         side = ("below" if p.iv.hi < 0 else "above" if p.iv.lo > 0 else "not distinguishable "
                 "from") if p.iv else "not yet judged against"  # fmt: skip
+        on = "on" if bits else "On"
         bits.append(
-            f"On {_FLOW[flow]} MFG's mean rotation error is {fmt(mean, 5)} rad over "
+            f"{on} {_FLOW[flow]} MFG's mean rotation error is {fmt(mean, 5)} rad over "
             f"{len(errs)} seed{'s' * (len(errs) != 1)} against IRLS's "
             f"{fmt(float(rot[irls].mean()), 5)}, {_ratio_text(p)}: {side} IRLS's"
         )
