@@ -83,6 +83,11 @@ def test_three_outcomes_the_domain_and_the_sentence() -> None:
     # an interval that covers every value the quantity can take decides nothing
     assert interval_verdict(iv(-0.1, 1.2), -0.5, ">=", domain=(0.0, 1.0)) == INCONCLUSIVE
     assert interval_verdict(None, 1.0, "<=") == NO_VERDICT
+    # "better than": an interval on the bound does not show it (nothing detected, no motion)
+    assert interval_verdict(iv(0.0, 0.0), 0.0, "<=") == HOLDS
+    assert interval_verdict(iv(0.0, 0.0), 0.0, "<=", strict=True) == NOT_HOLD
+    assert interval_verdict(iv(-0.2, -0.1), 0.0, "<=", strict=True) == HOLDS
+    assert interval_verdict(iv(0.0, 0.0), 0.0, ">=", strict=True) == NOT_HOLD
     # widening by the bound's print precision can turn a hold into an inconclusive
     assert interval_verdict(iv(0.9, 0.97).widened(0.05, 1.0), 1.0, "<=") == INCONCLUSIVE
     assert combine([HOLDS, HOLDS]) == HOLDS

@@ -220,10 +220,12 @@ def interval_verdict(
     bound: float,
     direction: str,
     domain: tuple[float, float] | None = None,
+    strict: bool = False,
 ) -> str:
     """holds / does not hold / inconclusive (see the module docstring); ``domain``: the values
     the quantity can take (an interval covering all of it is inconclusive whatever its side).
-    No interval (nothing measured): :data:`NO_VERDICT`."""
+    ``strict``: the bound itself is on the wrong side (better than, not as good as). No interval
+    (nothing measured): :data:`NO_VERDICT`."""
     if direction not in ("<=", ">="):
         raise ValueError(f"direction must be '<=' or '>=', got {direction!r}")
     if iv is None or not (math.isfinite(iv.lo) and math.isfinite(iv.hi)):
@@ -232,10 +234,13 @@ def interval_verdict(
         return INCONCLUSIVE
     # a mean of equal values (0.05, 0.05, 0.05) is 0.05000000000000001: not beyond its bound
     eps = 1e-12 * max(1.0, abs(bound))
+    # strict: a claim of "better than" is not shown by an interval that sits on the bound (a
+    # method that detects nothing has exactly the no-motion error)
+    e = -eps if strict else eps
     if direction == "<=":
-        claimed, other = iv.hi <= bound + eps, iv.lo > bound + eps
+        claimed, other = iv.hi <= bound + e, iv.lo > bound + e
     else:
-        claimed, other = iv.lo >= bound - eps, iv.hi < bound - eps
+        claimed, other = iv.lo >= bound - e, iv.hi < bound - e
     return HOLDS if claimed else NOT_HOLD if other else INCONCLUSIVE
 
 

@@ -88,6 +88,7 @@ class Part:
     floor: str = ""
     note: str = ""
     digits: int = 3
+    strict: bool = False
     verdict: str = field(init=False)
 
     def __post_init__(self) -> None:
@@ -97,7 +98,9 @@ class Part:
         if self.floor:
             self.verdict = NO_VERDICT
             return
-        self.verdict = interval_verdict(self.judged, self.bound, self.direction, self.domain)
+        self.verdict = interval_verdict(
+            self.judged, self.bound, self.direction, self.domain, self.strict
+        )
 
     @property
     def judged(self) -> Interval | None:
@@ -388,7 +391,7 @@ def log_ratio_part(
         ses.append(
             bootstrap_se(lambda i, m=m: np.log(m[i].mean(1) / ref[i].mean(1)), len(m), seed=seed)
         )
-    return Part(label, interval(vals, ses), 0.0, "<=", scale="log", note=note)
+    return Part(label, interval(vals, ses), 0.0, "<=", scale="log", note=note, strict=True)
 
 
 def _mfg_rot(settled: Settled, flow: str, k: str) -> list[np.ndarray]:
@@ -649,7 +652,7 @@ def _mask_part(seeds: Mapping[int, dict], key: str, label: str) -> Part:
             bootstrap_se(lambda i, f=f, t=t: _pooled(f, key, i) - _pooled(t, key, i), len(f[0]),
                          seed=s)
         )  # fmt: skip
-    return Part(label, interval(vals, ses), 0.0, ">=", domain=(-1.0, 1.0))
+    return Part(label, interval(vals, ses), 0.0, ">=", domain=(-1.0, 1.0), strict=True)
 
 
 def velocity_bins(r: dict) -> list[dict[str, Any]]:
@@ -720,7 +723,7 @@ def _velocity_parts(seeds: Mapping[int, dict], b: dict) -> list[Part]:
             f"means); {b['pixels']} object pixels in {b['pairs']} pairs"
         )
         parts.append(Part(f"velocity error, filters − {other} (px), {where}",
-                          interval(vals, ses), 0.0, "<=", note=note))  # fmt: skip
+                          interval(vals, ses), 0.0, "<=", note=note, strict=True))  # fmt: skip
     return parts
 
 
