@@ -56,6 +56,7 @@ __all__ = [
     "bootstrap_se",
     "combine",
     "construction",
+    "difference",
     "interval",
     "interval_verdict",
     "t_quantile",
@@ -213,6 +214,18 @@ def interval(
         var += (_Z95 * math.sqrt(statistics.fmean(s * s for s in ses))) ** 2
     half = math.sqrt(var)
     return Interval(mean, mean - half, mean + half, construction(len(xs), bool(ses), used_proxy))
+
+
+def difference(a: Sequence[float], b: Sequence[float]) -> Interval | None:
+    """The mean of ``a`` minus the mean of ``b`` (two sets of seeds of different models, so no
+    pairing), each side's t half-width added in quadrature: a conservative stand-in for
+    Welch's interval."""
+    ia, ib = interval(a), interval(b)
+    if ia is None or ib is None:
+        return None
+    half = math.hypot(ia.value - ia.lo, ib.value - ib.lo)
+    d = ia.value - ib.value
+    return Interval(d, d - half, d + half, f"t over {len(a)} and {len(b)} seeds, in quadrature")
 
 
 def interval_verdict(

@@ -76,7 +76,7 @@ def _sparsity_models(study: S.Study) -> dict[str, dict]:
 
 
 def _trained_models(
-    study: S.Study, sparsity: dict[str, dict], size: dict[str, dict]
+    study: S.Study, sparsity: dict[str, dict], size: dict[str, dict], settled: Settled
 ) -> dict[str, dict]:
     """Every trained model's cached result, by the name the report gives it."""
     models = {}
@@ -86,7 +86,6 @@ def _trained_models(
     for seed in study.cfg.seeds.extra:
         if (r := study.cached(f"seeds/seed{int(seed)}")) is not None:
             models[f"main, seed {int(seed)}"] = r
-    settled = Settled.load(study.cached, study.cfg)
     for flow, by in settled.seeds.items():
         models.update({f"table2 {flow}, seed {s}": r for s, r in sorted(by.items())})
     models.update({f"table2 strided, seed {s}": r for s, r in sorted(settled.strided.items())})
@@ -161,7 +160,7 @@ def write_report(study: S.Study, report: Path) -> Path:
         [Column(h) for h in ("#", "diagnostic", "paper", "ours (seed 0)", "figure")],
         [[r.number, r.claim, r.paper, r.ours, r.figure] for (r, _), _ in built],
     )
-    models = _trained_models(study, sparsity, size)
+    models = _trained_models(study, sparsity, size, settled)
     conv_rows, conv_fig = C.convergence_rows(models)
     conv_link = _figure(figdir, "convergence.png", conv_fig) if conv_fig is not None else ""
     made += ["convergence.png"] if conv_fig is not None else []
@@ -169,7 +168,7 @@ def write_report(study: S.Study, report: Path) -> Path:
     if flow_fig is not None:
         flow_lines[2] += " " + _figure(figdir, "flow_error.png", flow_fig)
         made.append("flow_error.png")
-    causes = _causes_sections(study, views, twin, size, figdir, made)
+    causes = _causes_sections(study, views, twin, size, settled, figdir, made)
     verdict_fig = _verdict_figure(judged)
     verdict_link = _figure(figdir, "verdicts.png", verdict_fig) if verdict_fig else ""
     made += ["verdicts.png"] if verdict_fig is not None else []
@@ -338,29 +337,35 @@ def _deviations(study: S.Study) -> list[str]:
     """The header's list of every way the study's data differ from the paper's."""
     cfg = study.cfg
     data = study.cached("data") or {}
-    offsets = 4  # the main model's ±1, ±2 (``main``'s dataset.offsets)
+    main_ov = dict(str(o).split("=", 1) for o in cfg.main if "=" in str(o))
+    offsets = len(main_ov.get("dataset.offsets", "[1]").strip("[]").split(","))
     pairs = (data.get("main") or {}).get("train_pairs")
     stride = int(cfg.budget.main_frame_stride)
     frames = f"about {pairs // offsets:,} source frames ({pairs:,} pairs)" if pairs else "–"
     from mfg_lightning.core.config import compose
+    from mfg_lightning.data.rendered import RENDER_SIZE
 
     size = [str(o) for o in cfg.data if str(o).startswith(("dataset.height", "dataset.width"))]
     ds = compose("train", size).dataset
+    render = (ds.flow.get("height") or RENDER_SIZE[0], ds.flow.get("width") or RENDER_SIZE[1])
+    t2 = dict(str(o).split("=", 1) for o in cfg.table2.overrides if "=" in str(o))
     nth = {1: "", 2: "2nd ", 3: "3rd "}.get(stride, f"{stride}th ")
     return [
         "- **deviations from the paper's data**: "
         f"(1) *frame stride*: the main model trains on every {nth}source frame of 00–08, "
         f"{frames}, against the paper's ~20.4K frames (every frame); validation and test use "
         "every frame; "
-        f"(2) *resolution*: the model reads {ds.height} × {ds.width} flow (a quarter of the "
-        "192 × 512 render, as the released code feeds PWC-Net's quarter-resolution output; the "
-        "paper states no input size); "
+        f"(2) *resolution*: the model reads {ds.height} × {ds.width} flow (downsampled from the "
+        f"{render[0]} × {render[1]} render, as the released code feeds PWC-Net's "
+        "quarter-resolution output; the paper states no input size); "
         "(3) *flow*: OpenCV's DIS on rendered frames where the paper used PWC-Net on KITTI's "
         "images, and the rendered worlds' exact flow where it used Virtual KITTI's ground "
         "truth; "
         "(4) *scenes*: synthetic worlds rendered along the real KITTI trajectories (00–10), not "
-        "KITTI's or Virtual KITTI's images; the Table-2-sized set is 224 frames of 00–07 in "
-        "place of Virtual KITTI's egomotion split (1,679 training frames).",
+        "KITTI's or Virtual KITTI's images; the Table-2-sized set is the first "
+        f"{t2.get('dataset.max_frames', '?')} frames of sequences "
+        f"{t2.get('dataset.train_sequences', '?')} in place of Virtual KITTI's egomotion split "
+        "(1,679 training frames).",
     ]
 
 
@@ -487,7 +492,13 @@ def _flow_error_section(fe: dict | None) -> tuple[list[str], Any]:
 
 
 def _causes_sections(
-    study: S.Study, views: dict, twin: dict | None, size: dict, figdir: Path, made: list[str]
+    study: S.Study,
+    views: dict,
+    twin: dict | None,
+    size: dict,
+    settled: Settled,
+    figdir: Path,
+    made: list[str],
 ) -> list[str]:
     """The causes separated (:mod:`mfg_lightning.study.causes`): the exact-flow twin, Table 2 on
     exact flow beside DIS, the size curve (``size``: its results by name); their figures
@@ -501,7 +512,7 @@ def _causes_sections(
         if fig is not None:
             lines[2] += " " + _figure(figdir, name, fig)
             made.append(name)
-    settle_lines, settle_fig = settle_section(Settled.load(study.cached, study.cfg))
+    settle_lines, settle_fig = settle_section(settled)
     if settle_fig is not None:
         settle_lines[2] += " " + _figure(figdir, "settle.png", settle_fig)
         made.append("settle.png")

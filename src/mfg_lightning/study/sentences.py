@@ -39,6 +39,7 @@ from mfg_lightning.study.intervals import (
     Interval,
     bootstrap_se,
     combine,
+    difference,
     interval,
     interval_verdict,
 )
@@ -114,6 +115,13 @@ class Part:
             return None
         return math.exp(self.iv.value) if self.scale == "log" else self.iv.value
 
+    def interval_text(self) -> str:
+        """``value [lo, hi]`` of the judged interval, on the printed scale ("–": none)."""
+        iv = self.judged
+        return (
+            "–" if iv is None else f"{self.show(iv.value)} [{self.show(iv.lo)}, {self.show(iv.hi)}]"
+        )
+
     def show(self, x: float) -> str:
         return f"×{fmt(math.exp(x), self.digits)}" if self.scale == "log" else fmt(x, self.digits)
 
@@ -124,10 +132,9 @@ class Part:
             return f"{self.label}: {self.floor}{note} — {self.verdict}"
         if self.iv is None:
             return f"{self.label}: not measured{note} — {self.verdict}"
-        iv = self.judged
         return (
-            f"{self.label}: {self.show(iv.value)} [{self.show(iv.lo)}, {self.show(iv.hi)}] "
-            f"{sign} {self.show(self.bound)} ({iv.how}){note} — {self.verdict}"
+            f"{self.label}: {self.interval_text()} {sign} {self.show(self.bound)} "
+            f"({self.judged.how}){note} — {self.verdict}"
         )
 
 
@@ -174,6 +181,11 @@ class Settled:
         """The flows with at least one seed and the classical methods."""
         return [f for f, by in self.seeds.items() if by and f in self.classical]
 
+    def mfg_rot(self, flow: str, k: str) -> list[np.ndarray]:
+        """MFG's per-pair rotation errors at top-k ``k`` on ``flow``, one array per seed."""
+        return [np.asarray(r["mfg"][k]["rot_err"]) for _, r in sorted(self.seeds[flow].items())
+                if k in r["mfg"]]  # fmt: skip
+
     def classical_rot(self, flow: str) -> dict[str, np.ndarray]:
         """Every classical method's per-pair rotation errors on ``flow`` (the oracle left out)."""
         rows = self.classical[flow]["classical"]
@@ -217,30 +229,17 @@ def _mfg_bins(v: View) -> Mapping[str, Any]:
     return bins[next(n for n in bins if n.startswith("MFG (all"))]
 
 
+def _growth_of(bins: list) -> tuple[float, float] | None:
+    """The mean errors of the most and of the least covered non-empty bins."""
+    filled = [b for b in bins if b["n"] and b["mean"] is not None]
+    return (filled[-1]["mean"], filled[0]["mean"]) if len(filled) >= 2 else None
+
+
 def growth(v: View, key: str) -> float | None:
     """MFG's mean error (``rot_bins`` / ``trans_bins``) in the most covered non-empty bin of
     moving-object coverage over that in the least covered one."""
-    filled = [b for b in _mfg_bins(v)[key] if b["n"] and b["mean"] is not None]
-    return filled[-1]["mean"] / filled[0]["mean"] if len(filled) >= 2 else None
-
-
-def firing_one_motion(v: View, decoder: str, residual: float) -> float | None:
-    """Of a decoder's top units that fire on validation, the fraction one motion fits."""
-    d = v["basis"]["per_decoder"][decoder]
-    fired = [r for r, f in zip(d["residual"], d["firing_rate"], strict=True) if f > 0]
-    return sum(r <= residual for r in fired) / len(fired) if fired else None
-
-
-def object_scores(v: View, flow: str = "exact") -> Mapping[str, Any]:
-    """The object-mask scores of the filters and the threshold on ``flow``."""
-    return v["object_motion"][flow]["scores"]
-
-
-def object_ratio(v: View, group: str, key: str, flow: str = "exact") -> float | None:
-    """The filters' score over the threshold's (``group`` all / slow / fast; ``key`` iou,
-    precision, recall, near/recall, far/recall)."""
-    sc = object_scores(v, flow)
-    return ratio(sc["filters"].get(group, {}).get(key), sc["threshold"].get(group, {}).get(key))
+    ends = _growth_of(_mfg_bins(v)[key])
+    return ends[0] / ends[1] if ends else None
 
 
 def smallest_k_by_ratio(ratios: Mapping[float, float | None], tol: float) -> float | None:
@@ -394,11 +393,6 @@ def log_ratio_part(
     return Part(label, interval(vals, ses), 0.0, "<=", scale="log", note=note, strict=True)
 
 
-def _mfg_rot(settled: Settled, flow: str, k: str) -> list[np.ndarray]:
-    return [np.asarray(r["mfg"][k]["rot_err"]) for _, r in sorted(settled.seeds[flow].items())
-            if k in r["mfg"]]  # fmt: skip
-
-
 def _best_classical(rot: Mapping[str, np.ndarray]) -> str | None:
     return min(rot, key=lambda n: float(rot[n].mean()), default=None)
 
@@ -424,7 +418,7 @@ def _s4(settled: Settled) -> Judged:
     j = Judged(SENTENCES["S4"])
     for flow in settled.flows():
         rot = settled.classical_rot(flow)
-        ours = _mfg_rot(settled, flow, "1")
+        ours = settled.mfg_rot(flow, "1")
         irls = next((n for n in rot if IRLS in n), None)
         best = _best_classical(rot)
         for name in dict.fromkeys(x for x in (irls, best) if x):
@@ -438,7 +432,7 @@ def _s4(settled: Settled) -> Judged:
 
 def _k_changes_nothing(settled: Settled, flow: str, k: str) -> bool:
     """Whether MFG at ``k`` has all units' errors on every pair of every seed of ``flow``."""
-    at_k, full = _mfg_rot(settled, flow, k), _mfg_rot(settled, flow, "1")
+    at_k, full = settled.mfg_rot(flow, k), settled.mfg_rot(flow, "1")
     return bool(at_k) and all(np.array_equal(a, b) for a, b in zip(at_k, full, strict=True))
 
 
@@ -447,7 +441,7 @@ def _s6(settled: Settled) -> Judged:
     for flow in settled.flows():
         rot = settled.classical_rot(flow)
         best = _best_classical(rot)
-        ours = _mfg_rot(settled, flow, "0.15")
+        ours = settled.mfg_rot(flow, "0.15")
         if best and ours:
             j.parts.append(
                 log_ratio_part(f"{_FLOW_NAME[flow]}, MFG at k = 15 % over the best ({best})",
@@ -501,10 +495,7 @@ def _s5(settled: Settled, main: Mapping[int, View]) -> Judged:
     grid = sorted({float(k) for r in seeds.values() for k in r["mfg"]})
     steps = [math.log(hi / lo) for lo, hi in itertools.pairwise(grid)]
     step = min(steps) if steps else 0.0
-    a, b = interval([math.log(k) for k in small]), interval([math.log(k) for k in kitti])
-    half = math.hypot(a.value - a.lo, b.value - b.lo)
-    diff = a.value - b.value
-    iv = Interval(diff, diff - half, diff + half, f"t over {len(small)} and {len(kitti)} seeds")
+    iv = difference([math.log(k) for k in small], [math.log(k) for k in kitti])
     j.parts.append(
         Part("smallest k, Table-2-sized set over the main model's", iv, step / 2, ">=",
              scale="log", note=f"per seed {', '.join(f'{100 * k:g} %' for k in small)} against "
@@ -528,11 +519,6 @@ def _classical_growth(views: Mapping[int, View], stem: str, key: str) -> tuple[s
             if stem in name and "MFG" not in name:
                 return name, b[key]
     return None
-
-
-def _growth_of(bins: list) -> tuple[float, float] | None:
-    filled = [b for b in bins if b["n"] and b["mean"] is not None]
-    return (filled[-1]["mean"], filled[0]["mean"]) if len(filled) >= 2 else None
 
 
 def _s7(views: Mapping[int, View]) -> Judged:
@@ -589,11 +575,6 @@ def one_motion_fraction(v: View, decoder: str, residual: float, firing: bool) ->
     return sum(r <= residual for r in res) / len(res) if res else None
 
 
-def _interval_text(p: Part) -> str:
-    iv = p.judged
-    return "–" if iv is None else f"{p.show(iv.value)} [{p.show(iv.lo)}, {p.show(iv.hi)}]"
-
-
 def _s8(views: Mapping[int, View], residual: float, one_motion: float) -> Judged:
     j = Judged(SENTENCES["S8"])
     if not views:
@@ -610,7 +591,7 @@ def _s8(views: Mapping[int, View], residual: float, one_motion: float) -> Judged
                         lambda v, dec=dec: one_motion_fraction(v, dec, residual, False),
                         one_motion, ">=", domain=(0.0, 1.0),
                         note=f"of the top units {fired.text(2)} fire; of those one motion fits "
-                        f"{_interval_text(firing)} ({firing.verdict} against the same bound; "
+                        f"{firing.interval_text()} ({firing.verdict} against the same bound; "
                         "not the verdict)")
         )  # fmt: skip
     j.beside = (

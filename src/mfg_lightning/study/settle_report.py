@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from mfg_lightning.core.tables import Column, Table, fmt
-from mfg_lightning.study.intervals import Interval, interval
+from mfg_lightning.study.intervals import Interval, difference
 from mfg_lightning.study.sentences import (
     IRLS,
     MIN_SEEDS,
@@ -43,16 +43,8 @@ def _sig(x: float) -> str:
     return f"{x:.3g}"
 
 
-def _seed_errors(settled: Settled, flow: str, k: str) -> list[np.ndarray]:
-    return [np.asarray(r["mfg"][k]["rot_err"]) for _, r in sorted(settled.seeds[flow].items())
-            if k in r["mfg"]]  # fmt: skip
-
-
 def _ratio_text(p: Part) -> str:
-    iv = p.iv
-    if iv is None:
-        return p.floor or "–"
-    return f"×{fmt(math.exp(iv.value), 3)} [×{fmt(math.exp(iv.lo), 3)}, ×{fmt(math.exp(iv.hi), 3)}]"
+    return p.interval_text() if p.iv is not None else (p.floor or "–")
 
 
 def _mfg_row(flow: str, label: str, errs: list[np.ndarray], irls: np.ndarray | None) -> list:
@@ -74,7 +66,7 @@ def _rows(settled: Settled) -> list[list[str]]:
         rot = settled.classical_rot(flow)
         irls = next((rot[n] for n in rot if IRLS in n), None)
         for k, label in (("1", "MFG (all units)"), ("0.15", "MFG (k = 15 %)")):
-            if errs := _seed_errors(settled, flow, k):
+            if errs := settled.mfg_rot(flow, k):
                 rows.append(_mfg_row(flow, label, errs, irls))
         for name, e in rot.items():
             mean, median, fail = rot_summary(e)
@@ -90,7 +82,7 @@ def mixed_reading(settled: Settled) -> Part | None:
         return None
     rot = settled.classical_rot("dis")
     irls = next((n for n in rot if IRLS in n), None)
-    errs = _seed_errors(settled, "exact", "1")
+    errs = settled.mfg_rot("exact", "1")
     if not irls or not errs:
         return None
     return log_ratio_part("MFG on exact flow over IRLS on DIS", errs, rot[irls])
@@ -110,11 +102,7 @@ def contiguous_against_strided(settled: Settled) -> tuple[Interval, dict[str, An
         logs = [math.log(float(np.mean(r["mfg"]["1"]["rot_err"]))) for _, r in sorted(runs.items())]
         pairs = sorted({int(r["train_pairs"]) for r in runs.values()})
         sides[name] = {"logs": logs, "seeds": len(logs), "train_pairs": pairs}
-    a, b = interval(sides["strided"]["logs"]), interval(sides["contiguous"]["logs"])
-    half = math.hypot(a.value - a.lo, b.value - b.lo)
-    d = a.value - b.value
-    how = f"t over {sides['strided']['seeds']} and {sides['contiguous']['seeds']} seeds"
-    return Interval(d, d - half, d + half, how), sides
+    return difference(sides["strided"]["logs"], sides["contiguous"]["logs"]), sides
 
 
 def _figure(settled: Settled) -> Any:
@@ -127,7 +115,7 @@ def _figure(settled: Settled) -> Any:
     axes = fig.subplots(1, len(flows), squeeze=False)[0]
     for ax, flow in zip(axes, flows, strict=True):
         for x, k in enumerate(("1", "0.15")):
-            errs = [float(e.mean()) for e in _seed_errors(settled, flow, k)]
+            errs = [float(e.mean()) for e in settled.mfg_rot(flow, k)]
             ax.plot([x] * len(errs), errs, "o", color="tab:blue", alpha=0.7)
         for i, (name, e) in enumerate(settled.classical_rot(flow).items()):
             ax.axhline(float(e.mean()), color=f"C{i + 1}", lw=1.2, label=name)
@@ -247,7 +235,7 @@ def para_settle(settled: Settled) -> str | None:
     for flow in flows:
         rot = settled.classical_rot(flow)
         irls = next((n for n in rot if IRLS in n), None)
-        errs = _seed_errors(settled, flow, "1")
+        errs = settled.mfg_rot(flow, "1")
         if not irls or not errs:
             continue
         p = log_ratio_part("", errs, rot[irls])
