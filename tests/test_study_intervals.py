@@ -16,11 +16,15 @@ from mfg_lightning.study.intervals import (
     NO_VERDICT,
     NOT_HOLD,
     PARTLY,
+    Claim,
     Interval,
     bootstrap_se,
     combine,
+    difference,
+    holm,
     interval,
     interval_verdict,
+    quantile,
     t_quantile,
 )
 from mfg_lightning.study.sentences import Settled, judge_all
@@ -33,6 +37,66 @@ def test_t_quantiles_match_the_tables() -> None:
         assert t_quantile(df) == pytest.approx(t, abs=1e-3)
     with pytest.raises(ValueError, match="degree"):
         t_quantile(0)
+
+
+def test_quantiles_at_the_levels_holm_reads() -> None:
+    # t(2) at 99.9 %, t(4) at 99 %, t(1) at 99.99 % (the Cauchy: tan(π/2 · 0.9999)), the normal
+    assert t_quantile(2, 0.999) == pytest.approx(31.599, abs=1e-3)
+    assert t_quantile(4, 0.99) == pytest.approx(4.604, abs=1e-3)
+    assert t_quantile(1, 0.9999) == pytest.approx(math.tan(math.pi / 2 * 0.9999), rel=1e-6)
+    assert quantile(0) == pytest.approx(1.95996, abs=1e-5) and quantile(3) == t_quantile(3)
+    with pytest.raises(ValueError, match="level"):
+        t_quantile(3, 1.0)
+
+
+def test_an_interval_rebuilt_at_another_level() -> None:
+    xs = [1.0, 1.2, 1.1]
+    iv = interval(xs, [0.03, 0.04])
+    assert iv.at(0.95) is iv
+    wide = iv.at(0.99)
+    seeds = t_quantile(2, 0.99) * statistics.stdev(xs) / math.sqrt(3)
+    boot = quantile(0, 0.99) * math.sqrt((0.03**2 + 0.04**2) / 2)
+    assert wide.hi - wide.value == pytest.approx(math.hypot(seeds, boot), rel=1e-9)
+    # the print precision's pad is fixed: it is added at every level, not scaled
+    padded = iv.widened(0.1, 2.0)
+    assert padded.at(0.99).hi - wide.hi == pytest.approx(0.2)
+    # a difference of two seed sets keeps both sides' terms
+    d = difference([1.0, 1.2, 1.1], [0.5, 0.6, 0.55, 0.52])
+    assert len(d.terms) == 2 and d.at(0.99).hi - d.value > d.hi - d.value
+
+
+def test_holm_steps_down_and_stops() -> None:
+    def claim(value: float, half: float) -> Claim:
+        # three seeds whose t interval has this half-width
+        sd = half * math.sqrt(3) / t_quantile(2)
+        return Claim(interval([value - sd, value, value + sd]), 0.0, "<=")
+
+    decisive, borderline, straddling = claim(-10.0, 1.0), claim(-1.2, 1.0), claim(0.5, 1.0)
+    assert borderline.verdict() == HOLDS  # at 95 % alone it would hold
+    got = holm([straddling, borderline, decisive])
+    assert [v for v, _ in got] == [INCONCLUSIVE, INCONCLUSIVE, HOLDS]
+    # the decisive claim first at 1 − 0.05 / 3, the borderline one at 1 − 0.05 / 2, then stop
+    assert got[2][1] == pytest.approx(1 - 0.05 / 3) and got[1][1] == pytest.approx(0.975)
+    # a claim far on the wrong side is decided too; one claim alone is judged at 95 %
+    assert [v for v, _ in holm([claim(10.0, 1.0), decisive])] == [NOT_HOLD, HOLDS]
+    assert holm([borderline]) == [(HOLDS, 0.95)]
+    # a zero-width interval off its bound (nothing detected in any pair) is decided first
+    zero = Claim(Interval(0.0, 0.0, 0.0, "exact", ((2, 0.0),)), 0.0, "<=", strict=True)
+    assert holm([straddling, zero])[1][0] == NOT_HOLD
+
+
+def test_holm_keeps_a_family_of_null_parts_at_five_percent() -> None:
+    """18 parts (S10's count) whose true values sit on their bounds: any decision is wrong.
+    Judged at 95 % each, most families decide something by chance; Holm's procedure keeps the
+    families with a wrong decision near 5 %."""
+    rng = np.random.default_rng(0)
+    families, each, together = 400, 0, 0
+    for _ in range(families):
+        claims = [Claim(interval(rng.normal(0.0, 1.0, 5)), 0.0, "<=") for _ in range(18)]
+        each += any(c.verdict() != INCONCLUSIVE for c in claims)
+        together += any(v != INCONCLUSIVE for v, _ in holm(claims))
+    assert each / families > 0.5  # 1 − 0.95¹⁸ = 0.60
+    assert together / families < 0.09  # 0.05 and its sampling error over 400 families
 
 
 def test_interval_over_seeds_bootstrap_and_stand_in_by_hand() -> None:
