@@ -73,6 +73,18 @@ def load_average() -> str:
         return "n/a"
 
 
+def cpu_seconds() -> float:
+    """User + system CPU seconds of this process and of its children that have ended (a
+    process pool's workers once it is shut down)."""
+    import resource
+
+    own, children = (
+        resource.getrusage(resource.RUSAGE_SELF),
+        resource.getrusage(resource.RUSAGE_CHILDREN),
+    )
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
 def cpu_model() -> str:
     """The CPU's model name (Linux), else what :mod:`platform` knows."""
     from mfg_lightning.core.machine import cpu_model as model
@@ -157,10 +169,9 @@ class Report:
 
     def environment(self) -> str:
         """The environment block: command, cores, CPU, threads, load averages and versions."""
-        try:
-            usable = len(os.sched_getaffinity(0))
-        except AttributeError:  # not on Linux
-            usable = os.cpu_count() or 0
+        from mfg_lightning.core.machine import usable_cores
+
+        usable = usable_cores()
         rows = [
             ("command", f"`{command_line()}`"),
             ("date (UTC)", time.strftime("%Y-%m-%d %H:%M", time.gmtime(self.started))),

@@ -108,7 +108,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--workers",
         type=int,
         default=2,
-        help="processes rendering and estimating flow (dataset.num_workers of prepare_data)",
+        help="processes rendering and estimating flow (dataset.prepare_workers of prepare_data)",
     )
     p.add_argument(
         "--tiny", action="store_true", help="seconds-long smoke run (tiny model, 30 frames)"

@@ -1,6 +1,6 @@
 """Regenerate every benchmark table (``make bench``): accuracy, throughput, images to poses (a
-section of throughput.md), scale-out, the KITTI flow cache, and on a machine with a CUDA GPU the
-GPU check.
+section of throughput.md), scale-out, data preparation over processes (a section of
+scaleout.md), the KITTI flow cache, and on a machine with a CUDA GPU the GPU check.
 
 Runs the scripts one after the other (each needs the whole machine), each in its own process,
 and writes ``bench/results/<name>.md``. Extra arguments (``--tiny``, ``--out DIR``,
@@ -22,6 +22,7 @@ SCRIPTS = (
     "throughput.py",
     "images_to_poses.py",  # after throughput.py: a section of its file
     "scaleout.py",
+    "data_preparation.py",  # after scaleout.py: a section of its file
     "flow_cache.py",
 )
 #: Scripts that need a CUDA device: run only where one is (gpu_check.py's CPU form is a test,

@@ -11,7 +11,13 @@ import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from conftest import run_module
-from mfg_lightning.data.rendered import QUALITY_REGIONS, RenderedDrivingDataset, flow_quality
+from mfg_lightning.data.rendered import (
+    QUALITY_REGIONS,
+    RenderedDrivingDataset,
+    flow_quality,
+    plan_chunks,
+    prepare_pairs,
+)
 from mfg_lightning.data.sample import check_sample
 from mfg_lightning.data.synthetic import SyntheticDataModule
 from mfg_lightning.flow.estimators import DISFlowEstimator, EstimatedFlow
@@ -100,17 +106,94 @@ def test_prepare_renders_every_frame_once_and_a_second_run_nothing(
     assert other.cache.root != again.dataset("test").cache.root
 
 
+def _cached_arrays(root: Path) -> dict[str, dict[str, np.ndarray]]:
+    """Every cached pair under ``root`` (by path relative to it): its arrays."""
+    out = {}
+    for path in sorted(root.rglob("*.npz")):
+        with np.load(path) as archive:
+            out[str(path.relative_to(root))] = {k: archive[k] for k in archive.files}
+    return out
+
+
+def test_chunks_cover_every_pair_once_in_runs_of_whole_source_frames(tmp_path: Path) -> None:
+    """The plan alone (nothing rendered): contiguous runs of one sequence each, every pair of
+    a source frame in one run, in dataset, sequence and frame order, and a sequence of two
+    cut for more processes although a whole-sequence split would give them nothing."""
+    dm = _dm(tmp_path, train_sequences=2, test_sequences=2, sequence_length=40, offsets=[-1, 1])
+    datasets = [dm.build_dataset("train+val"), dm.build_dataset("test")]
+    todo = [list(range(len(ds))) for ds in datasets]
+    chunks = plan_chunks(datasets, todo, processes=8, min_pairs=5)
+    assert len(chunks) > 4  # 4 sequences, more chunks: every core gets some
+    covered = sorted((d, i) for d, ix in chunks for i in ix)
+    assert covered == [(d, i) for d, ix in enumerate(todo) for i in ix]
+    order = []
+    for d, ix in chunks:
+        keys = [datasets[d].samples[i] for i in ix]
+        assert len({seq for seq, _, _ in keys}) == 1  # one sequence per chunk
+        sources = [src for _, src, _ in keys]
+        assert sources == sorted(sources) and sources[-1] - sources[0] == len(set(sources)) - 1
+        assert len(ix) >= 5
+        order.append((d, keys[0][0], sources[0]))
+    assert order == sorted(order)
+    # no source frame's pairs in two chunks
+    owners: dict[tuple[int, str, int], int] = {}
+    for c, (d, ix) in enumerate(chunks):
+        for i in ix:
+            seq, src, _ = datasets[d].samples[i]
+            assert owners.setdefault((d, seq, src), c) == c
+    # one process, or chunks of at least a sequence: one chunk per sequence
+    assert len(plan_chunks(datasets, todo, processes=1, min_pairs=1000)) == 4
+    # the chunks shrink with more processes, down to min_pairs
+    assert len(plan_chunks(datasets, todo, 2, 5)) < len(chunks)
+
+
 @pytest.mark.slow
-def test_worker_processes_fill_the_cache_with_the_same_pairs(tmp_path: Path) -> None:
-    """``dataset.num_workers=2``: two processes render a sequence each (spawned: seconds)."""
-    parallel = _dm(tmp_path / "parallel", num_workers=2, train_sequences=2)
-    parallel.prepare_data()
-    ds = parallel.dataset("train")
-    assert ds.missing() == [] and len({seq for seq, _, _ in ds.samples}) == 2
-    assert len(list(ds.cache.root.glob("picture-*.npy"))) == 2
-    serial = _dm(tmp_path / "serial", train_sequences=2).dataset("train")
-    for i in (0, len(ds) - 1):
-        assert torch.equal(ds[i]["flow"], serial[i]["flow"])  # computed here, on a miss
+def test_chunked_preparation_in_worker_processes_caches_the_same_pairs(tmp_path: Path) -> None:
+    """Two processes on chunks of a few frames from both splits cache the same values, the
+    same pictures and the same quality as one process with no chunks; each worker builds a
+    sequence's world once, and the quality sums come back from the workers (spawned: seconds).
+    """
+    setting = dict(offsets=[-1, 1], sequence_length=9)
+    serial = _dm(tmp_path / "serial", prepare_workers=0, **setting)
+    serial.prepare_data()
+    chunked = _dm(tmp_path / "chunked", prepare_workers=2, prepare_chunk_pairs=3, **setting)
+    datasets = [chunked.build_dataset("train+val"), chunked.build_dataset("test")]
+    todo = [ds.missing() for ds in datasets]
+    chunks = plan_chunks(datasets, todo, 2, 3)
+    prepared = prepare_pairs(datasets, workers=2, min_chunk_pairs=3, progress=False)
+    for ds, done, ix in zip(datasets, prepared, todo, strict=True):
+        assert done.processes == 2 and done.pairs == len(ds) == len(ix)
+        pieces = sum(1 for d, _ in chunks if datasets[d] is ds)
+        assert pieces >= 3
+        # one world per sequence and worker, not one per chunk
+        assert 1 <= done.worlds <= 2 < pieces
+        # the frames at the chunks' borders are rendered by both neighbours
+        assert 9 < done.frames <= 9 + 2 * (pieces - 1)
+        assert set(done.stats) == set(ds.samples)
+        for i in (0, len(ds) - 1):  # what the workers returned is what they cached
+            np.testing.assert_array_equal(done.stats[ds.samples[i]], ds._pair_stats(i))
+    chunked.prepare_data()  # the quality and the pictures: nothing left to render
+    a_root = serial.dataset("test").cache.root.parent
+    b_root = chunked.dataset("test").cache.root.parent
+    a, b = _cached_arrays(a_root), _cached_arrays(b_root)
+    assert set(a) == set(b) and len(a) == sum(len(ds) for ds in datasets)
+    for name, arrays in a.items():
+        assert set(arrays) == set(b[name])
+        for key, array in arrays.items():
+            np.testing.assert_array_equal(array, b[name][key], err_msg=f"{name}: {key}")
+    for kind in ("picture-*.npy", "quality-*.json"):
+        files = sorted(p.relative_to(a_root) for p in a_root.rglob(kind))
+        assert files and files == sorted(p.relative_to(b_root) for p in b_root.rglob(kind))
+        for f in files:
+            assert (a_root / f).read_bytes() == (b_root / f).read_bytes(), f
+    # the quality from the returned sums alone: no cached file is read for it
+    test = chunked.dataset("test")
+    known = prepared[1].stats
+    for path in test.cache.root.rglob("*.npz"):
+        path.unlink()
+    assert test.quality(known) == json.loads(chunked.quality_path("test").read_text())
+    with pytest.raises(FileNotFoundError, match="not cached"):
+        test.quality()
 
 
 def test_samples_carry_estimated_and_exact_flow_and_the_quality_is_stored(

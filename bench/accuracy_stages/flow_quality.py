@@ -12,20 +12,9 @@ import time
 from pathlib import Path
 
 import torch
-from _common import Report, fmt, load_average, markdown_table
+from _common import Report, cpu_seconds, fmt, load_average, markdown_table
 
 from .settings import datamodule_for, frames_tag, read_stage, write_stage
-
-
-def cpu_seconds() -> float:
-    """User + system CPU seconds of this process and of its children that have ended."""
-    import resource
-
-    own, children = (
-        resource.getrusage(resource.RUSAGE_SELF),
-        resource.getrusage(resource.RUSAGE_CHILDREN),
-    )
-    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
 
 
 def stage_render(args: argparse.Namespace, max_frames: int | None) -> dict:
@@ -209,8 +198,9 @@ def breakdown_section(breakdown: dict, rendered: dict, train_pairs: int) -> str:
         "pair (each is the target of one pair and the source of the next). The whole 00–08 "
         f"split ({train_pairs} pairs) at this CPU cost: "
         f"{total * train_pairs / 6e4:.0f} CPU-minutes, "
-        f"**{total * train_pairs / 12e4:.0f} min on 2 cores** with `dataset.num_workers=2` "
-        "(two processes, one sequence each at a time; target ≤ 30 min)."
+        f"**{total * train_pairs / 12e4:.0f} min on 2 cores** with 2 processes "
+        "(`dataset.prepare_workers`, by default every core: chunks of frames, one thread "
+        "each; target ≤ 30 min)."
     )
 
 

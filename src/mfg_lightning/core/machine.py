@@ -81,3 +81,12 @@ def cpu_kind() -> str:
         if flag in flags:
             return kind
     return platform.machine() or "unknown"
+
+
+def usable_cores() -> int:
+    """The cores this process may run on: its CPU affinity (what ``taskset``, cgroups' cpusets
+    and SLURM's ``--cpus-per-task`` leave it), else every core the system reports; at least 1."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux: no affinity to read
+        return max(1, os.cpu_count() or 1)

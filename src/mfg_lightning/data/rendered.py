@@ -5,8 +5,10 @@ the ground truth kept beside the estimate, and the estimate's quality per image 
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Sequence
-from dataclasses import dataclass
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
@@ -148,8 +150,8 @@ class RenderedDrivingDataset(TrajectoryDataset):
     Cache: ``<cache_dir>/synthetic_flow/<key>/<seq>/<src:06d>_<tgt:06d>.npz``, ``<key>`` a hash
     of everything that changes a pair (estimator and its settings, image and input size, seed,
     world config, the trajectory's poses, the renderer's source, library versions).
-    :meth:`precompute_flow` fills it rendering every frame once; ``__getitem__`` computes a
-    missing pair on its own.
+    :func:`prepare_pairs` (:meth:`precompute_flow` for this dataset alone) fills it, on every
+    core; ``__getitem__`` computes a missing pair on its own.
 
     Args:
         flow: the estimator and the image size (``flow.height × flow.width``, default
@@ -309,7 +311,7 @@ class RenderedDrivingDataset(TrajectoryDataset):
             "bytes": np.concatenate(
                 [pair[k].reshape(self.height, self.width, n) for k, n in _BYTE_FIELDS], axis=2
             ).astype(np.uint8),
-            "stats": np.append(pair["quality"].ravel(), float(pair["nonfinite"])),
+            "stats": _stats_of(pair),
         }
         self.cache.store_arrays(self.pair_path(i), packed)
         return _unpack(packed)
@@ -318,13 +320,14 @@ class RenderedDrivingDataset(TrajectoryDataset):
         # Worlds are rebuilt where they are needed (a worker renders its own sequences).
         return {**self.__dict__, "_worlds": {}}
 
-    def _compute(self, indices: Sequence[int], bar: Any = None) -> int:
+    def _compute(self, indices: Sequence[int], bar: Any = None) -> dict[int, np.ndarray]:
         """Render, estimate and cache the pairs ``indices`` in sequence and frame order, each
         frame rendered once and kept while a later pair (up to the largest offset ahead) can
         use it; the middle pair of each sequence also leaves its picture grid
-        (:meth:`picture_path`). Returns how many frames were rendered."""
+        (:meth:`picture_path`). Returns each pair's quality sums (:func:`_stats_of`), by
+        index."""
         frames: dict[tuple[str, int], _Frame] = {}
-        rendered = self.rendered_frames
+        stats: dict[int, np.ndarray] = {}
         middle = {ix[len(ix) // 2]: seq for seq, ix in self.sequences().items()}
         for i in sorted(indices, key=lambda k: self.samples[k][:2]):
             seq, src, tgt = self.samples[i]
@@ -335,55 +338,21 @@ class RenderedDrivingDataset(TrajectoryDataset):
                     frames[(seq, f)] = self.render(seq, f)
             pair = self.compute_pair(seq, src, tgt, frames[(seq, src)], frames[(seq, tgt)])
             self._store(i, pair)
+            stats[i] = _stats_of(pair)
             if i in middle:
                 self.cache.store(self.picture_path(seq), flow_picture(pair["full"]))
             if bar is not None:
                 bar.update(1)
-        return self.rendered_frames - rendered
+        return stats
 
-    def precompute_flow(self, progress: bool = True, workers: int = 0) -> int:
+    def precompute_flow(self, progress: bool = True, workers: int | None = 0) -> int:
         """Render, estimate and cache every pair not cached yet; return how many.
 
-        Every frame is rendered once (:meth:`_compute`). With ``workers > 1`` the sequences
-        are shared among that many processes (one torch and OpenCV thread each: on a few
-        cores, processes scale better than threads); the progress bar then advances per
-        finished sequence.
+        :func:`prepare_pairs` on this dataset alone: with ``workers > 1`` (None: every usable
+        core) the pairs are cut into contiguous chunks of frames shared among that many
+        single-threaded processes; 0 or 1 computes them in this process.
         """
-        from tqdm.auto import tqdm
-
-        todo = self.missing()
-        if not todo:
-            return 0
-        bar = tqdm(
-            total=len(todo),
-            desc=f"render + {self.estimator.name} flow ({self.name})",
-            unit="pair",
-            disable=not progress,
-        )
-        by_seq: dict[str, list[int]] = {}
-        for i in todo:
-            by_seq.setdefault(self.samples[i][0], []).append(i)
-        try:
-            if workers <= 1 or len(by_seq) == 1:
-                self._compute(todo, bar)
-                return len(todo)
-            import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor, as_completed
-
-            context = multiprocessing.get_context("spawn")  # no forked torch or OpenCV state
-            with ProcessPoolExecutor(min(workers, len(by_seq)), mp_context=context) as pool:
-                # the longest sequences first, so that the last one to finish is a short one
-                jobs = {
-                    pool.submit(_compute_in_worker, self, part): len(part)
-                    for part in sorted(by_seq.values(), key=len, reverse=True)
-                }
-                for job in as_completed(jobs):
-                    self.rendered_frames += job.result()
-                    self.estimated_pairs += jobs[job]
-                    bar.update(jobs[job])
-        finally:
-            bar.close()
-        return len(todo)
+        return prepare_pairs([self], workers=workers, progress=progress)[0].pairs
 
     def picture_path(self, seq: str) -> Path:
         """Where the picture grid of ``seq`` is cached (``(H', W', 3)`` uint8 ``.npy``)."""
@@ -397,34 +366,51 @@ class RenderedDrivingDataset(TrajectoryDataset):
         pair = self.compute_pair(seq, src, tgt, self.render(seq, src), self.render(seq, tgt))
         return flow_picture(pair["full"])
 
-    def _pair_stats(self, i: int) -> np.ndarray:
-        """Pair ``i``'s cached quality sums (:func:`flow_quality`, then its non-finite pixels)."""
+    def _pair_stats(
+        self, i: int, known: Mapping[tuple[str, int, int], np.ndarray] | None = None
+    ) -> np.ndarray:
+        """Pair ``i``'s quality sums (:func:`flow_quality`, then its non-finite pixels): from
+        ``known`` (what :func:`prepare_pairs` returned, keyed by sample), else from its cached
+        file."""
+        found = None if known is None else known.get(self.samples[i])
+        if found is not None:
+            return found
         arrays = self.cache.load_arrays(self.pair_path(i), ("stats",))
         if arrays is None:
             raise FileNotFoundError(f"{self.pair_path(i)}: pair not cached yet")
         return arrays["stats"]
 
-    def quality(self) -> dict[str, Any]:
-        """The flow quality of this split (pooled over its pairs) and its non-finite pixels,
-        from the cache (every pair must be cached)."""
+    def quality(
+        self, known: Mapping[tuple[str, int, int], np.ndarray] | None = None
+    ) -> dict[str, Any]:
+        """The flow quality of this split (pooled over its pairs) and its non-finite pixels.
+
+        Args:
+            known: the quality sums of pairs just computed (:attr:`PreparedPairs.stats`, keyed
+                by ``(sequence, source, target)``); every other pair's are read from the cache
+                (it must be cached).
+        """
         stats = np.zeros((len(QUALITY_REGIONS), 3))
         nonfinite = 0
         for i in range(len(self.samples)):
-            pair = self._pair_stats(i)
+            pair = self._pair_stats(i, known)
             stats += pair[:-1].reshape(stats.shape)
             nonfinite += int(pair[-1])
         return {"regions": summarize_quality(stats), "nonfinite_pixels": nonfinite}
 
-    def quality_by_offset(self) -> dict[str, dict[str, Any]]:
-        """The flow quality pooled per frame offset (target − source), from the cache:
+    def quality_by_offset(
+        self, known: Mapping[tuple[str, int, int], np.ndarray] | None = None
+    ) -> dict[str, dict[str, Any]]:
+        """The flow quality pooled per frame offset (target − source):
         ``{"-2": {"regions": ..., "pairs": n}, "-1": ..., "1": ..., "2": ...}`` (the estimate's
-        error grows with the motion it has to find, which the offset scales)."""
+        error grows with the motion it has to find, which the offset scales); ``known`` as in
+        :meth:`quality`."""
         stats: dict[int, np.ndarray] = {}
         pairs: dict[int, int] = {}
         for i, (_, src, tgt) in enumerate(self.samples):
             off = int(tgt) - int(src)
             pooled = stats.setdefault(off, np.zeros((len(QUALITY_REGIONS), 3)))
-            pooled += self._pair_stats(i)[:-1].reshape(pooled.shape)
+            pooled += self._pair_stats(i, known)[:-1].reshape(pooled.shape)
             pairs[off] = pairs.get(off, 0) + 1
         return {
             str(o): {"regions": summarize_quality(stats[o]), "pairs": pairs[o]}
@@ -471,13 +457,212 @@ class RenderedDrivingDataset(TrajectoryDataset):
         return sample
 
 
-def _compute_in_worker(dataset: RenderedDrivingDataset, indices: list[int]) -> int:
-    """:meth:`RenderedDrivingDataset._compute` in a worker process, on one thread."""
-    import cv2
+def _stats_of(pair: dict) -> np.ndarray:
+    """A pair's quality sums as cached (``stats``): :func:`flow_quality`'s ``(R, 3)`` flattened,
+    then its non-finite pixel count; ``(3 R + 1,)`` float64."""
+    return np.append(pair["quality"].ravel(), float(pair["nonfinite"]))
 
-    torch.set_num_threads(1)
-    cv2.setNumThreads(1)
-    return dataset._compute(indices)
+
+# -- preparation: every missing pair of several datasets, in chunks, on every core ------------
+
+#: Chunks per process, at least, that :func:`prepare_pairs` cuts the pairs into: equal chunks
+#: handed out one at a time leave a process idle at the end for at most about one chunk, a
+#: quarter of its share.
+CHUNKS_PER_PROCESS = 4
+
+#: The least pairs of a chunk (:func:`prepare_pairs`' default). A chunk renders the frames at its
+#: border that its neighbour renders too (up to the largest offset), and a spawned process
+#: imports torch and OpenCV before its first pair (a few seconds, some 20 pairs at 192 × 512):
+#: work below two chunks stays in the calling process.
+MIN_CHUNK_PAIRS = 32
+
+
+@dataclass
+class PreparedPairs:
+    """What :func:`prepare_pairs` computed for one dataset.
+
+    Attributes:
+        pairs: pairs rendered, estimated and cached (0: all were cached).
+        frames: frames rendered; a frame at the border of two chunks is rendered by both.
+        worlds: worlds generated: once per sequence in this process, or once per sequence and
+            worker process that computed a chunk of it.
+        processes: the worker processes the call used (0: the calling process alone).
+        stats: each computed pair's quality sums (:func:`_stats_of`), by ``(sequence, source,
+            target)``: what :meth:`RenderedDrivingDataset.quality` reads from the cache
+            otherwise.
+    """
+
+    pairs: int = 0
+    frames: int = 0
+    worlds: int = 0
+    processes: int = 0
+    stats: dict[tuple[str, int, int], np.ndarray] = field(default_factory=dict)
+
+
+def plan_chunks(
+    datasets: Sequence[RenderedDrivingDataset],
+    todo: Sequence[Sequence[int]],
+    processes: int,
+    min_pairs: int = MIN_CHUNK_PAIRS,
+) -> list[tuple[int, list[int]]]:
+    """Cut the pairs ``todo[d]`` of every ``datasets[d]`` into contiguous chunks of frames.
+
+    Every sequence is cut apart from the others into ``len // size`` near-equal runs of
+    consecutive source frames (one run if it has fewer than ``size`` pairs), ``size`` being
+    ``max(min_pairs, total / (CHUNKS_PER_PROCESS × processes))``. A cut never splits the pairs
+    of one source frame (its offsets), which share that frame's rendering.
+
+    Returns:
+        ``(d, indices)`` per chunk, in dataset, sequence and frame order: the order in which
+        :func:`prepare_pairs` hands them out, so that a worker meets each sequence once.
+    """
+    total = sum(len(ix) for ix in todo)
+    size = max(1, min_pairs, math.ceil(total / (CHUNKS_PER_PROCESS * max(1, processes))))
+    chunks: list[tuple[int, list[int]]] = []
+    for d, (ds, indices) in enumerate(zip(datasets, todo, strict=True)):
+        by_seq: dict[str, list[int]] = {}
+        for i in sorted(indices, key=lambda k: ds.samples[k][:2]):
+            by_seq.setdefault(ds.samples[i][0], []).append(i)
+        for ix in by_seq.values():
+            n = max(1, len(ix) // size)
+            cuts = [0]
+            for c in range(1, n):
+                at = max(round(c * len(ix) / n), cuts[-1] + 1)
+                while at < len(ix) and ds.samples[ix[at]][1] == ds.samples[ix[at - 1]][1]:
+                    at += 1
+                if at < len(ix):
+                    cuts.append(at)
+            cuts.append(len(ix))
+            chunks.extend((d, ix[a:b]) for a, b in pairwise(cuts))
+    return chunks
+
+
+def _compute_chunk(
+    dataset: RenderedDrivingDataset, indices: Sequence[int], bar: Any = None
+) -> tuple[dict[int, np.ndarray], int, int]:
+    """:meth:`RenderedDrivingDataset._compute` on ``indices``: the pairs' quality sums, the
+    frames rendered and the worlds generated (whichever process it runs in)."""
+    frames, worlds = dataset.rendered_frames, set(dataset._worlds)
+    stats = dataset._compute(indices, bar)
+    return stats, dataset.rendered_frames - frames, len(set(dataset._worlds) - worlds)
+
+
+#: A preparation worker's datasets (:func:`_start_worker`), indexed as the caller's list.
+_WORKER_DATASETS: list[RenderedDrivingDataset] = []
+
+
+def _start_worker(datasets: list[RenderedDrivingDataset]) -> None:
+    """A preparation worker's initializer: keep the datasets, received once per process."""
+    _WORKER_DATASETS[:] = datasets
+
+
+def _prepare_chunk(d: int, indices: list[int]) -> tuple[np.ndarray, int, int]:
+    """One chunk of dataset ``d`` in a preparation worker: its pairs' quality sums
+    (``(len(indices), 3 R + 1)``, in the order of ``indices``), frames rendered, worlds
+    generated. The worker's dataset keeps the world of the chunk's sequence for its next chunk
+    and drops the others': chunks come in sequence order (:func:`plan_chunks`), so a dropped
+    world is not needed again in this process."""
+    dataset = _WORKER_DATASETS[d]
+    seq = dataset.samples[indices[0]][0]
+    for other in [s for s in dataset._worlds if s != seq]:
+        del dataset._worlds[other]
+    stats, frames, worlds = _compute_chunk(dataset, indices)
+    return np.stack([stats[i] for i in indices]), frames, worlds
+
+
+def _compute_in_worker(dataset: RenderedDrivingDataset, indices: list[int]) -> int:
+    """The worker task of this module's previous version (one process per sequence): a parent
+    process started on that version still submits it to the workers it spawns, which import
+    this one. Returns the frames rendered. Remove once no such process runs."""
+    return _compute_chunk(dataset, indices)[1]
+
+
+def prepare_pairs(
+    datasets: Sequence[RenderedDrivingDataset],
+    workers: int | None = None,
+    min_chunk_pairs: int = MIN_CHUNK_PAIRS,
+    progress: bool = True,
+) -> list[PreparedPairs]:
+    """Render, estimate and cache every missing pair of every dataset, on every core.
+
+    The missing pairs of all the datasets (e.g. a data module's train + validation pairs and
+    its test pairs) are cut into contiguous chunks of frames (:func:`plan_chunks`) that go into
+    one pool of single-threaded spawned processes (:func:`~mfg_lightning.core.processes.
+    single_thread_pool`): a split of two long sequences keeps every core busy, and no process
+    runs more threads than its core. Each worker receives the datasets once and generates a
+    sequence's world once. Where there are fewer than ``2 × min_chunk_pairs`` pairs or two
+    chunks, or ``workers`` is 0 or 1, the pairs are computed in this process, each frame
+    rendered once.
+
+    The cached files are the same whichever way (the renderer and the estimator are
+    deterministic, per frame and per pair; ``tests/test_rendered_flow.py`` compares them).
+
+    Args:
+        datasets: the datasets to fill.
+        workers: processes at most (None: every usable core,
+            :func:`~mfg_lightning.core.machine.usable_cores`).
+        min_chunk_pairs: the least pairs of a chunk (:data:`MIN_CHUNK_PAIRS`).
+        progress: show a progress bar (advancing per finished chunk).
+
+    Returns:
+        What was computed for each dataset, in order, the pairs' quality sums included.
+    """
+    from tqdm.auto import tqdm
+
+    from mfg_lightning.core.machine import usable_cores
+
+    todo = [ds.missing() for ds in datasets]
+    results = [PreparedPairs() for _ in datasets]
+    total = sum(len(ix) for ix in todo)
+    if not total:
+        return results
+    workers = usable_cores() if workers is None else int(workers)
+    chunks = plan_chunks(datasets, todo, workers, min_chunk_pairs) if workers > 1 else []
+    # (no more processes than chunks, nor than chunks of the least size: a small job would
+    # spend longer starting processes than computing)
+    processes = min(workers, len(chunks), total // max(1, min_chunk_pairs))
+    names = ", ".join(ds.name for ds, ix in zip(datasets, todo, strict=True) if ix)
+    estimators = sorted({ds.estimator.name for ds in datasets})
+    bar = tqdm(
+        total=total,
+        desc=f"render + {'/'.join(estimators)} flow ({names})",
+        unit="pair",
+        disable=not progress,
+    )
+
+    def record(d: int, indices: Sequence[int], stats: np.ndarray, frames: int, worlds: int):
+        ds, result = datasets[d], results[d]
+        result.pairs += len(indices)
+        result.frames += frames
+        result.worlds += worlds
+        result.stats.update((ds.samples[i], s) for i, s in zip(indices, stats, strict=True))
+
+    try:
+        if processes <= 1:
+            for d, (ds, indices) in enumerate(zip(datasets, todo, strict=True)):
+                if indices:
+                    stats, frames, worlds = _compute_chunk(ds, indices, bar)
+                    record(d, list(stats), list(stats.values()), frames, worlds)
+        else:
+            from concurrent.futures import as_completed
+
+            from mfg_lightning.core.processes import single_thread_pool
+
+            with single_thread_pool(processes, _start_worker, (list(datasets),)) as pool:
+                jobs = {pool.submit(_prepare_chunk, d, ix): (d, ix) for d, ix in chunks}
+                for job in as_completed(jobs):
+                    d, indices = jobs[job]
+                    stats, frames, worlds = job.result()
+                    record(d, indices, stats, frames, worlds)
+                    # the dataset's own counters, of work done in the workers (the log reads them)
+                    datasets[d].rendered_frames += frames
+                    datasets[d].estimated_pairs += len(indices)
+                    bar.update(len(indices))
+            for result, indices in zip(results, todo, strict=True):
+                result.processes = processes if indices else 0
+    finally:
+        bar.close()
+    return results
 
 
 def _unpack(packed: dict[str, np.ndarray]) -> dict[str, np.ndarray]:

@@ -38,8 +38,10 @@ from mfg_lightning.data.base import (
 )
 from mfg_lightning.data.driving import SyntheticDrivingDataset
 from mfg_lightning.data.rendered import (
+    MIN_CHUNK_PAIRS,
     RenderedDrivingDataset,
     flow_render_size,
+    prepare_pairs,
     quality_line,
     world_config,
 )
@@ -111,6 +113,12 @@ class SyntheticDataModule(MFGDataModule):
         world: :class:`~mfg_lightning.scene.worlds.WorldConfig` fields of the rendered worlds.
         cache_dir: where estimated flow is cached (``paths.cache_dir``).
         precompute_flow: fill the cache in :meth:`prepare_data` (else on first use).
+        prepare_workers: processes of :meth:`prepare_data`'s rendering and estimation
+            (:func:`~mfg_lightning.data.rendered.prepare_pairs`: chunks of frames from every
+            sequence of every split in one pool of single-threaded processes); None: every
+            usable core; 0 or 1: the calling process. The cached pairs are the same whichever.
+        prepare_chunk_pairs: the least pairs of one such chunk (fewer pairs than two chunks
+            are prepared in the calling process, which costs no process start).
         offsets: target offsets of every split, ``target = frame + offset`` (``[1]``; ``[-2, -1,
             1, 2]``: the flows from a centre frame to its neighbours, for central-frame ATE), as
             ``dataset=kitti``'s.
@@ -163,6 +171,8 @@ class SyntheticDataModule(MFGDataModule):
         world: dict[str, Any] | None = None,
         cache_dir: str | None = None,
         precompute_flow: bool = True,
+        prepare_workers: int | None = None,
+        prepare_chunk_pairs: int = MIN_CHUNK_PAIRS,
         input_flow: str = "source",
         sample_cache: SampleCacheSettings | dict[str, Any] | None = None,
         prefetch: str = "none",
@@ -216,6 +226,25 @@ class SyntheticDataModule(MFGDataModule):
         self.world = dict(world or {})
         self.cache_dir = cache_dir
         self.precompute = bool(precompute_flow)
+        if prepare_workers is not None and (
+            isinstance(prepare_workers, bool)
+            or not isinstance(prepare_workers, int)
+            or prepare_workers < 0
+        ):
+            raise ValueError(
+                f"dataset.prepare_workers must be an integer ≥ 0 or null, got {prepare_workers!r}"
+            )
+        if (
+            isinstance(prepare_chunk_pairs, bool)
+            or not isinstance(prepare_chunk_pairs, int)
+            or prepare_chunk_pairs < 1
+        ):
+            raise ValueError(
+                "dataset.prepare_chunk_pairs must be a positive integer, got "
+                f"{prepare_chunk_pairs!r}"
+            )
+        self.prepare_workers = prepare_workers
+        self.prepare_chunk_pairs = prepare_chunk_pairs
         self.offsets = check_offsets(offsets)
         self.scene = SceneConfig(
             **{k: tuple(v) if isinstance(v, list) else v for k, v in (scene or {}).items()}
@@ -378,28 +407,37 @@ class SyntheticDataModule(MFGDataModule):
         return ds.cache.root / f"quality-{split}-{len(ds.samples)}pairs-{digest}.json"
 
     def prepare_data(self) -> None:
-        """``flow=dis``: render and estimate every missing pair of every split into the cache
-        (train and validation pairs of one trajectory in one pass, so that each frame is
-        rendered once; ``dataset.num_workers`` processes when above 1), then write each split's
-        flow quality and a picture per trajectory beside it. Lightning calls this on one process
-        per node; ``flow=exact`` has nothing to prepare."""
+        """``flow=dis``: render and estimate every missing pair of every split into the cache,
+        then write each split's flow quality and a picture per trajectory beside it.
+
+        The train + validation pairs and the test pairs go into one pool
+        (:func:`~mfg_lightning.data.rendered.prepare_pairs`, ``dataset.prepare_workers``
+        processes, every usable core by default), in contiguous chunks of frames; the quality
+        sums of the pairs computed come back from the workers, so that only pairs cached by an
+        earlier run are read for the quality. Lightning calls this on one process per node;
+        ``flow=exact`` has nothing to prepare."""
         if not isinstance(self.flow, EstimatedFlow) or not self.precompute:
             return
         import json
 
         from mfg_lightning.core.atomic import atomic_write_text
 
-        for part in ("train+val", "test"):
-            ds = self.build_dataset(part)
-            n = ds.precompute_flow(progress=True, workers=self.num_workers)
-            if n:
+        parts = ("train+val", "test")
+        datasets = [self.build_dataset(part) for part in parts]
+        prepared = prepare_pairs(
+            datasets, workers=self.prepare_workers, min_chunk_pairs=self.prepare_chunk_pairs
+        )
+        for part, ds, done in zip(parts, datasets, prepared, strict=True):
+            if done.pairs:
                 log.info(
-                    "rendered %d frames and estimated the %s flow of %d %s pairs under %s",
-                    ds.rendered_frames,
+                    "rendered %d frames and estimated the %s flow of %d %s pairs under %s "
+                    "(%d worker processes; 0: this one)",
+                    done.frames,
                     ds.estimator.name,
-                    n,
+                    done.pairs,
                     part,
                     ds.cache.root,
+                    done.processes,
                 )
             for seq in ds.sequences():
                 # (the middle pair was cached before without its picture: a run that read it)
@@ -409,7 +447,8 @@ class SyntheticDataModule(MFGDataModule):
             path = self.quality_path(split)
             if path.exists():
                 continue
-            quality = self.dataset(split).quality()
+            known = prepared[parts.index("test" if split == "test" else "train+val")].stats
+            quality = self.dataset(split).quality(known)
             atomic_write_text(path, json.dumps(quality, indent=2) + "\n")
             if quality["nonfinite_pixels"]:
                 log.warning(
