@@ -9,6 +9,9 @@ PYTEST_ARGS ?=
 # GPU users (docs/gpu.md): `make install-gpu`, then `make gpu-check`. The torch installed unless
 # a CUDA torch >= 2.4 is there already; `===` so that a local `+cpu` build never matches.
 TORCH_GPU_SPEC ?= torch===2.13.0
+# The project's extras install-gpu adds, comma-separated: `sweeps` for the SLURM, joblib and
+# Optuna plugins of a cluster (docs/scaling.md)
+GPU_EXTRAS ?=
 # gpu-check's device and bench/gpu_check.py options (the test suite: cpu and --tiny --out DIR)
 GPU_CHECK_ACCELERATOR ?= gpu
 GPU_CHECK_ARGS ?=
@@ -22,7 +25,7 @@ install:
 # Keeps a working CUDA torch >= 2.4, else installs TORCH_GPU_SPEC; the project without [dev];
 # then says whether torch sees a GPU, and what to do if not (bench/install_gpu.py).
 install-gpu:
-	$(PYTHON) bench/install_gpu.py --torch-spec '$(TORCH_GPU_SPEC)'
+	$(PYTHON) bench/install_gpu.py --torch-spec '$(TORCH_GPU_SPEC)' --extras '$(GPU_EXTRAS)'
 
 # One command on a fresh CUDA machine: install what is missing, then the check (writes
 # bench/results/gpu_check.md). GPU_CHECK_ACCELERATOR=cpu skips the install (the test suite).

@@ -11,8 +11,11 @@ What it does, in order:
    split like a shell line, so ``"torch===2.5.1+cu121 --index-url <URL>"`` reaches pip as three
    arguments.
 3. Installs the project itself, editable, without the ``[dev]`` extras (wandb, mlflow, optuna,
-   evo, Jupyter: the GPU check and training need none of them). Skipped when this checkout is
-   already what ``import mfg_lightning`` finds and torch was kept: a re-run needs no index.
+   evo, Jupyter: the GPU check and training need none of them), with the extras ``--extras``
+   names (``sweeps`` for Hydra's SLURM, joblib and Optuna plugins on a cluster:
+   ``make install-gpu GPU_EXTRAS=sweeps``). Skipped when this checkout is already what
+   ``import mfg_lightning`` finds, torch was kept and no extra is asked for: a re-run needs no
+   index.
 4. Checks ``torch.cuda.is_available()`` and, when it is False, says why it may be and what to do
    (exit status 1).
 
@@ -106,6 +109,7 @@ def plan(
     python: str = sys.executable,
     pip_args: str = "",
     project_installed: bool = False,
+    extras: str = "",
 ) -> tuple[list[list[str]], str]:
     """The pip commands to run, and why torch is kept or installed.
 
@@ -116,12 +120,18 @@ def plan(
         python: the interpreter whose pip installs.
         pip_args: more ``pip install`` options for every command, split like a shell line.
         project_installed: this checkout is installed already (:func:`installed_here`).
+        extras: the project's optional extras to install with it, comma-separated
+            (``"sweeps"``, ``"sweeps,loggers"``; ``pyproject.toml``'s names).
     """
+    names = [e.strip() for e in extras.split(",") if e.strip()]
+    if any(not e.replace("-", "").replace("_", "").isalnum() for e in names):
+        raise ValueError(f"--extras takes names separated by commas, got {extras!r}")
     keep, why = keeps(torch)
     pip = [python, "-m", "pip", "install", *shlex.split(pip_args)]
     commands = [] if keep else [[*pip, *shlex.split(spec)]]
-    if not (keep and project_installed):
-        commands.append([*pip, "-e", str(REPO)])
+    if not (keep and project_installed and not names):
+        target = f"{REPO}[{','.join(names)}]" if names else str(REPO)
+        commands.append([*pip, "-e", target])
     return commands, why
 
 
@@ -155,10 +165,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--torch-spec", default=DEFAULT_SPEC, help="torch to install if none is kept")
     p.add_argument("--pip-args", default="", help="more pip install options, one string")
     p.add_argument("--dry-run", action="store_true", help="pip resolves, installs nothing")
+    p.add_argument("--extras", default="", help="the project's extras to add, e.g. sweeps")
     args = p.parse_args(argv)
     torch = probe()
     pip_args = f"{args.pip_args} --dry-run" if args.dry_run else args.pip_args
-    commands, why = plan(torch, args.torch_spec, sys.executable, pip_args, installed_here())
+    commands, why = plan(
+        torch, args.torch_spec, sys.executable, pip_args, installed_here(), args.extras
+    )
     print(f"install-gpu: {why}", flush=True)
     for command in commands:
         print("install-gpu: " + shlex.join(command), flush=True)

@@ -82,7 +82,7 @@ def test_make_install_gpu_hands_its_spec_to_the_installer_whole() -> None:
     proc = _make("-n", "install-gpu", f"TORCH_GPU_SPEC={spec}")
     assert proc.returncode == 0, proc.stderr
     argv = shlex.split(proc.stdout.strip().splitlines()[-1])
-    assert argv[1:] == ["bench/install_gpu.py", "--torch-spec", spec]
+    assert argv[1:] == ["bench/install_gpu.py", "--torch-spec", spec, "--extras", ""]
     commands, _ = install_gpu.plan(install_gpu.Torch("2.13.0+cpu", None), spec, "python")
     assert commands[0] == ["python", "-m", "pip", "install", *spec.split()]
     # The default is an exact pin, and no dev extras are installed.
@@ -90,6 +90,18 @@ def test_make_install_gpu_hands_its_spec_to_the_installer_whole() -> None:
     assert f"--torch-spec '{install_gpu.DEFAULT_SPEC}'" in default
     assert install_gpu.DEFAULT_SPEC.startswith("torch===")
     assert all("[dev]" not in " ".join(c) for c in commands)
+
+
+def test_install_gpu_adds_the_sweeps_extra_when_asked() -> None:
+    proc = _make("-n", "install-gpu", "GPU_EXTRAS=sweeps")
+    assert shlex.split(proc.stdout.strip().splitlines()[-1])[-2:] == ["--extras", "sweeps"]
+    cuda = install_gpu.Torch("2.5.1+cu121", "12.1", True, 1)
+    # installed already and torch kept: nothing to do, unless an extra is asked for
+    assert install_gpu.plan(cuda, python="py", project_installed=True)[0] == []
+    commands, _ = install_gpu.plan(cuda, python="py", project_installed=True, extras="sweeps")
+    assert commands == [["py", "-m", "pip", "install", "-e", f"{install_gpu.REPO}[sweeps]"]]
+    with pytest.raises(ValueError, match="extras"):
+        install_gpu.plan(cuda, python="py", extras="sweeps; rm")
 
 
 @pytest.mark.parametrize(
