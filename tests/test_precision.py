@@ -445,6 +445,11 @@ def test_gpu_trainer_configs() -> None:
     ddp = compose("train", ["trainer=ddp_gpu", "paths.output_dir=/tmp/unused"])
     assert ddp.trainer.strategy.process_group_backend == "nccl"
     assert ddp.trainer.accelerator == "gpu" and ddp.dataset.pin_memory
+    # several nodes: the same loader settings and cuDNN benchmark as one node, num_nodes set
+    nodes = compose("train", ["trainer=ddp_slurm", "paths.output_dir=/tmp/unused"])
+    assert nodes.trainer.strategy.process_group_backend == "nccl" and nodes.trainer.num_nodes == 2
+    assert nodes.trainer.benchmark is True and nodes.dataset.pin_memory
+    assert nodes.dataset.persistent_workers and nodes.dataset.num_workers == ddp.dataset.num_workers
     det = compose("train", ["trainer=gpu", "trainer.deterministic=true", "paths.output_dir=/tmp/u"])
     check_trainer_settings(det)
     assert det.trainer.benchmark is False

@@ -14,7 +14,7 @@ from hydra import compose, initialize_config_dir
 from conftest import run_module
 from mfg_lightning.analysis.sweep_figures import SWEEP_FIGURES
 from mfg_lightning.analysis.sweeps import NotAMultirunError, collect_jobs, swept_keys
-from mfg_lightning.core.config import CONFIG_DIR
+from mfg_lightning.core.config import CONFIG_DIR, processes_cpus
 from mfg_lightning.report import main, write_report
 
 
@@ -301,3 +301,14 @@ def test_project_slurm_launcher_sets_resources_on_top_of_the_plugin() -> None:
     assert launcher.timeout_min > 0
     # inherited from the plugin's submitit_slurm
     assert launcher.submitit_folder.endswith(".submitit/%j")
+
+
+@pytest.mark.parametrize(("overrides", "cpus"), [([], 1), (["trainer=gpu"], 7),
+                                                 (["dataset.num_workers=3"], 4)])  # fmt: skip
+def test_slurm_jobs_ask_for_the_cores_their_trainer_starts(overrides: list[str], cpus: int) -> None:
+    """sbatch --cpus-per-task is the training process plus its loader workers, so a GPU job's 6
+    workers do not share 4 cores (the launcher's earlier fixed value)."""
+    cfg = _compose_with_hydra(["hydra/launcher=slurm", *overrides])
+    assert cfg.hydra.launcher.cpus_per_task == cpus == 1 + cfg.dataset.num_workers
+    with pytest.raises(ValueError, match="num_workers"):
+        processes_cpus(-1)

@@ -10,7 +10,23 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
+
+
+def processes_cpus(workers: int | None) -> int:
+    """The cores one training process needs: itself plus its data loader's ``workers``.
+
+    The ``${processes_cpus:${dataset.num_workers}}`` resolver of ``conf/hydra/launcher/slurm.yaml``
+    (sbatch ``--cpus-per-task``), so that a job asks for what its trainer will start."""
+    n = 0 if workers is None else int(workers)
+    if n < 0:
+        raise ValueError(f"dataset.num_workers must be >= 0, got {workers}")
+    return 1 + n
+
+
+# registered at import: every entry point imports this module before Hydra composes
+if not OmegaConf.has_resolver("processes_cpus"):
+    OmegaConf.register_new_resolver("processes_cpus", processes_cpus)
 
 
 def config_dir() -> Path:
