@@ -94,15 +94,22 @@ def run_command(
     )
 
 
-def run_module(module: str, *args: str, cwd: Path, timeout: int = 300, check: bool = True):
-    """Run ``python -m module args`` in a subprocess (a real entry point, as a user would)."""
-    env = dict(
+def entry_point_env(cwd: Path, **extra: str) -> dict[str, str]:
+    """The environment of an entry point run by a test: one thread per process (tests run in
+    parallel), Hydra's short errors, a flow cache under ``cwd``, and ``extra``."""
+    return dict(
         os.environ,
         OMP_NUM_THREADS="1",
         MKL_NUM_THREADS="1",
         HYDRA_FULL_ERROR="0",
         MFG_CACHE_DIR=str(cwd / "cache"),
+        **extra,
     )
+
+
+def run_module(module: str, *args: str, cwd: Path, timeout: int = 300, check: bool = True):
+    """Run ``python -m module args`` in a subprocess (a real entry point, as a user would)."""
+    env = entry_point_env(cwd)
     proc = run_command([sys.executable, "-m", module, *args], cwd=cwd, env=env, timeout=timeout)
     if check and proc.returncode != 0:
         raise AssertionError(

@@ -120,11 +120,11 @@ def _start_paused(run: Path, cwd: Path, *extra: str) -> tuple[subprocess.Popen, 
 
 def _interrupt(run: Path, cwd: Path, sig: signal.Signals, timeout: int) -> tuple[int, str]:
     """Send ``sig`` to a training paused mid-step (:func:`_start_paused`); its exit status and
-    stderr once it has ended."""
+    output (stdout, where the run's own log lines go, then stderr) once it has ended."""
     proc, _ = _start_paused(run, cwd)
     proc.send_signal(sig)
-    _, err = proc.communicate(timeout=timeout)
-    return proc.returncode, err
+    out, err = proc.communicate(timeout=timeout)
+    return proc.returncode, out + err
 
 
 def _train(*args: str, cwd: Path, check: bool = True) -> subprocess.CompletedProcess:
@@ -202,7 +202,7 @@ def test_sigkill_mid_epoch_then_resume_gives_the_uninterrupted_run(
     saved = _ckpt(run / "checkpoints" / "last.ckpt")
     assert saved["global_step"] == 8
     assert saved["loops"]["fit_loop"]["state_dict"]["combined_loader"] == [
-        {"epoch": 1, "batches": 3, "samples": 18}
+        {"epoch": 1, "batches": 3, "samples": 18, "processes": 1}
     ]
 
     _train(*RUN, "ckpt_path=last", f"hydra.run.dir={run}", cwd=workdir)
@@ -278,7 +278,7 @@ def test_epoch_order_depends_on_seed_and_epoch_only_and_resumes_mid_epoch() -> N
     it = iter(loader)
     seen = [next(it).tolist() for _ in range(3)]
     state = loader.state_dict()
-    assert state == {"epoch": 1, "batches": 3, "samples": 18}
+    assert state == {"epoch": 1, "batches": 3, "samples": 18, "processes": 1}
     resumed = ResumableDataLoader(data, seed=5, batch_size=4)
     resumed.load_state_dict(state)
     assert resumed.state_dict() == state  # saved again before iterating: still the same place
@@ -296,6 +296,42 @@ def test_an_order_saved_at_the_end_of_an_epoch_resumes_with_the_next_one() -> No
     loader.order.set_epoch(1)
     sampler = EpochShuffleSampler(10, 0)
     assert _flat(_ids(loader)) == sampler.permutation(1).tolist()
+
+
+def test_under_ddp_each_process_takes_its_share_of_the_order_and_resumes_it_mid_epoch() -> None:
+    data, processes = torch.arange(19), 2  # 19: the last round is padded
+    loaders = [
+        ResumableDataLoader(data, seed=5, batch_size=3, num_replicas=processes, rank=r)
+        for r in range(processes)
+    ]
+    shares = []
+    for loader in loaders:
+        loader.order.set_epoch(1)
+        shares.append(_ids(loader))
+    assert [len(share) for share in shares] == [len(loader) for loader in loaders] == [4, 4]
+    # positions r, r + 2, ... of the epoch's one permutation, padded with its first index
+    permutation = EpochShuffleSampler(19, 5).permutation(1).tolist()
+    padded = [*permutation, permutation[0]]
+    assert [_flat(share) for share in shares] == [padded[0::2], padded[1::2]]
+
+    # Stopped after 2 batches of each process (the checkpoint holds rank 0's state, the same as
+    # rank 1's), resumed by 2 new processes: each continues its own share.
+    states = []
+    for loader in loaders:
+        it = iter(loader)
+        [next(it) for _ in range(2)]
+        states.append(loader.state_dict())
+    assert states[0] == states[1] == {"epoch": 1, "batches": 2, "samples": 19, "processes": 2}
+    for rank, share in enumerate(shares):
+        resumed = ResumableDataLoader(data, seed=5, batch_size=3, num_replicas=2, rank=rank)
+        resumed.load_state_dict(states[0])
+        resumed.order.set_epoch(1)
+        assert share[:2] + _ids(resumed) == share
+    # Another number of processes: the interrupted epoch starts again, whole.
+    other = ResumableDataLoader(data, seed=5, batch_size=3, num_replicas=3, rank=0)
+    other.load_state_dict(states[0])
+    other.order.set_epoch(1)
+    assert _flat(_ids(other)) == permutation[0::3]
 
 
 # --------------------------------------------------------------------------------------------

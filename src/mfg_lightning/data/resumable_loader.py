@@ -1,20 +1,23 @@
-"""The training loader whose sample order resumes exactly mid-epoch.
+"""The training loader whose sample order resumes exactly mid-epoch, with one process or many.
 
-Epoch ``e`` visits the samples in an order drawn from ``(seed, e)`` alone, and the loader's place
-in the epoch is stored in every checkpoint (Lightning saves the ``state_dict`` of any loader that
-has one), so a run resumed mid-epoch skips exactly the batches it had already trained on, without
-loading them, and then sees the same batches an uninterrupted run would have seen.
+Epoch ``e`` visits the samples in an order drawn from ``(seed, e)`` alone; under DDP each process
+takes its strided share of that same order. The loader's place in the epoch is stored in every
+checkpoint (Lightning saves the ``state_dict`` of any loader that has one), so a run resumed
+mid-epoch skips exactly the batches it had already trained on, without loading them, and then
+sees the same batches an uninterrupted run would have seen, on every process.
 """
 
 from __future__ import annotations
 
 import hashlib
 import logging
+import math
 from collections.abc import Callable, Iterator
 from typing import Any
 
 import torch
-from torch.utils.data import DataLoader, Dataset, Sampler
+import torch.distributed as dist
+from torch.utils.data import DataLoader, Dataset, DistributedSampler, Sampler
 
 log = logging.getLogger(__name__)
 
@@ -28,75 +31,112 @@ def epoch_seed(seed: int, epoch: int, stream: str = "order") -> int:
     return int.from_bytes(digest, "little") & (2**63 - 1)
 
 
-class EpochShuffleSampler(Sampler[int]):
-    """Indices ``0 … n − 1`` in a random order that depends only on ``(seed, epoch)``.
+class EpochShuffleSampler(DistributedSampler):
+    """Indices ``0 … n − 1`` in a random order that depends only on ``(seed, epoch)``; with ``W``
+    processes, process ``r`` takes positions ``r, r + W, r + 2W, …`` of it.
 
-    Lightning calls :meth:`set_epoch` at the start of every training epoch (as it does for a
-    ``DistributedSampler``), so epoch ``e`` has the same order in any process, resumed or not.
+    Lightning calls :meth:`set_epoch` at the start of every training epoch, so epoch ``e`` has the
+    same order in any process, resumed or not. Under DDP the order is padded to a multiple of
+    ``W`` by repeating its first indices, as torch's ``DistributedSampler`` pads: every process
+    takes as many steps, which DDP's collectives need. Being a ``DistributedSampler``, it is kept
+    by Lightning, which would otherwise put in its own (whose place in an epoch is not saved).
 
     Args:
         n: dataset length.
         seed: the run's seed (``dataset.seed``).
+        num_replicas: the number of processes ``W``; None: the process group's size (1 without
+            one).
+        rank: this process's rank ``r``; None: the process group's (0 without one).
 
     Attributes:
-        on_order: None, or called with the indices of each pass (a resumed pass: those left)
-            before the first is handed out: a prefetcher follows the order with it
+        on_order: None, or called with this process's indices of each pass (a resumed pass: those
+            left) before the first is handed out: a prefetcher follows the order with it
             (:class:`~mfg_lightning.data.sample_cache.Prefetcher`).
     """
 
-    def __init__(self, n: int, seed: int) -> None:
+    def __init__(
+        self, n: int, seed: int, num_replicas: int | None = None, rank: int | None = None
+    ) -> None:
+        replicas, rank = process_group(num_replicas, rank)
+        super().__init__(range(int(n)), num_replicas=replicas, rank=rank, shuffle=True, seed=seed)
         self.n = int(n)
         self.seed = int(seed)
-        self.epoch = 0
         self._skip = 0
         self.on_order: Callable[[list[int]], None] | None = None
 
-    def set_epoch(self, epoch: int) -> None:
-        self.epoch = int(epoch)
-
     def skip_next(self, count: int) -> None:
-        """Start the next pass ``count`` indices into the epoch's permutation (once)."""
+        """Start the next pass ``count`` positions into the epoch's permutation (once), counted
+        over every process: ``batches × batch_size × W`` skips that many batches of each."""
         self._skip = max(0, int(count))
 
     def permutation(self, epoch: int) -> torch.Tensor:
-        """``(n,)`` int64: the order of epoch ``epoch``."""
+        """``(n,)`` int64: the order of epoch ``epoch`` (the same in every process)."""
         generator = torch.Generator().manual_seed(epoch_seed(self.seed, epoch))
         return torch.randperm(self.n, generator=generator)
 
+    def shard(self, epoch: int, skip: int = 0) -> list[int]:
+        """This process's indices of epoch ``epoch`` after the first ``skip`` positions of its
+        permutation. What is left is padded to a multiple of ``W`` with the permutation's first
+        indices, so that a pass resumed at a multiple of ``W`` continues every process's share
+        exactly as the uninterrupted pass would."""
+        order = self.permutation(epoch)
+        rest = order[skip:]
+        pad = (-len(rest)) % self.num_replicas
+        if pad:
+            rest = torch.cat([rest, order[torch.arange(pad) % self.n]])
+        return rest[self.rank :: self.num_replicas].tolist()
+
     def __len__(self) -> int:
-        return self.n
+        return math.ceil(self.n / self.num_replicas)
 
     def __iter__(self) -> Iterator[int]:
         skip, self._skip = self._skip, 0
-        order = self.permutation(self.epoch)[skip:].tolist()
+        order = self.shard(self.epoch, skip)
         if self.on_order is not None:
             self.on_order(order)
         return iter(order)
 
 
+def process_group(num_replicas: int | None = None, rank: int | None = None) -> tuple[int, int]:
+    """``(W, r)``: the given values, else the initialised process group's size and rank, else
+    ``(1, 0)``."""
+    grouped = dist.is_available() and dist.is_initialized()
+    if num_replicas is None:
+        num_replicas = dist.get_world_size() if grouped else 1
+    if rank is None:
+        rank = dist.get_rank() if grouped else 0
+    return int(num_replicas), int(rank)
+
+
 class ResumableDataLoader(DataLoader):
     """A shuffling training ``DataLoader`` whose position in the epoch is checkpointed.
 
-    ``state_dict()`` is ``{"epoch", "batches", "samples"}``: the epoch being iterated, how many
-    of its batches have been handed out, and the dataset length. Lightning stores it in the
-    fit loop's checkpoint state and calls :meth:`load_state_dict` before iterating again on
-    resume; the next pass of that epoch then skips the batches already trained on at the index
-    level (no sample is loaded for them). A pass of any other epoch starts from its beginning.
+    ``state_dict()`` is ``{"epoch", "batches", "samples", "processes"}``: the epoch being
+    iterated, how many of its batches each process has been handed, the dataset length and the
+    number of processes. Lightning stores it in the fit loop's checkpoint state and calls
+    :meth:`load_state_dict` before iterating again on resume; the next pass of that epoch then
+    skips the batches already trained on at the index level (no sample is loaded for them), on
+    every process (they all took as many; the checkpoint is rank 0's). A pass of any other epoch
+    starts from its beginning, and so does the saved epoch when the dataset length or the number
+    of processes changed (warned).
 
     Iteration is lazy: the permutation, the worker seed and (with ``num_workers > 0``) the
     workers are set up when the first batch is requested, which is after Lightning has called
     ``set_epoch`` for the epoch about to run.
 
-    Lightning rebuilds a loader with a sampler of its own for ``overfit_batches`` (sequential)
-    and for distributed training (a ``DistributedSampler``); given a ``sampler`` or
-    ``batch_sampler``, this class is a plain ``DataLoader`` of that sampler, and its state is
-    empty (that order is not resumed mid-epoch).
+    Under DDP each process iterates its share of the epoch's order (:class:`EpochShuffleSampler`,
+    a ``DistributedSampler`` that Lightning keeps). Lightning rebuilds a loader with a sampler of
+    its own for ``overfit_batches`` (sequential); given a ``sampler`` or ``batch_sampler``, this
+    class is a plain ``DataLoader`` of that sampler, and its state is empty (that order is not
+    resumed mid-epoch).
 
     Args:
         dataset: a map-style dataset.
         seed: seed of the sample order (epoch ``e`` uses :func:`epoch_seed` ``(seed, e)``) and of
             the worker processes.
-        batch_size: samples per batch.
+        batch_size: samples per batch (per process).
+        num_replicas, rank: the number of processes and this one's rank; None: the process
+            group's (one process without one).
         shuffle, sampler, batch_sampler, generator: leave them out (this class shuffles); they
             are accepted for Lightning's rebuilding only.
         **kwargs: any other ``DataLoader`` argument.
@@ -108,6 +148,8 @@ class ResumableDataLoader(DataLoader):
         *,
         seed: int,
         batch_size: int | None = 1,
+        num_replicas: int | None = None,
+        rank: int | None = None,
         shuffle: bool | None = None,
         sampler: Sampler | None = None,
         batch_sampler: Sampler | None = None,
@@ -116,7 +158,8 @@ class ResumableDataLoader(DataLoader):
     ) -> None:
         self.order: EpochShuffleSampler | None = None
         if sampler is None and batch_sampler is None:
-            self.order = EpochShuffleSampler(len(dataset), seed)  # type: ignore[arg-type]
+            n = len(dataset)  # type: ignore[arg-type]
+            self.order = EpochShuffleSampler(n, seed, num_replicas, rank)
             sampler, shuffle, generator = self.order, None, torch.Generator()
         super().__init__(
             dataset,
@@ -133,7 +176,8 @@ class ResumableDataLoader(DataLoader):
 
     @classmethod
     def like(cls, loader: DataLoader, seed: int) -> ResumableDataLoader:
-        """A resumable loader with the dataset, batch size and worker settings of ``loader``."""
+        """A resumable loader with the dataset, batch size and worker settings of ``loader``,
+        sharded over the process group when there is one."""
         if loader.batch_size is None:
             raise ValueError("a loader with a custom batch_sampler cannot be made resumable")
         workers = loader.num_workers
@@ -149,8 +193,7 @@ class ResumableDataLoader(DataLoader):
         return cls(
             loader.dataset,
             seed=seed,
-            # Tells Lightning this loader shuffles: a DistributedSampler it injects for DDP then
-            # reshuffles every epoch (that order is not resumed mid-epoch).
+            # Tells Lightning this loader shuffles, should it rebuild it with a sampler of its own.
             shuffle=True,
             batch_size=loader.batch_size,
             num_workers=workers,
@@ -176,9 +219,10 @@ class ResumableDataLoader(DataLoader):
             self._pending = None
             if saved_epoch == epoch:
                 skip = min(saved_batches, len(self))
-        # Skipping whole batches = skipping batch_size indices each (only the last batch of an
-        # epoch can be short, and a skip never reaches past it).
-        order.skip_next(skip * int(self.batch_size or 1))
+        # Skipping whole batches = skipping batch_size indices of each process's share, i.e.
+        # batch_size × W positions of the epoch's order (only the last batch of an epoch can be
+        # short, and a skip never reaches past it).
+        order.skip_next(skip * int(self.batch_size or 1) * order.num_replicas)
         assert self.generator is not None
         self.generator.manual_seed(epoch_seed(order.seed, epoch, "workers"))
         self._epoch, self._position = epoch, skip
@@ -189,20 +233,27 @@ class ResumableDataLoader(DataLoader):
     def state_dict(self) -> dict[str, int]:
         if self.order is None:
             return {}
-        if self._pending is not None:  # restored but not iterated yet: still at the saved place
-            epoch, batches = self._pending
-            return {"epoch": epoch, "batches": batches, "samples": self.order.n}
-        return {"epoch": self._epoch, "batches": self._position, "samples": self.order.n}
+        # restored but not iterated yet (_pending): still at the saved place
+        epoch, batches = (self._epoch, self._position) if self._pending is None else self._pending
+        return {
+            "epoch": epoch,
+            "batches": batches,
+            "samples": self.order.n,
+            "processes": self.order.num_replicas,
+        }
 
     def load_state_dict(self, state: dict[str, int]) -> None:
         if self.order is None or not state:
             return
-        if int(state.get("samples", self.order.n)) != self.order.n:
+        # what the checkpoint was written with (a checkpoint from before DDP support: 1 process)
+        saved = (int(state.get("samples", self.order.n)), int(state.get("processes", 1)))
+        now = (self.order.n, self.order.num_replicas)
+        if saved != now:
             log.warning(
-                "the training set has %d samples but the checkpoint was written with %d: "
-                "resuming at the start of epoch %d",
-                self.order.n,
-                state["samples"],
+                "the training set has %d samples on %d process(es), but the checkpoint was "
+                "written with %d on %d: resuming at the start of epoch %d",
+                *now,
+                *saved,
                 state["epoch"],
             )
             self._pending = None

@@ -6,11 +6,18 @@ Two ways to skip, chosen once per step by what the optimiser can do:
 - **in the optimiser** (one fused optimiser, e.g. Adam with ``fused=True``, the default config's):
   the step's finiteness goes to the optimiser's kernel as ``found_inf`` (as GradScaler does),
   which leaves weights and state untouched on the device. Nothing is read on the host; the counts
-  are read at the logging steps (:meth:`NonFiniteLosses.report`). Under DDP every process gets one
-  verdict (one ``all_reduce`` per step): the gradients are averaged, so one process's NaN reaches
-  all of them, and all must skip the step together.
-- **on the host** (any other optimiser): the loss is tested on the host (one synchronisation per
-  step) and the step returns None, which skips backward and the optimiser step.
+  are read at the logging steps (:meth:`NonFiniteLosses.report`).
+- **on the host** (any other optimiser): the verdict is read on the host (one synchronisation per
+  step) and the step returns None, which skips backward and the optimiser step. Under DDP, where
+  Lightning refuses a None step and every process must run backward, the step returns a zero
+  loss instead and its gradients are dropped before the optimiser step
+  (:meth:`NonFiniteLosses.drop_gradients`).
+
+Under DDP either way takes one verdict for every process: the gradients are averaged, so one
+process's NaN reaches all of them, and a process that skipped backward alone would leave the
+others waiting in the gradient all-reduce. The module passes the verdict agreed by
+:class:`~mfg_lightning.models.agreement.Agreement` (one ``all_reduce`` per step), so the counts,
+and the :class:`NonFiniteLossError` that ends a run, are the same on every process.
 
 Logged names, one meaning each: ``train/skipped_steps`` is the number of training steps skipped
 so far (either way). The counts are :class:`StepCount` metrics, reduced across processes by their
@@ -75,6 +82,7 @@ class NonFiniteLosses(nn.Module):
         self._reported = 0
         self._window_finite: Tensor | None = None
         self._found_inf: Tensor | None = None
+        self._drop_gradients = False
 
     @staticmethod
     def skips_in_the_optimiser(trainer: Any, automatic_optimization: bool = True) -> bool:
@@ -84,35 +92,48 @@ class NonFiniteLosses(nn.Module):
             return False
         return bool(trainer.optimizers[0].defaults.get("fused"))
 
-    def check(self, loss: Tensor, trainer: Any, ids: str | None = None, fused: bool = True) -> bool:
-        """Account for the step's ``loss``; False: skip the step (return None from it).
+    def check(
+        self,
+        loss: Tensor,
+        finite: Tensor,
+        ids: str | None = None,
+        fused: bool = True,
+        cause: str | None = None,
+    ) -> bool:
+        """Account for the step; False: skip it (return None from the step).
 
         Args:
-            loss: the step's total loss (0-dim).
-            trainer: the Trainer (its world size and strategy).
+            loss: this process's total loss (0-dim), for the host route's message.
+            finite: 0-dim bool, the step may be taken: the loss is finite (under DDP: on every
+                process, and every process had a usable sample; the agreed verdict).
             ids: the batch's sample ids, for the messages of the host route.
             fused: :meth:`skips_in_the_optimiser`.
+            cause: why this process cannot take the step, when it is not its loss (the host
+                route's message).
 
         Raises:
             NonFiniteLossError: on the host route, after ``max_consecutive`` in a row.
         """
         if fused:
-            finite = torch.isfinite(loss.detach())
-            if trainer.world_size > 1:
-                finite = _finite_on_every_process(finite, trainer.strategy)
             window = self._window_finite
             self._window_finite = finite if window is None else window & finite
             self.consecutive.update(torch.ones_like(self.consecutive.count), restart=finite)
             self.skipped.update((~finite).long())
             return True
-        if torch.isfinite(loss):
+        if bool(finite):
             self.consecutive.count.zero_()
             return True
         self.skipped.update(torch.ones_like(self.skipped.count))
         self.consecutive.update(torch.ones_like(self.consecutive.count))
         run = int(self.consecutive.count)
         self._reported = int(self.skipped.count)
-        log.warning("non-finite loss (%s) on %s: step skipped", loss.item(), ids)
+        value = loss.detach()
+        if cause is None and bool(torch.isfinite(value)):
+            # under DDP the verdict may come from another process, whose loss is not here
+            cause = "a non-finite loss or no usable sample in another process"
+        elif cause is None:
+            cause = f"non-finite loss ({value.item()})"
+        log.warning("%s on %s: step skipped", cause, ids)
         if run >= self.max_consecutive:
             raise NonFiniteLossError(f"{run} consecutive non-finite losses; last samples: {ids}")
         return False
@@ -136,10 +157,23 @@ class NonFiniteLosses(nn.Module):
         if run >= self.max_consecutive:
             raise NonFiniteLossError(f"{run} consecutive non-finite losses; last samples: {ids}")
 
+    def drop_gradients(self) -> None:
+        """Skip the coming optimiser step by dropping every gradient just before it (an optimiser
+        leaves a parameter without a gradient untouched, state included): the host route's skip
+        under DDP, where Lightning refuses a None step and every process must run backward for
+        the gradient all-reduce."""
+        self._drop_gradients = True
+
     def before_optimizer_step(self, optimizer: torch.optim.Optimizer) -> None:
         """Hand the step's finiteness to a fused optimiser (``found_inf``: 1 skips the update of
         weights and state on the device). Under ``16-mixed`` the GradScaler sets its own
-        ``found_inf``, which a non-finite loss trips as well (its gradients are non-finite)."""
+        ``found_inf``, which a non-finite loss trips as well (its gradients are non-finite).
+        After :meth:`drop_gradients`, drop them."""
+        if self._drop_gradients:
+            self._drop_gradients = False
+            for group in optimizer.param_groups:
+                for param in group["params"]:
+                    param.grad = None
         if self._window_finite is None:
             return
         if optimizer.defaults.get("fused"):
@@ -149,6 +183,7 @@ class NonFiniteLosses(nn.Module):
 
     def after_batch(self, optimizers: list[torch.optim.Optimizer]) -> None:
         """Take ``found_inf`` back: it is this step's only; a stale one would skip later steps."""
+        self._drop_gradients = False
         if self._found_inf is None:
             return
         for optimizer in optimizers:
@@ -182,16 +217,3 @@ class DeferredCounts:
         out = [(int(n), ids) for n, (_, ids) in zip(counts, self._pending, strict=True) if n]
         self._pending.clear()
         return out
-
-
-def _finite_on_every_process(finite: Tensor, strategy: Any) -> Tensor:
-    """Whether the step's loss was finite on every process: one ``all_reduce`` (MAX) of a
-    one-element device tensor, queued on the device like the gradients' and never read on the
-    host. Lightning's ``strategy.reduce`` would add a ``barrier()`` before it in every step
-    (``_sync_ddp``); it is used only where torch.distributed is not what the strategy runs on."""
-    bad = (~finite).to(torch.float32)
-    if torch.distributed.is_available() and torch.distributed.is_initialized():
-        torch.distributed.all_reduce(bad, op=torch.distributed.ReduceOp.MAX)
-    else:
-        bad = strategy.reduce(bad, reduce_op="max")
-    return bad == 0

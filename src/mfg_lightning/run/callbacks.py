@@ -19,8 +19,10 @@
 * :func:`storage_error`: a full disk is one :class:`StorageError` line naming the file.
 
 Resumption is exact on one device (tests/test_resume.py compares weights and metrics with an
-uninterrupted run). Under DDP, Lightning's DistributedSampler takes over the order: it is
-reshuffled every epoch, but an epoch resumed mid-way replays its first batches.
+uninterrupted run) and under DDP, where every process resumes its share of the epoch's order
+(tests/test_ddp_faults.py compares the test metrics of a 2-process run stopped by SIGTERM and
+resumed with those of an uninterrupted one). Under DDP, SIGTERM stops every process after the
+same step (:mod:`mfg_lightning.run.together`), so that the collective save lines up.
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from mfg_lightning.core.atomic import atomic_write_bytes
 from mfg_lightning.core.errors import UserError
+from mfg_lightning.models.agreement import Agreement
 
 log = logging.getLogger(__name__)
 
@@ -205,7 +208,9 @@ class LastCheckpoint(Checkpoint):
     after each step, so a save still lands where a resumed run continues exactly. Under DDP
     every process must save together (``Trainer.save_checkpoint`` is collective) while their
     clocks disagree: rank 0's clock decides, broadcast every :attr:`TIME_SYNC_EVERY` steps, so
-    that the other steps have no collective.
+    that the other steps have no collective. SIGTERM is acted on when every process has agreed
+    on it (:class:`~mfg_lightning.run.together.StopTogether` sets Lightning's flag after the same
+    step everywhere), so the save on SIGTERM is collective too.
 
     Args:
         dirpath: the run's checkpoint directory (``<run dir>/checkpoints``).
@@ -386,6 +391,14 @@ class BatchChecks(L.Callback):
     naming its samples; meanwhile a non-finite pose or intrinsics gives a non-finite loss, which
     the module skips in the optimiser (:class:`~mfg_lightning.models.mfg_module.MFGLitModule`).
 
+    Under DDP a training batch refused on one process ends every process at the same step: the
+    error is handed to the module's :class:`~mfg_lightning.models.agreement.Agreement` instead of
+    raised, the process takes part in the step without samples, and at the step the processes
+    agree on (the same one on a CPU) that process raises its error and the others
+    :class:`~mfg_lightning.models.agreement.PeerFailedError`; at the end of an epoch and of
+    training the checks still pending are settled with one ``all_reduce``. A refused evaluation
+    batch raises on its process alone, as without DDP.
+
     Args:
         deferred: read the value flags later (True), at once (False), or at once on a CPU and
             later elsewhere (None, the default).
@@ -397,11 +410,16 @@ class BatchChecks(L.Callback):
             raise ValueError(f"callbacks.batch_checks.check_every must be >= 1, got {check_every}")
         self.deferred = deferred
         self.check_every = int(check_every)
-        # (flags on the host or landing there, CUDA event or None, the batch's sample ids)
-        self._pending: list[tuple[torch.Tensor, Any, dict[str, Any]]] = []
+        # (flags on the host or landing there, CUDA event or None, the batch's sample ids) of
+        # the training (True) and the evaluation batches (False), read by their own hooks: a
+        # training batch refused under DDP must be refused at a training step
+        self._pending: dict[bool, list[tuple[torch.Tensor, Any, dict[str, Any]]]] = {
+            True: [],
+            False: [],
+        }
         self._batches = 0
 
-    def _check(self, pl_module: L.LightningModule, batch: Any) -> None:
+    def _check(self, trainer: L.Trainer | None, pl_module: L.LightningModule, batch: Any) -> None:
         from mfg_lightning.data.sample import (
             POSE,
             batch_value_flags,
@@ -410,9 +428,10 @@ class BatchChecks(L.Callback):
         )
         from mfg_lightning.models.mfg import MotionFieldNetwork, input_size
 
+        training = trainer is None or trainer.training  # None: a direct call (tests)
         net = getattr(pl_module, "net", None)
-        if batch is None or not isinstance(net, MotionFieldNetwork):  # None: all skipped
-            self._read_pending(wait=False)
+        if not batch or not isinstance(net, MotionFieldNetwork):  # None, {}: all skipped
+            self._read_pending(training, wait=False)
             return
         height, width = input_size(net)
         param = next(pl_module.parameters(), None)
@@ -424,7 +443,7 @@ class BatchChecks(L.Callback):
         if not deferred:
             raise_on_bad_values(batch, flags)
             return
-        self._read_pending(wait=False)  # the earlier batches whose flags have landed
+        self._read_pending(training, wait=False)  # the earlier batches whose flags have landed
         event = None
         if flags.is_cuda:
             host = flags.to("cpu", non_blocking=True)  # into pinned memory, without waiting
@@ -432,27 +451,57 @@ class BatchChecks(L.Callback):
             event.record()
         else:
             host = flags.cpu()
-        self._pending.append((host, event, {"sample_id": batch.get("sample_id")}))
+        self._pending[training].append((host, event, {"sample_id": batch.get("sample_id")}))
         self._batches += 1
         if self._batches % self.check_every == 0:
-            self._read_pending(wait=True)
+            self._read_pending(training, wait=True)
 
-    def _read_pending(self, wait: bool) -> None:
-        """Raise for the first pending batch with a failed value check; ``wait``: wait for the
-        copies still in flight (a host synchronisation), else leave those for later."""
+    def _read_pending(self, training: bool, wait: bool) -> None:
+        """Raise for the first pending training (or evaluation) batch with a failed value check;
+        ``wait``: wait for the copies still in flight (a host synchronisation), else leave those
+        for later."""
         from mfg_lightning.data.sample import raise_on_bad_values
 
-        while self._pending:
-            host, event, ids = self._pending[0]
+        pending = self._pending[training]
+        while pending:
+            host, event, ids = pending[0]
             if event is not None and not event.query():
                 if not wait:
                     return
                 event.synchronize()
-            self._pending.pop(0)
+            pending.pop(0)
             raise_on_bad_values(ids, host)
 
-    def _read_all(self, *args: Any, **kwargs: Any) -> None:
-        self._read_pending(wait=True)
+    @staticmethod
+    def _agreement(trainer: L.Trainer | None, pl_module: L.LightningModule) -> Agreement | None:
+        """The module's agreement where a refusal must be agreed on: training under DDP."""
+        agreement = getattr(pl_module, "agreement", None)
+        if trainer is None or not isinstance(agreement, Agreement):
+            return None
+        return agreement if trainer.world_size > 1 and trainer.training else None
+
+    def _refusing(
+        self, trainer: L.Trainer | None, pl_module: L.LightningModule, check: Any, *args: Any
+    ) -> None:
+        """``check(*args)``; under DDP training, a refusal goes to the agreement."""
+        from mfg_lightning.data.sample import SampleError
+
+        agreement = self._agreement(trainer, pl_module)
+        try:
+            check(*args)
+        except SampleError as err:
+            if agreement is None:
+                raise
+            agreement.refuse(err)
+
+    def _read_all(
+        self, trainer: L.Trainer | None, pl_module: L.LightningModule, *args: Any
+    ) -> None:
+        training = trainer is None or trainer.training
+        self._refusing(trainer, pl_module, self._read_pending, training, True)
+        agreement = self._agreement(trainer, pl_module)
+        if agreement is not None:  # outside a step: every process calls this hook alike
+            agreement.settle(pl_module.device, trainer.global_step, trainer.strategy)
 
     on_train_epoch_end = _read_all
     on_validation_epoch_end = _read_all
@@ -462,7 +511,7 @@ class BatchChecks(L.Callback):
     def on_train_batch_start(
         self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any, batch_idx: int
     ) -> None:
-        self._check(pl_module, batch)
+        self._refusing(trainer, pl_module, self._check, trainer, pl_module, batch)
 
     def on_validation_batch_start(
         self,
@@ -472,6 +521,6 @@ class BatchChecks(L.Callback):
         batch_idx: int,
         dataloader_idx: int = 0,
     ) -> None:
-        self._check(pl_module, batch)
+        self._check(trainer, pl_module, batch)
 
     on_test_batch_start = on_validation_batch_start

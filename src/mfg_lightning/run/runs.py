@@ -21,6 +21,7 @@ from mfg_lightning.core.machine import cpu_kind
 from mfg_lightning.core.tables import finite_or_none
 from mfg_lightning.run.callbacks import AtomicCheckpointIO
 from mfg_lightning.run.precision import PRECISION_AUTO, resolve_precision, with_precision_setup
+from mfg_lightning.run.together import StopTogether
 
 log = logging.getLogger(__name__)
 
@@ -69,7 +70,9 @@ def build_trainer(cfg: DictConfig, callbacks: list[Any], loggers: list[Any]) -> 
     """The configured ``lightning.Trainer``, writing checkpoints atomically unless the config
     brings its own checkpoint IO plugin (``trainer.plugins``: one or a list, configs with a
     ``_target_`` or Lightning's plugin names), and with the precision rules
-    (:class:`mfg_lightning.run.precision.PrecisionSetup`) among its callbacks."""
+    (:class:`mfg_lightning.run.precision.PrecisionSetup`) and the SIGTERM handling that stops
+    every DDP process after the same step (:class:`mfg_lightning.run.together.StopTogether`)
+    among its callbacks."""
     resolve_configured_precision(cfg)
     given = cfg.trainer.get("plugins") or []
     given = list(given) if isinstance(given, (list, ListConfig)) else [given]
@@ -77,6 +80,8 @@ def build_trainer(cfg: DictConfig, callbacks: list[Any], loggers: list[Any]) -> 
     if not any(isinstance(p, CheckpointIO) for p in plugins):
         plugins.append(AtomicCheckpointIO())
     callbacks = with_precision_setup(callbacks)
+    if not any(isinstance(cb, StopTogether) for cb in callbacks):
+        callbacks.append(StopTogether())
     return instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False, plugins=plugins)
 
 

@@ -9,19 +9,15 @@ checkpoint on SIGTERM)."""
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
-import signal
 import time
 import zipfile
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import lightning as L
 from hydra.utils import instantiate
-from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from mfg_lightning.core.atomic import atomic_write_text
@@ -42,6 +38,7 @@ from mfg_lightning.run.runs import (
     set_baseline,
     write_metrics,
 )
+from mfg_lightning.run.together import ending_together
 
 # The command line's logger: a run's log reads the same whoever started it.
 log = logging.getLogger("mfg_lightning.train")
@@ -91,19 +88,6 @@ def flat_hparams(cfg: DictConfig) -> dict[str, Any]:
 
     walk("", container)
     return flat
-
-
-@contextlib.contextmanager
-def exit_on_sigterm(trainer: L.Trainer) -> Iterator[None]:
-    """Lightning ends a fit or test stopped by SIGTERM with ``SIGTERMException`` (a
-    ``SystemExit`` of status 0); exit with 143 instead, the conventional status of a process
-    ended by SIGTERM, so that schedulers and scripts see an interrupted job. During a fit,
-    ``LastCheckpoint`` has saved ``last.ckpt`` by then."""
-    try:
-        yield
-    except SIGTERMException:
-        log.warning("stopped by SIGTERM at step %d", trainer.global_step)
-        raise SystemExit(128 + signal.SIGTERM) from None
 
 
 def check_trainer_settings(cfg: DictConfig) -> None:
@@ -168,7 +152,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     log_hyperparameters(loggers, hparams)
 
     start = time.perf_counter()
-    with exit_on_sigterm(trainer):
+    with ending_together(trainer):
         trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=True)
     train_seconds = time.perf_counter() - start
     # The last validation's metrics; a run resumed after it has them from the checkpoint.
@@ -180,7 +164,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         best = getattr(trainer.checkpoint_callback, "best_model_path", "") or None
         if best is None:
             log.warning("no best checkpoint (no validation ran?): testing the current weights")
-        with exit_on_sigterm(trainer):
+        with ending_together(trainer):
             trainer.test(model, datamodule=datamodule, ckpt_path=best, weights_only=True)
         metrics.update({k: v for k, v in trainer.callback_metrics.items() if k.startswith("test/")})
     log_final_metrics(loggers, hparams, metrics, trainer.global_step)

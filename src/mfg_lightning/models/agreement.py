@@ -1,0 +1,161 @@
+"""What every process of a data-parallel (DDP) run decides together.
+
+Under DDP every process must make the same collective calls in the same order. A process that
+skips a step, stops or raises on its own leaves the others waiting in their next collective until
+the process group's timeout (30 minutes). So no process acts alone on what it sees: each training
+step reduces every process's flags in one small ``all_reduce`` (MAX), and every process acts on the
+reduced flags at the same step (:class:`Agreement`):
+
+* **skip** the step: the loss is non-finite, or the process has no usable sample (every sample of
+  its batch unreadable under ``dataset.skip_bad_samples``, or the batch refused by
+  :class:`~mfg_lightning.run.callbacks.BatchChecks`). Such a process still takes part in the step
+  (a zero loss over every parameter, so that the gradient all-reduce sees all of them) and the
+  step is skipped on every process.
+* **stop**: SIGTERM reached the process (:class:`~mfg_lightning.run.together.StopTogether` records
+  it): every process stops after the same step, and ``last.ckpt`` is saved by all together.
+* **fail**: the process holds an error that ends the run (a refused batch): every process raises
+  at the same step, that one its own error, the others :class:`PeerFailedError` naming it.
+
+The skip flag stays on the device (a fused optimiser's ``found_inf``; the host route reads it, as
+it reads the loss). The stop and fail flags are read on the host at every step on a CPU, where a
+read costs nothing, and every :attr:`Agreement.READ_EVERY` steps on an accelerator, where a read
+waits for the device; meanwhile their maximum is kept on the device. A stop or a failure is then
+acted on up to that many steps late, at the same step on every process.
+
+One process (no process group): nothing is reduced; SIGTERM and a refused batch are acted on at
+once, as Lightning and the callbacks do by themselves.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import torch
+import torch.distributed as dist
+from torch import Tensor
+
+from mfg_lightning.core.errors import UserError
+
+log = logging.getLogger(__name__)
+
+__all__ = ["Agreement", "PeerFailedError"]
+
+
+class PeerFailedError(UserError):
+    """Another process of the run failed; its own error is printed by it (or is in its log)."""
+
+
+class Agreement:
+    """One process's side of the decisions taken together (see the module's docstring).
+
+    The LightningModule calls :meth:`reduce` once per training step under DDP (the step's only
+    collective besides DDP's own) and :meth:`decide` right after; the callbacks set
+    :attr:`sigterm` (the signal handler) and call :meth:`refuse` (a refused batch), and read
+    :attr:`stop`. :meth:`settle` agrees outside a step (the end of an epoch or of training).
+
+    Attributes:
+        sigterm: SIGTERM reached this process (set by the signal handler: a plain assignment).
+        failure: the error this process holds, raised at the agreed step (None: none).
+        stop: every process agreed to stop (SIGTERM reached at least one of them).
+    """
+
+    #: on an accelerator, the training steps between two host reads of the stop and fail flags
+    READ_EVERY = 20
+
+    def __init__(self) -> None:
+        self.sigterm = False
+        self.failure: BaseException | None = None
+        self.stop = False
+        # (2,) float32 on the device: this process's [sigterm, fail] flags, rewritten (two fill
+        # kernels, no host-to-device copy) only when one of them changes
+        self._local: Tensor | None = None
+        self._local_values = (0.0, 0.0)
+        # (2,) float32 on the device: the agreed [stop, fail] since the last host read
+        self._unread: Tensor | None = None
+
+    def refuse(self, error: BaseException) -> None:
+        """Keep ``error`` (the first one) to raise at the step every process agrees on; until
+        then this process has no usable sample."""
+        if self.failure is None:
+            self.failure = error
+
+    def reduce(self, skip: Tensor, strategy: Any | None = None) -> Tensor:
+        """The step's one collective: ``[skip, sigterm, fail]`` of every process, MAX-reduced.
+
+        Args:
+            skip: 0-dim bool, this process cannot take the step (non-finite loss, no usable
+                sample); on the module's device.
+            strategy: the Lightning strategy, used only where torch.distributed is not what it
+                runs on.
+
+        Returns:
+            0-dim bool on the same device: the step is skipped on every process. Never read on
+            the host here; the agreed stop and fail flags are kept for :meth:`decide`.
+        """
+        # fail carries the rank + 1, so that the others can say which process failed
+        values = (float(self.sigterm), 0.0 if self.failure is None else float(_rank() + 1))
+        if self._local is None or self._local.device != skip.device:
+            self._local = torch.zeros(2, device=skip.device)
+            self._local_values = (0.0, 0.0)
+        if values != self._local_values:
+            for i, value in enumerate(values):
+                self._local[i].fill_(value)
+            self._local_values = values
+        flags = torch.cat([skip.reshape(1).to(self._local.dtype), self._local])
+        flags = _max_over_processes(flags, strategy)
+        agreed = flags[1:]
+        self._unread = agreed if self._unread is None else torch.maximum(self._unread, agreed)
+        return flags[0] > 0
+
+    def decide(self, step: int, force: bool = False) -> None:
+        """Read the agreed stop and fail flags when due (every step on a CPU, every
+        :attr:`READ_EVERY` steps elsewhere; ``force``: now): set :attr:`stop`, or raise.
+
+        Args:
+            step: the global step, the same on every process (so that all read together).
+            force: read now (outside a step, where every process calls this alike).
+
+        Raises:
+            BaseException: this process's :attr:`failure`, when a process failed.
+            PeerFailedError: when another process failed and this one did not.
+        """
+        unread = self._unread
+        if unread is None:
+            return
+        if not (force or unread.device.type == "cpu" or step % self.READ_EVERY == 0):
+            return
+        self._unread = None
+        stop, fail = unread.tolist()
+        if stop and not self.stop:
+            self.stop = True
+            log.warning("SIGTERM reached the run: every process stops after step %d", step)
+        if not fail:
+            return
+        if self.failure is not None:
+            raise self.failure
+        raise PeerFailedError(
+            f"process {int(fail) - 1} of the run failed at step {step} (its error is printed "
+            "above, or in its log): every process stopped there"
+        )
+
+    def settle(self, device: torch.device, step: int, strategy: Any | None = None) -> None:
+        """Agree outside a training step (every process calls it at the same point): one
+        ``all_reduce`` now, then :meth:`decide` at once."""
+        self.reduce(torch.zeros((), dtype=torch.bool, device=device), strategy)
+        self.decide(step, force=True)
+
+
+def _rank() -> int:
+    return dist.get_rank() if dist.is_available() and dist.is_initialized() else 0
+
+
+def _max_over_processes(flags: Tensor, strategy: Any | None) -> Tensor:
+    """``flags`` MAX-reduced over the processes: one ``all_reduce``, queued on the device like
+    the gradients' and not read here. Lightning's ``strategy.reduce`` would add a ``barrier()``
+    before it (``_sync_ddp``): it is used only where torch.distributed is not what the strategy
+    runs on."""
+    if dist.is_available() and dist.is_initialized():
+        dist.all_reduce(flags, op=dist.ReduceOp.MAX)
+        return flags
+    return flags if strategy is None else strategy.reduce(flags, reduce_op="max")

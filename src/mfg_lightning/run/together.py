@@ -1,0 +1,214 @@
+"""Every process of a data-parallel (DDP) run ends together: on SIGTERM and on an error.
+
+* **SIGTERM.** Lightning's handler makes a collective call inside the signal handler (a broadcast
+  that interleaves with whatever collective the process is in: the processes crash, or hang), and
+  each process then stops on its own flag, its own step. :class:`StopTogether` replaces the
+  handler: it only records the signal (and hands it on once to the processes Lightning started,
+  as Lightning's does). The module's per-step agreement
+  (:class:`~mfg_lightning.models.agreement.Agreement`) turns it into a stop after the same step on
+  every process, where this callback sets Lightning's flag: ``LastCheckpoint`` saves there, and
+  Lightning stops there, on every process alike. Without a process group the flag is set at once,
+  as Lightning's handler does.
+* **An error.** The errors the processes agree on (a refused batch, too many non-finite losses)
+  are raised by all at the same step. Any other error ends its own process, and
+  :func:`ending_together` makes sure that the others end within seconds, not at the process
+  group's 30-minute timeout: the failing process leaves a gloo process group (the peers waiting on
+  it fail at once), and the process that started the others (``trainer=ddp``: Lightning starts
+  them from the first) waits up to :data:`CHILDREN_GRACE` seconds for them, then kills those left.
+  Elsewhere the launcher does it (torchrun ends every process when one fails; under SLURM,
+  ``srun --kill-on-bad-exit=1``).
+
+Lightning watches the processes it started and kills the first one (SIGKILL) as soon as another
+exits with an error status, which a process stopped by SIGTERM (143) or by an agreed error (2)
+does on purpose. The first process therefore takes that watch over once an end is agreed or its
+own error is raised: it waits for the others, and every process exits with its own status.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import logging
+import signal
+import subprocess
+import threading
+import time
+from collections.abc import Iterator
+from types import FrameType
+from typing import Any
+
+import lightning as L
+import torch.distributed as dist
+from lightning.pytorch.utilities.exceptions import SIGTERMException
+from lightning.pytorch.utilities.rank_zero import rank_prefixed_message
+
+from mfg_lightning.models.agreement import Agreement
+
+log = logging.getLogger(__name__)
+
+__all__ = ["CHILDREN_GRACE", "StopTogether", "ending_together"]
+
+#: seconds the first process of ``trainer=ddp`` waits for the others to end after it stopped
+#: (they stop at the same step, or their collectives fail once it has left the process group)
+CHILDREN_GRACE = 30.0
+
+
+class StopTogether(L.Callback):
+    """SIGTERM under DDP: every process stops after the same step (see the module's docstring).
+
+    :func:`mfg_lightning.run.runs.build_trainer` adds it to every Trainer a run builds. It acts
+    through the LightningModule's ``agreement`` (:class:`~mfg_lightning.models.agreement.Agreement`,
+    which :class:`~mfg_lightning.models.mfg_module.MFGLitModule` has); with another module it
+    leaves Lightning's handler in place.
+    """
+
+    def __init__(self) -> None:
+        self._held = False  # Lightning's flag held back during a validation (DDP)
+
+    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        agreement = getattr(pl_module, "agreement", None)
+        connector = getattr(trainer, "_signal_connector", None)
+        if not isinstance(agreement, Agreement) or connector is None:
+            return
+        if not hasattr(connector, "_sigterm_notifier_fn"):
+            log.warning(
+                "this Lightning version has no _sigterm_notifier_fn: its own SIGTERM handler is "
+                "kept, and under DDP a SIGTERM may leave the processes waiting for each other"
+            )
+            return
+        # Lightning composes the handler it registers before each stage from this attribute
+        # (with SLURM's requeue handler and any handler already there).
+        connector._sigterm_notifier_fn = functools.partial(_on_sigterm, trainer, agreement)
+
+    def on_train_batch_end(
+        self, trainer: L.Trainer, pl_module: L.LightningModule, *args: Any, **kwargs: Any
+    ) -> None:
+        agreement = getattr(pl_module, "agreement", None)
+        if trainer.world_size == 1 or not isinstance(agreement, Agreement) or not agreement.stop:
+            return
+        connector = trainer._signal_connector
+        if not connector.received_sigterm:
+            # Every process sets it after the same step: LastCheckpoint (after this callback)
+            # saves here, and Lightning stops at the end of the step, on every process alike.
+            connector.received_sigterm = True
+            _take_over_the_watch(trainer)
+
+    def on_validation_batch_end(
+        self, trainer: L.Trainer, pl_module: L.LightningModule, *args: Any, **kwargs: Any
+    ) -> None:
+        # Lightning's evaluation loop stops at its next batch on the flag, on each process alone,
+        # and their shares of a split may differ by a batch: under DDP the flag waits for the
+        # end of the validation (LastCheckpoint does the same, for its own reasons).
+        connector = getattr(trainer, "_signal_connector", None)
+        if trainer.world_size > 1 and connector is not None and connector.received_sigterm:
+            connector.received_sigterm = False
+            self._held = True
+
+    def on_validation_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if self._held:
+            trainer._signal_connector.received_sigterm = True
+            self._held = False
+
+    def on_exception(
+        self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException
+    ) -> None:
+        _take_over_the_watch(trainer)
+
+
+def _on_sigterm(
+    trainer: L.Trainer, agreement: Agreement, signum: int, frame: FrameType | None
+) -> None:
+    """The SIGTERM handler: record the signal; hand it on once to the processes this one
+    started; without a process group, set Lightning's flag at once (no collective call here)."""
+    log.info(rank_prefixed_message(f"received SIGTERM ({signum})", trainer.local_rank))
+    first = not agreement.sigterm
+    agreement.sigterm = True
+    launcher = trainer.strategy.launcher
+    if first and launcher is not None:
+        launcher.kill(signum)  # the processes this one started (trainer=ddp's first process)
+    if trainer.world_size == 1:
+        trainer._signal_connector.received_sigterm = True
+
+
+def _children(trainer: L.Trainer) -> list[subprocess.Popen]:
+    """The processes this one started (the first process of ``trainer=ddp``; else none)."""
+    return list(getattr(trainer.strategy.launcher, "procs", None) or [])
+
+
+def _take_over_the_watch(trainer: L.Trainer) -> None:
+    """Stop Lightning's watch on the processes this one started (it kills this process as soon
+    as one of them exits with an error status): :func:`ending_together` waits for them."""
+    if not _children(trainer):
+        return
+    for thread in threading.enumerate():
+        if type(thread).__name__ == "_ChildProcessObserver" and hasattr(thread, "_child_processes"):
+            # Its next look finds nothing to watch and ends (Lightning 2.x).
+            thread._child_processes = []  # type: ignore[attr-defined]
+
+
+def _end_children(trainer: L.Trainer, grace: float) -> None:
+    """Wait up to ``grace`` seconds for the processes this one started; kill those left."""
+    children = _children(trainer)
+    if not children:
+        return
+    _take_over_the_watch(trainer)
+    deadline = time.monotonic() + grace
+    for rank, child in enumerate(children, start=1):
+        try:
+            child.wait(timeout=max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            log.warning("local rank %d had not ended %.0f s after rank 0: killed", rank, grace)
+            child.kill()
+            child.wait()
+        log.info("local rank %d ended with status %s", rank, child.returncode)
+
+
+def _leave_process_group() -> None:
+    """Leave a gloo process group, so that the peers waiting on this process in a collective
+    fail at once rather than at the timeout. (An NCCL peer does not notice: the launcher ends
+    it.) Never raises: the error that brought us here is the one to report."""
+    with contextlib.suppress(Exception):
+        if dist.is_available() and dist.is_initialized() and dist.get_backend() == "gloo":
+            dist.destroy_process_group()
+
+
+def _tear_down_data(trainer: L.Trainer) -> None:
+    """The datamodule's ``teardown``, which Lightning skips when a stage ends by an exception: it
+    stops the threads that fill the sample cache ahead of the loader. A daemon thread still in
+    torch's C++ code when the interpreter exits is ended by ``pthread_exit``, whose unwinding
+    through that code aborts the process (``terminate called without an active exception``,
+    status -6), after ``last.ckpt`` was saved. Never raises: the error that brought us here is
+    the one to report."""
+    datamodule = getattr(trainer, "datamodule", None)
+    if datamodule is None:
+        return
+    fn = trainer.state.fn
+    with contextlib.suppress(Exception):
+        datamodule.teardown(None if fn is None else fn.value)
+
+
+@contextlib.contextmanager
+def ending_together(trainer: L.Trainer) -> Iterator[None]:
+    """Around an entry point's ``trainer.fit`` and ``trainer.test``.
+
+    Lightning ends a fit or test stopped by SIGTERM with ``SIGTERMException`` (a ``SystemExit``
+    of status 0): exit with 143 instead, the conventional status of a process ended by SIGTERM,
+    so that schedulers and scripts see an interrupted job. During a fit, ``LastCheckpoint`` has
+    saved ``last.ckpt`` by then. Any end by an exception tears the datamodule down (its threads
+    stopped before the interpreter exits). Under DDP it also ends the other processes (the
+    module's docstring): this one leaves a gloo process group unless every process stopped
+    together on SIGTERM, and the first process of ``trainer=ddp`` waits for the others.
+    """
+    try:
+        yield
+    except BaseException as err:
+        stopped = isinstance(err, SIGTERMException)
+        _tear_down_data(trainer)
+        if trainer.world_size > 1:
+            if not stopped:
+                _leave_process_group()
+            _end_children(trainer, CHILDREN_GRACE)
+        if stopped:
+            log.warning("stopped by SIGTERM at step %d", trainer.global_step)
+            raise SystemExit(128 + signal.SIGTERM) from None
+        raise

@@ -1,0 +1,204 @@
+"""A fault in one process of a data-parallel run: every process takes the decision together.
+
+Real 2-process trainings through the entry point (``trainer=ddp``: gloo on the CPU; Lightning
+starts the second process with the same command), with a fault injected into one process only
+(tests/ddp_faults.py). A process that skipped a step, stopped or raised on its own used to leave
+the other waiting in a collective until the process group's 30-minute timeout, or crashed both
+(Lightning's SIGTERM handler makes a collective call):
+
+* SIGTERM in one process: both stop after the same step, ``last.ckpt`` is saved, both exit with
+  143; resumed with ``ckpt_path=last``, the run ends with the test metrics of an uninterrupted
+  2-process run (each process resumes its share of the epoch's order mid-epoch).
+* A non-finite loss, and a batch without samples, in one process (an optimiser without
+  ``found_inf``: the verdict is read on the host): both skip those steps; too many in a row end
+  both with ``NonFiniteLossError`` at the same step.
+* A batch refused in one process (``BatchChecks``, deferred): both end at the same step, one with
+  the batch's error, the other naming it (exit status 2). On the way, a batch without samples in
+  the other process is skipped by both in the fused optimiser.
+* An error in the first process that nothing agrees on: the other process ends as well.
+
+Bound: every process of a faulty run has ended within :data:`END_BOUND` seconds of the (last)
+fault. Idle, that is the few seconds of the processes' exit; the bound is generous because the
+machine may be shared, and far below the 30-minute timeout at which a waiting process would
+otherwise have been ended.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+import torch
+
+from conftest import entry_point_env
+
+pytestmark = pytest.mark.slow
+
+TESTS = Path(__file__).resolve().parent
+#: seconds from the (last) fault to the end of every process of the run
+END_BOUND = 120.0
+#: seconds a whole run may take, start-up included (a hang fails the test, never blocks it)
+RUN_TIMEOUT = 600
+# debug=tiny under trainer=ddp: 4 samples per process and step, 3 steps per epoch and process,
+# a validation after every 2nd step. The fault acts at the start of step 3 (global_step 3), the
+# first step of epoch 1: stopped there, the run has trained one batch of epoch 1 (mid-epoch) and
+# the validation after it has run.
+RUN = [
+    "debug=tiny",
+    "trainer=ddp",
+    "trainer.max_steps=8",
+    "logger=none",
+    "callbacks.rich_progress_bar=null",
+    "+trainer.enable_progress_bar=false",
+]
+FAULT_STEP = 3
+
+
+@dataclass
+class Run:
+    """How a training ended: the first process's exit status, the output of every process, and
+    the seconds from the last fault to the end of the last process (None: no fault acted)."""
+
+    returncode: int
+    output: str
+    seconds_after_fault: float | None
+
+
+def _train(workdir: Path, run: str, *overrides: str, faults: dict[str, tuple] | None = None) -> Run:
+    """``python -m mfg_lightning.train`` of :data:`RUN` into ``<workdir>/<run>``, with the faults
+    ``{name: (kind, steps, rank)}`` (tests/ddp_faults.py), until every process it started has
+    ended (their shared output is closed)."""
+    markers, args = [], [*RUN, *overrides, f"hydra.run.dir={workdir / run}"]
+    for name, (kind, steps, rank) in (faults or {}).items():
+        marker = workdir / f"{run}.{name}.marker"
+        marker.unlink(missing_ok=True)
+        markers.append(marker)
+        key = f"+callbacks.{name}"
+        args += [f"{key}._target_=ddp_faults.Fault", f"{key}.kind={kind}", f"{key}.steps={steps}",
+                 f"{key}.rank={rank}", f"{key}.marker={marker}"]  # fmt: skip
+    env = entry_point_env(
+        workdir, PYTHONPATH=os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")])
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mfg_lightning.train", *args], cwd=workdir, env=env,
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
+    )  # fmt: skip
+    try:
+        # Returns when the output is closed: by every process of the run (the second inherits
+        # it from the first).
+        output, _ = proc.communicate(timeout=RUN_TIMEOUT)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)  # the run's own session: its processes only
+        output, _ = proc.communicate()
+        raise AssertionError(f"{run}: not ended after {RUN_TIMEOUT} s:\n{output[-5000:]}") from None
+    ended = time.time()
+    acted = [float(m.read_text().split()[0]) for m in markers if m.exists()]
+    return Run(proc.returncode, output, ended - max(acted) if acted else None)
+
+
+def _ended_in_time(run: Run) -> None:
+    assert run.seconds_after_fault is not None, "the fault never acted:\n" + run.output[-5000:]
+    print(f"ended {run.seconds_after_fault:.1f} s after the fault")  # shown by pytest -s
+    assert run.seconds_after_fault <= END_BOUND, (
+        f"ended {run.seconds_after_fault:.0f} s after the fault (bound {END_BOUND:.0f} s)"
+    )
+
+
+def _test_metrics(run_dir: Path) -> dict[str, float | None]:
+    metrics = json.loads((run_dir / "metrics.json").read_text())["metrics"]
+    return {k: v for k, v in metrics.items() if k.startswith("test/")}
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("ddp_faults")
+
+
+def test_sigterm_in_one_process_stops_both_after_one_step_and_the_run_resumes_exactly(
+    workdir: Path,
+) -> None:
+    reference = _train(workdir, "reference")
+    assert reference.returncode == 0, reference.output[-5000:]
+
+    stopped = _train(workdir, "stopped", faults={"sigterm": ("sigterm", [FAULT_STEP], 1)})
+    assert stopped.returncode == 128 + signal.SIGTERM, stopped.output[-5000:]
+    _ended_in_time(stopped)
+    # Both stopped after the same step (the one SIGTERM arrived in), and both exited with 143.
+    assert stopped.output.count(f"stopped by SIGTERM at step {FAULT_STEP + 1}") == 2
+    assert "local rank 1 ended with status 143" in stopped.output
+    saved = torch.load(
+        workdir / "stopped" / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False
+    )
+    assert saved["global_step"] == FAULT_STEP + 1
+    (order,) = saved["loops"]["fit_loop"]["state_dict"]["combined_loader"]
+    per_epoch = math.ceil(math.ceil(order["samples"] / 2) / 4)  # batches per process and epoch
+    assert order["processes"] == 2 and order["epoch"] == 1
+    assert 0 < order["batches"] < per_epoch, order  # mid-epoch
+
+    resumed = _train(workdir, "stopped", "ckpt_path=last")
+    assert resumed.returncode == 0, resumed.output[-5000:]
+    got, want = _test_metrics(workdir / "stopped"), _test_metrics(workdir / "reference")
+    assert got.keys() == want.keys() and "test/trans_err" in want
+    differ = {
+        k: (got[k], want[k])
+        for k in want
+        if (got[k] is None) != (want[k] is None)
+        or (want[k] is not None and not math.isclose(got[k], want[k], rel_tol=1e-6, abs_tol=1e-9))
+    }
+    assert not differ, f"resumed ≠ uninterrupted: {differ}"
+
+
+def test_a_non_finite_loss_or_no_sample_in_one_process_is_skipped_by_both(workdir: Path) -> None:
+    # Steps 2 (NaN) and 3 (no sample) are skipped by both; step 4 trains; 5, 6 and 7 (NaN) are
+    # three in a row, which ends both at step 7.
+    run = _train(
+        workdir,
+        "non_finite",
+        "model.optimizer.fused=false",
+        "model.max_consecutive_nonfinite=3",
+        faults={"nan": ("non_finite", [2, 5, 6, 7], 1), "empty": ("no_samples", [3], 1)},
+    )
+    assert run.returncode == 1, run.output[-5000:]
+    _ended_in_time(run)
+    # process 1 names its cause, process 0 skips the same steps on its word
+    assert run.output.count("non-finite loss (nan) on ") == 4
+    assert run.output.count("no usable sample on this process: step skipped") == 1
+    assert run.output.count("no usable sample in another process on ") == 5
+    assert run.output.count("NonFiniteLossError: 3 consecutive non-finite losses") == 2
+
+
+def test_a_batch_refused_in_one_process_ends_both_at_the_same_step(workdir: Path) -> None:
+    run = _train(
+        workdir,
+        "refused",
+        "+callbacks.batch_checks.deferred=true",
+        faults={"bad": ("bad_batch", [FAULT_STEP], 1), "empty": ("no_samples", [2], 0)},
+    )
+    assert run.returncode == 2, run.output[-5000:]
+    _ended_in_time(run)
+    errors = [line for line in run.output.splitlines() if line.startswith("error: ")]
+    # read a step later (deferred): both end at step 4, process 1 with the batch's error
+    assert len(errors) == 2, run.output[-5000:]
+    assert any("'pose' has non-finite values" in line for line in errors), errors
+    assert any("process 1 of the run failed at step 4" in line for line in errors), errors
+    assert "Traceback" not in run.output
+    # step 2, without a sample in process 0, was skipped by both in the fused optimiser
+    assert "skipped in the optimiser (latest samples: <no usable sample on this process>)" in (
+        run.output
+    )
+    assert run.output.count("non-finite loss in 1 step(s) since the last report") >= 2
+
+
+def test_an_error_in_the_first_process_alone_ends_the_other_too(workdir: Path) -> None:
+    run = _train(workdir, "error", faults={"error": ("error", [FAULT_STEP], 0)})
+    assert run.returncode == 1, run.output[-5000:]
+    _ended_in_time(run)
+    assert "RuntimeError: injected error in process 0" in run.output
