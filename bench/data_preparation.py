@@ -122,8 +122,8 @@ def overrides(args: argparse.Namespace, cache: Path, processes: int, chunk: int)
         f"dataset.test_sequences={args.sequences}",
         f"dataset.sequence_length={args.frames}",
         f"dataset.cache_dir={cache}",
-        f"++dataset.prepare_workers={processes}",
-        f"++dataset.prepare_chunk_pairs={chunk}",
+        f"dataset.prepare_workers={processes}",
+        f"dataset.prepare_chunk_pairs={chunk}",
         f"paths.output_dir={cache.parent / 'run'}",
         *(TINY_INPUT if args.tiny else ()),
     ]

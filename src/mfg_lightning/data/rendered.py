@@ -570,13 +570,6 @@ def _prepare_chunk(d: int, indices: list[int]) -> tuple[np.ndarray, int, int]:
     return np.stack([stats[i] for i in indices]), frames, worlds
 
 
-def _compute_in_worker(dataset: RenderedDrivingDataset, indices: list[int]) -> int:
-    """The worker task of this module's previous version (one process per sequence): a parent
-    process started on that version still submits it to the workers it spawns, which import
-    this one. Returns the frames rendered. Remove once no such process runs."""
-    return _compute_chunk(dataset, indices)[1]
-
-
 def prepare_pairs(
     datasets: Sequence[RenderedDrivingDataset],
     workers: int | None = None,
