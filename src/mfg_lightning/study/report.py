@@ -565,18 +565,25 @@ def _verdict_figure(judged: list[Judged]) -> Any:
         sign = 1.0 if p.direction == "<=" else -1.0
         centre = sign * (iv.value - p.bound) / half
         c = colour.get(p.verdict, "0.5")
+        shown = min(max(centre, -lim), lim)
+        if iv.hi == iv.lo:
+            # no spread at all (the same value in every seed and pair): a point, not a bar
+            ax.plot(shown, i, "D", color=c)
+            continue
         lo, hi = max(centre - 1, -lim), min(centre + 1, lim)
         if lo < hi:
             ax.plot([lo, hi], [i, i], color=c, lw=4, solid_capstyle="butt")
-        shown = min(max(centre, -lim), lim)
         ax.plot(shown, i, "o" if shown == centre else ">" if centre > lim else "<", color=c)
     ax.axvline(0.0, color="k", lw=0.8)
     ax.set_xlim(-lim - 0.5, lim + 0.5)
     ax.set_yticks(range(len(parts)))
-    ax.set_yticklabels([f"{k} {p.label[:70]}" for k, p in parts], fontsize=7)
+    # S10's bins name their size and speed last: shortened so that the tick label keeps them
+    short = [p.label.replace("velocity error, ", "").replace(" of the image", "") for _, p in parts]
+    ax.set_yticklabels([f"{k} {lab[:70]}" for (k, _), lab in zip(parts, short, strict=True)],
+                       fontsize=7)  # fmt: skip
     ax.set_xlabel(
         "distance from the bound, in half-widths of the part's 95 % interval\n"
-        "(left of 0: the claimed side; a triangle: beyond the axis)"
+        "(left of 0: the claimed side; a triangle: beyond the axis; a diamond: no spread)"
     )
     ax.invert_yaxis()
     ax.set_title(
