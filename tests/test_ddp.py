@@ -67,3 +67,24 @@ def test_ddp_metrics_equal_single_process_metrics_of_the_same_checkpoint(tmp_pat
     assert not differ, "DDP (2 processes) ≠ single process:\n" + "\n".join(
         f"  {k}: ddp {a} single {b}" for k, a, b in differ
     )
+
+
+def test_a_ddp_multirun_runs_each_job_once_in_its_own_directory(tmp_path: Path) -> None:
+    """``-m`` with ``trainer=ddp``: Lightning starts each job's second process with the parent's
+    command line, which held ``-m`` and the whole sweep (every child ran the sweep again).
+    ``run.training.ddp_job_in_multirun`` hands the children the job's own overrides and
+    directory: the sweep is launched once, and each job's directory has its own results."""
+    sweep = tmp_path / "sweep"
+    proc = run_module(
+        "mfg_lightning.train", "-m", "debug=tiny", "trainer=ddp", "trainer.precision=32-true",
+        "logger=none", "seed=0,1", f"hydra.sweep.dir={sweep}", cwd=tmp_path, timeout=600,
+    )  # fmt: skip
+    out = proc.stdout + proc.stderr
+    assert out.count("Launching 2 jobs locally") == 1, out[-3000:]
+    jobs = sorted(p.name for p in sweep.iterdir() if p.is_dir() and not p.name.startswith("."))
+    assert jobs == ["0", "1"]
+    seeds = [json.loads((sweep / j / "run_info.json").read_text())["seed"] for j in jobs]
+    assert seeds == [0, 1]
+    for j in jobs:
+        metrics = json.loads((sweep / j / "metrics.json").read_text())
+        assert metrics["best_checkpoint"].startswith(str(sweep / j))

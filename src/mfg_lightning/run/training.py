@@ -11,14 +11,18 @@ from __future__ import annotations
 
 import json
 import logging
+import os
+import sys
 import time
 import zipfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import lightning as L
 from hydra.utils import instantiate
-from omegaconf import DictConfig, OmegaConf, open_dict
+from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 
 from mfg_lightning.core.atomic import atomic_write_text
 from mfg_lightning.run.callbacks import LastCheckpoint
@@ -115,6 +119,67 @@ def check_trainer_settings(cfg: DictConfig) -> None:
             cfg.trainer.benchmark = False
 
 
+def _spawns_in_multirun(trainer: L.Trainer) -> bool:
+    """Whether this is a Hydra multirun job whose trainer starts its own DDP processes."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    spawns = trainer.world_size > 1 and not getattr(
+        trainer.strategy.cluster_environment, "creates_processes_externally", True
+    )
+    return spawns and HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+
+
+#: The environment variables Lightning's DDP launcher sets in the process that starts the others
+_LAUNCH_VARIABLES = ("MASTER_ADDR", "MASTER_PORT", "NODE_RANK", "LOCAL_RANK", "WORLD_SIZE")
+
+
+@contextmanager
+def ddp_job_in_multirun(trainer: L.Trainer) -> Iterator[None]:
+    """Under a Hydra multirun, a job whose trainer starts its own DDP processes runs in them
+    alone, and leaves this process ready for the next job.
+
+    Lightning starts each of them as ``python -m <module> <sys.argv[1:]>
+    hydra.run.dir=<hydra.run.dir>``: in a multirun ``sys.argv`` holds ``-m`` and the whole sweep,
+    so every child would run every job of the sweep again, and ``hydra.run.dir`` is not this
+    job's directory. For the block, ``sys.argv`` is this job's own overrides and
+    ``hydra.run.dir`` this job's output directory, so that each child runs this job, in its
+    directory. Afterwards both are put back, and, since the basic launcher runs the next job in
+    this process, the job's process group is destroyed (its peers have exited) and the launch
+    variables Lightning set here are removed (with ``LOCAL_RANK`` set, the next trainer would
+    wait for processes started by someone else). Nothing changes outside a multirun, or where
+    processes are started by others (SLURM, torchrun) or not at all."""
+    import torch.distributed as dist
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    spawns = trainer.world_size > 1 and not getattr(
+        trainer.strategy.cluster_environment, "creates_processes_externally", True
+    )
+    if not (spawns and HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN):
+        yield
+        return
+    hc = HydraConfig.get()
+    argv, run_dir = list(sys.argv), hc.run.dir
+    env = {name: os.environ.get(name) for name in _LAUNCH_VARIABLES}
+    sys.argv = [argv[0], *hc.overrides.task]
+    with read_write(hc):
+        hc.run.dir = hc.runtime.output_dir
+    try:
+        yield
+    finally:
+        sys.argv = argv
+        with read_write(hc):
+            hc.run.dir = run_dir
+        if dist.is_available() and dist.is_initialized():
+            dist.destroy_process_group()
+        for name, value in env.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+
+
 def train(cfg: DictConfig) -> dict[str, Any]:
     """Fit and test as configured. Returns the final metrics (``val/*`` and ``test/*``)."""
     check_trainer_settings(cfg)
@@ -151,32 +216,35 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     hparams = flat_hparams(cfg)
     log_hyperparameters(loggers, hparams)
 
-    start = time.perf_counter()
-    with ending_together(trainer):
-        trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=True)
-    train_seconds = time.perf_counter() - start
-    # The last validation's metrics; a run resumed after it has them from the checkpoint.
-    last = [cb.validation_metrics for cb in callbacks if isinstance(cb, LastCheckpoint)]
-    metrics = {**(last[0] if last else {})}
-    metrics.update({k: v for k, v in trainer.callback_metrics.items() if k.startswith("val/")})
-
-    if cfg.get("test"):
-        best = getattr(trainer.checkpoint_callback, "best_model_path", "") or None
-        if best is None:
-            log.warning("no best checkpoint (no validation ran?): testing the current weights")
+    with ddp_job_in_multirun(trainer):
+        start = time.perf_counter()
         with ending_together(trainer):
-            trainer.test(model, datamodule=datamodule, ckpt_path=best, weights_only=True)
-        metrics.update({k: v for k, v in trainer.callback_metrics.items() if k.startswith("test/")})
-    log_final_metrics(loggers, hparams, metrics, trainer.global_step)
-    if cfg.get("test") and trainer.is_global_zero:
-        write_metrics(
-            output_dir / "metrics.json",
-            metrics,
-            {
-                "train_seconds": train_seconds,
-                "global_step": trainer.global_step,
-                "best_checkpoint": best,
-                **run_info(),
-            },
-        )
+            trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=True)
+        train_seconds = time.perf_counter() - start
+        # The last validation's metrics; a run resumed after it has them from the checkpoint.
+        last = [cb.validation_metrics for cb in callbacks if isinstance(cb, LastCheckpoint)]
+        metrics = {**(last[0] if last else {})}
+        metrics.update({k: v for k, v in trainer.callback_metrics.items() if k.startswith("val/")})
+
+        if cfg.get("test"):
+            best = getattr(trainer.checkpoint_callback, "best_model_path", "") or None
+            if best is None:
+                log.warning("no best checkpoint (no validation ran?): testing the current weights")
+            with ending_together(trainer):
+                trainer.test(model, datamodule=datamodule, ckpt_path=best, weights_only=True)
+            metrics.update(
+                {k: v for k, v in trainer.callback_metrics.items() if k.startswith("test/")}
+            )
+        log_final_metrics(loggers, hparams, metrics, trainer.global_step)
+        if cfg.get("test") and trainer.is_global_zero:
+            write_metrics(
+                output_dir / "metrics.json",
+                metrics,
+                {
+                    "train_seconds": train_seconds,
+                    "global_step": trainer.global_step,
+                    "best_checkpoint": best,
+                    **run_info(),
+                },
+            )
     return {k: float(v) for k, v in metrics.items()}
