@@ -178,3 +178,16 @@ def shared_poses() -> Path:
     if not poses.is_dir():
         pytest.skip("../shared/data/kitti_odometry/poses is not present")
     return poses
+
+
+@pytest.fixture
+def threads_kept():
+    """A benchmark script sets this process's torch and OpenCV threads: put back after the
+    test."""
+    import cv2
+    import torch
+
+    threads = torch.get_num_threads(), cv2.getNumThreads()
+    yield
+    torch.set_num_threads(threads[0])
+    cv2.setNumThreads(threads[1])

@@ -7,9 +7,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-import cv2
 import pytest
-import torch
 
 from conftest import bench_module
 from mfg_lightning.core.machine import cpu_kind
@@ -18,15 +16,6 @@ pytestmark = pytest.mark.slow
 
 OTHER = "# Scale-out: data-parallel training (DDP)\n\n## Training throughput\n\nkeep me\n\n"
 ENVIRONMENT = "## Environment\n\n| a | b |\n|---|---:|\n| c | d |\n"
-
-
-@pytest.fixture
-def threads_kept():
-    """The script sets this process's torch and OpenCV threads: put back after the test."""
-    threads = torch.get_num_threads(), cv2.getNumThreads()
-    yield
-    torch.set_num_threads(threads[0])
-    cv2.setNumThreads(threads[1])
 
 
 def test_data_preparation_writes_its_scaling_section(

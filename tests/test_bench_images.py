@@ -9,9 +9,7 @@ import math
 import sys
 from pathlib import Path
 
-import cv2
 import pytest
-import torch
 
 from conftest import bench_module
 from mfg_lightning.core.machine import cpu_kind
@@ -32,17 +30,8 @@ def _rows(text: str, heading: str) -> list[list[str]]:
     return rows[2:]
 
 
-@pytest.fixture
-def one_thread():
-    """One torch and OpenCV thread during the test, restored after it."""
-    threads, cv_threads = torch.get_num_threads(), cv2.getNumThreads()
-    yield
-    torch.set_num_threads(threads)
-    cv2.setNumThreads(cv_threads)
-
-
 def test_images_to_poses_writes_its_section(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, one_thread: None
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, threads_kept: None
 ) -> None:
     monkeypatch.setenv("MFG_CACHE_DIR", str(tmp_path / "cache"))
     monkeypatch.chdir(tmp_path)
