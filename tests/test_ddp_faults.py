@@ -202,3 +202,29 @@ def test_an_error_in_the_first_process_alone_ends_the_other_too(workdir: Path) -
     assert run.returncode == 1, run.output[-5000:]
     _ended_in_time(run)
     assert "RuntimeError: injected error in process 0" in run.output
+
+
+def test_ddp_broadcasts_buffers_only_for_a_module_whose_forward_changes_them() -> None:
+    import lightning as L
+    from lightning.pytorch.strategies import DDPStrategy
+
+    from mfg_lightning.run.together import BuffersWhereNeeded, buffers_change_in_forward
+    from module_helpers import small_module
+
+    class WithBatchNorm(L.LightningModule):
+        def __init__(self) -> None:
+            super().__init__()
+            self.norm = torch.nn.BatchNorm1d(4)
+
+    def chosen(module: L.LightningModule, **given: bool) -> bool | None:
+        strategy = DDPStrategy(process_group_backend="gloo", **given)
+        trainer = L.Trainer(accelerator="cpu", devices=2, strategy=strategy, logger=False)
+        BuffersWhereNeeded().setup(trainer, module, "fit")
+        return strategy._ddp_kwargs.get("broadcast_buffers")
+
+    mfg = small_module()
+    assert [name for name, _ in mfg.named_buffers()]  # it has buffers (the mean motion)
+    assert not buffers_change_in_forward(mfg) and buffers_change_in_forward(WithBatchNorm())
+    assert chosen(mfg) is False
+    assert chosen(WithBatchNorm()) is True
+    assert chosen(mfg, broadcast_buffers=True) is True  # a given setting is kept

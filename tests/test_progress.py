@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 import lightning as L
+import torch
 from lightning.pytorch.demos.boring_classes import BoringModel
 
 from mfg_lightning.core.config import compose
@@ -62,3 +63,44 @@ def test_an_epoch_limited_run_counts_batches_per_epoch(tmp_path: Path) -> None:
 def test_training_uses_it() -> None:
     cfg = compose("train", [])
     assert cfg.callbacks.rich_progress_bar._target_ == "mfg_lightning.run.progress.RunProgressBar"
+
+
+class _LossEveryThird(BoringModel):
+    """Logs ``train/loss`` at every third step only, as the MFG module logs at its logging
+    steps; records what the bar shows and how often a tensor was read."""
+
+    def training_step(self, batch: Any, batch_idx: int) -> Any:
+        out = super().training_step(batch, batch_idx)
+        if batch_idx % 3 == 0:
+            self.log("train/loss", out["loss"])
+        return out
+
+
+def test_the_bar_shows_the_logged_loss_and_reads_each_value_once(
+    tmp_path: Path, monkeypatch
+) -> None:
+    reads: list[float] = []
+    original = torch.Tensor.__float__
+
+    def counted(self: torch.Tensor) -> float:
+        reads.append(original(self))
+        return reads[-1]
+
+    bar = RunProgressBar()
+    shown: list[Any] = []
+
+    class Shown(L.Callback):
+        def on_train_batch_end(self, trainer: L.Trainer, *args: Any) -> None:
+            shown.append(bar.get_metrics(trainer, trainer.lightning_module).get("train/loss"))
+
+    monkeypatch.setattr(torch.Tensor, "__float__", counted)
+    trainer = L.Trainer(
+        default_root_dir=tmp_path, callbacks=[bar, Shown()], logger=False,
+        enable_checkpointing=False, enable_model_summary=False, limit_train_batches=9,
+        limit_val_batches=0, accelerator="cpu", max_epochs=1,
+    )  # fmt: skip
+    trainer.fit(_LossEveryThird())
+    assert all(v is not None for v in shown)
+    # three values logged (batches 0, 3, 6), each read once, however often the bar asked
+    assert len(reads) == 3
+    assert shown == [reads[0]] * 3 + [reads[1]] * 3 + [reads[2]] * 3

@@ -96,8 +96,11 @@ def _env() -> dict[str, str]:
     )
 
 
-def _start_paused(run: Path, cwd: Path, *extra: str) -> tuple[subprocess.Popen, Path]:
-    """Start a training that pauses in the middle of an optimiser step; wait until it does."""
+def _start_paused(
+    run: Path, cwd: Path, *extra: str, env: dict[str, str] | None = None
+) -> tuple[subprocess.Popen, Path]:
+    """Start a training that pauses in the middle of an optimiser step; wait until it does
+    (``env``: more environment variables)."""
     marker = cwd / f"paused-{run.name}"
     proc = subprocess.Popen(
         [
@@ -105,7 +108,7 @@ def _start_paused(run: Path, cwd: Path, *extra: str) -> tuple[subprocess.Popen, 
             "+callbacks.pause._target_=test_resume.PauseAt", f"+callbacks.pause.step={PAUSE_AT}",
             f"+callbacks.pause.marker={marker}",
         ],
-        cwd=cwd, env={**_env(), "MFG_CACHE_DIR": str(cwd / "cache")},
+        cwd=cwd, env={**_env(), "MFG_CACHE_DIR": str(cwd / "cache"), **(env or {})},
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     deadline = time.monotonic() + 180
@@ -118,21 +121,26 @@ def _start_paused(run: Path, cwd: Path, *extra: str) -> tuple[subprocess.Popen, 
     return proc, marker
 
 
-def _interrupt(run: Path, cwd: Path, sig: signal.Signals, timeout: int) -> tuple[int, str]:
-    """Send ``sig`` to a training paused mid-step (:func:`_start_paused`); its exit status and
-    output (stdout, where the run's own log lines go, then stderr) once it has ended."""
-    proc, _ = _start_paused(run, cwd)
+def _interrupt(
+    run: Path, cwd: Path, sig: signal.Signals, timeout: int, *extra: str, **kw: Any
+) -> tuple[int, str]:
+    """Send ``sig`` to a training paused mid-step (:func:`_start_paused`, given ``extra`` and
+    ``kw``); its exit status and output (stdout, where the run's own log lines go, then stderr)
+    once it has ended."""
+    proc, _ = _start_paused(run, cwd, *extra, **kw)
     proc.send_signal(sig)
     out, err = proc.communicate(timeout=timeout)
     return proc.returncode, out + err
 
 
-def _train(*args: str, cwd: Path, check: bool = True) -> subprocess.CompletedProcess:
+def _train(
+    *args: str, cwd: Path, check: bool = True, env: dict[str, str] | None = None
+) -> subprocess.CompletedProcess:
     """``python -m mfg_lightning.train`` as a user runs it (with this directory importable, so
-    that Hydra can build the test hooks above)."""
+    that Hydra can build the test hooks above; ``env``: more environment variables)."""
     proc = subprocess.run(
         [sys.executable, "-m", "mfg_lightning.train", *args],
-        cwd=cwd, env={**_env(), "MFG_CACHE_DIR": str(cwd / "cache")},
+        cwd=cwd, env={**_env(), "MFG_CACHE_DIR": str(cwd / "cache"), **(env or {})},
         capture_output=True, text=True, timeout=300, check=False,
     )  # fmt: skip
     if check and proc.returncode != 0:
@@ -228,6 +236,68 @@ def test_sigterm_saves_a_checkpoint_of_the_current_step_and_resume_continues_exa
     # resume=true picks up last.ckpt by itself (a requeued job with the same run directory).
     _train(*RUN, "resume=true", f"hydra.run.dir={run}", cwd=workdir)
     _assert_same_run(run, reference)
+
+
+def _slurm_job(workdir: Path) -> dict[str, str]:
+    """The environment of task 0 of a one-task SLURM job (id 4242), as ``srun`` sets it, with a
+    ``scontrol`` on the PATH that records its arguments in ``<workdir>/scontrol.log``."""
+    bin_dir = workdir / "bin"
+    bin_dir.mkdir(exist_ok=True)
+    scontrol = bin_dir / "scontrol"
+    scontrol.write_text(f'#!/bin/sh\necho "$@" >> {workdir / "scontrol.log"}\n')
+    scontrol.chmod(0o755)
+    return {
+        "SLURM_JOB_ID": "4242", "SLURM_JOB_NAME": "mfg-test", "SLURM_NTASKS": "1",
+        "SLURM_NTASKS_PER_NODE": "1", "SLURM_PROCID": "0", "SLURM_LOCALID": "0",
+        "SLURM_NODEID": "0", "SLURM_NODELIST": "localhost",
+        "PATH": os.pathsep.join([str(bin_dir), os.environ.get("PATH", "")]),
+    }  # fmt: skip
+
+
+def test_slurm_requeue_signal_saves_last_ckpt_requeues_and_the_requeued_job_resumes_exactly(
+    workdir: Path, reference: Path
+) -> None:
+    # SLURM sends SIGUSR1 before the time limit (#SBATCH --signal=SIGUSR1@120): the step
+    # finishes, last.ckpt is saved, the job asks to be requeued, the process exits with 143.
+    run, job = workdir / "requeued", _slurm_job(workdir)
+    returncode, err = _interrupt(run, workdir, signal.SIGUSR1, 120, "resume=true", env=job)
+    assert returncode == 128 + signal.SIGTERM, err[-3000:]
+    assert (workdir / "scontrol.log").read_text().split() == ["requeue", "4242"]
+    assert _ckpt(run / "checkpoints" / "last.ckpt")["global_step"] == PAUSE_AT + 1
+    # Lightning's own auto-requeue is off: no hpc_ckpt file, nothing resumes from one
+    assert not list(run.rglob("hpc_ckpt*"))
+
+    # The requeued job: the same command in a fresh process, which resume=true continues.
+    _train(*RUN, "resume=true", f"hydra.run.dir={run}", cwd=workdir, env=job)
+    _assert_same_run(run, reference)
+    info = json.loads((run / "run_info.json").read_text())
+    assert info["resumed_from"] == str(run / "checkpoints" / "last.ckpt")
+
+
+def test_inside_slurm_the_trainer_has_lightnings_slurm_environment_without_auto_requeue(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from lightning.fabric.plugins.environments import SLURMEnvironment
+
+    from mfg_lightning.core.config import compose
+    from mfg_lightning.run.runs import build_trainer
+    from mfg_lightning.run.slurm import SlurmRequeue, job_id
+
+    cfg = compose("train", ["debug=tiny", "logger=none", f"paths.output_dir={tmp_path}"])
+    outside = build_trainer(cfg, [], [])._accelerator_connector.cluster_environment
+    assert not isinstance(outside, SLURMEnvironment)
+    for key, value in _slurm_job(tmp_path).items():
+        monkeypatch.setenv(key, value)
+    inside = build_trainer(cfg, [], [])._accelerator_connector.cluster_environment
+    assert isinstance(inside, SLURMEnvironment) and inside.auto_requeue is False
+    assert cfg.callbacks.slurm_requeue._target_.endswith("SlurmRequeue")
+    assert job_id() == "4242"
+    assert (
+        job_id({"SLURM_JOB_ID": "7", "SLURM_ARRAY_JOB_ID": "5", "SLURM_ARRAY_TASK_ID": "3"})
+        == "5_3"
+    )
+    with pytest.raises(ValueError, match="SIGNOPE"):
+        SlurmRequeue(signal="SIGNOPE")
 
 
 def test_resume_true_without_a_checkpoint_starts_fresh_and_a_truncated_one_is_refused(

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from typing import Any, NamedTuple
 
+import numpy as np
 import torch
 
 FLOW = "flow"
@@ -242,7 +243,9 @@ def _type_of(value: Any) -> str:
     return str(value.dtype) if isinstance(value, torch.Tensor) else type(value).__name__
 
 
-def _batch_ids(batch: dict[str, Any], rows: torch.Tensor | None = None, limit: int = 4) -> str:
+def _batch_ids(
+    batch: dict[str, Any], rows: torch.Tensor | np.ndarray | None = None, limit: int = 4
+) -> str:
     """The ``sample_id`` of the given batch rows (all when None), for error messages."""
     ids = batch.get(SAMPLE_ID)
     if not isinstance(ids, (list, tuple)):
@@ -353,17 +356,20 @@ def batch_value_flags(batch: dict[str, Any]) -> torch.Tensor:
     return torch.stack([r.to(batch[FLOW].device) for r in rows])
 
 
-def raise_on_bad_values(batch: dict[str, Any], flags: torch.Tensor) -> None:
+def raise_on_bad_values(batch: dict[str, Any], flags: torch.Tensor | np.ndarray) -> None:
     """Raise :class:`SampleError` for the first failed check of :func:`batch_value_flags`'
     ``flags``, naming the failing samples (read from ``batch["sample_id"]``) and the key.
-    Reads ``flags``: pass them on the host to avoid waiting for a device."""
-    flags = flags.cpu()
+
+    A tensor is read (on a device, a wait for it); an array is what a caller already copied to
+    the host (``Tensor.numpy()``, which refuses device tensors: never a wait)."""
+    if isinstance(flags, torch.Tensor):
+        flags = flags.cpu().numpy()
     if not flags.any():
         return
     for check, bad in zip(VALUE_CHECKS, flags, strict=True):
         if not bad.any():
             continue
-        ids = _batch_ids(batch, bad.nonzero().flatten())
+        ids = _batch_ids(batch, bad.nonzero()[0])
         if check == "focal":
             raise SampleError(f"{ids}: focal lengths must be positive")
         raise SampleError(f"{ids}: '{check}' has non-finite values")

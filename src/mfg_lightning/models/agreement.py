@@ -18,9 +18,10 @@ reduced flags at the same step (:class:`Agreement`):
 
 The skip flag stays on the device (a fused optimiser's ``found_inf``; the host route reads it, as
 it reads the loss). The stop and fail flags are read on the host at every step on a CPU, where a
-read costs nothing, and every :attr:`Agreement.READ_EVERY` steps on an accelerator, where a read
-waits for the device; meanwhile their maximum is kept on the device. A stop or a failure is then
-acted on up to that many steps late, at the same step on every process.
+read costs nothing, and on an accelerator, where a read waits for the device, only at the logging
+steps (:func:`logging_step`: every ``trainer.log_every_n_steps``, when the loggers make the host
+wait anyway); meanwhile their maximum is kept on the device. A stop or a failure is then acted on
+up to that many steps late, at the same step on every process.
 
 One process (no process group): nothing is reduced; SIGTERM and a refused batch are acted on at
 once, as Lightning and the callbacks do by themselves.
@@ -39,7 +40,22 @@ from mfg_lightning.core.errors import UserError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Agreement", "PeerFailedError"]
+__all__ = ["Agreement", "PeerFailedError", "logging_step"]
+
+
+def logging_step(trainer: Any, done: bool = False) -> bool:
+    """Whether the training step in progress is a logging step: the loggers write its values,
+    every ``trainer.log_every_n_steps`` optimiser steps (every :attr:`Agreement.READ_EVERY` where
+    that is 0). The host waits for the device at these steps anyway, so the run's other host
+    reads are made then too. The same answer on every process (the global step decides).
+
+    Args:
+        trainer: the Lightning trainer.
+        done: asked after the optimiser step (``trainer.global_step`` already counts it, as in
+            ``on_train_batch_end``), not during it (``training_step``).
+    """
+    every = int(trainer.log_every_n_steps) or Agreement.READ_EVERY
+    return (trainer.global_step + (0 if done else 1)) % every == 0
 
 
 class PeerFailedError(UserError):
@@ -61,6 +77,7 @@ class Agreement:
     """
 
     #: on an accelerator, the training steps between two host reads of the stop and fail flags
+    #: where the loggers never write (``trainer.log_every_n_steps=0``; else the logging steps)
     READ_EVERY = 20
 
     def __init__(self) -> None:
@@ -108,12 +125,19 @@ class Agreement:
         self._unread = agreed if self._unread is None else torch.maximum(self._unread, agreed)
         return flags[0] > 0
 
-    def decide(self, step: int, force: bool = False) -> None:
-        """Read the agreed stop and fail flags when due (every step on a CPU, every
-        :attr:`READ_EVERY` steps elsewhere; ``force``: now): set :attr:`stop`, or raise.
+    @staticmethod
+    def reads_every_step(device: torch.device) -> bool:
+        """Whether the agreed flags are read at every step on ``device``: on a CPU (a read
+        waits for nothing there), not elsewhere (only at the logging steps)."""
+        return device.type == "cpu"
+
+    def decide(self, step: int, due: bool = False, force: bool = False) -> None:
+        """Read the agreed stop and fail flags when due (every step on a CPU, at the logging
+        steps elsewhere; ``force``: now): set :attr:`stop`, or raise.
 
         Args:
-            step: the global step, the same on every process (so that all read together).
+            step: the global step, the same on every process (for the messages).
+            due: a logging step (:func:`logging_step`), the same answer on every process.
             force: read now (outside a step, where every process calls this alike).
 
         Raises:
@@ -123,7 +147,7 @@ class Agreement:
         unread = self._unread
         if unread is None:
             return
-        if not (force or unread.device.type == "cpu" or step % self.READ_EVERY == 0):
+        if not (force or due or self.reads_every_step(unread.device)):
             return
         self._unread = None
         stop, fail = unread.tolist()

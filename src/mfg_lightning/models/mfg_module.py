@@ -15,7 +15,8 @@ the run stops or fails, is decided by every process together
 
 No host synchronisation in a training step outside the logging steps: counts (masked flow pixels,
 skipped steps) stay tensors on the device and are read when they are logged (under DDP on an
-accelerator, the agreed stop and fail flags are read every ``Agreement.READ_EVERY`` steps too).
+accelerator, the agreed stop and fail flags are read at the logging steps too;
+tests/test_host_waits.py counts every read and collective of the steps, Lightning's included).
 Evaluation batches have none either (the SVD of the per-frame errors may wait for cuSOLVER's error
 check).
 """
@@ -35,7 +36,7 @@ from mfg_lightning.data import sample as keys
 from mfg_lightning.data.sample import INTRINSICS_HOST, model_inputs
 from mfg_lightning.metrics.evaluator import EvaluationResult
 from mfg_lightning.metrics.motion_eval import MotionEvaluation, ObjectInputs
-from mfg_lightning.models.agreement import Agreement
+from mfg_lightning.models.agreement import Agreement, logging_step
 from mfg_lightning.models.losses import LossTerms, MFGLoss
 from mfg_lightning.models.mfg import MFGOutput, MotionFieldNetwork, StepFields, validate_top_k
 from mfg_lightning.models.nonfinite import (
@@ -208,8 +209,7 @@ class MFGLitModule(L.LightningModule):
         trainer = self._trainer
         if trainer is None:
             return True
-        every = max(1, int(trainer.log_every_n_steps))
-        return (trainer.global_step + 1) % every == 0 or trainer.should_stop
+        return logging_step(trainer) or trainer.should_stop
 
     def training_step(
         self, batch: dict[str, Any] | None, batch_idx: int
@@ -235,7 +235,10 @@ class MFGLitModule(L.LightningModule):
             self._warn_masked_flow("train")
             self.nonfinite.report(_ids(batch))
             bs = inputs.flow.shape[0]
-            self.log("train/loss", terms.total, prog_bar=True, batch_size=bs)
+            # not prog_bar: Lightning would read a progress-bar value back at every later step
+            # of the epoch; the run's progress bar reads it once per logged value
+            # (mfg_lightning.run.progress.RunProgressBar)
+            self.log("train/loss", terms.total, batch_size=bs)
             values = {f"train/{k}": getattr(terms, k).mean() for k in _TERMS}
             values["train/active_fraction"] = _active_fraction(out.hidden)
             # this process's counts: a reduction across processes is a collective, which the
@@ -262,7 +265,7 @@ class MFGLitModule(L.LightningModule):
         if trainer is None or trainer.world_size == 1:
             return finite
         skip = self.agreement.reduce(~finite, trainer.strategy)
-        self.agreement.decide(trainer.global_step)
+        self.agreement.decide(trainer.global_step, due=logging_step(trainer))
         return ~skip
 
     def _step_without_samples(self, fused: bool) -> Tensor | None:

@@ -46,7 +46,7 @@ from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from mfg_lightning.core.atomic import atomic_write_bytes
 from mfg_lightning.core.errors import UserError
-from mfg_lightning.models.agreement import Agreement
+from mfg_lightning.models.agreement import Agreement, logging_step
 
 log = logging.getLogger(__name__)
 
@@ -207,10 +207,12 @@ class LastCheckpoint(Checkpoint):
     saving; a period in minutes costs the same share of any device's time. The time is checked
     after each step, so a save still lands where a resumed run continues exactly. Under DDP
     every process must save together (``Trainer.save_checkpoint`` is collective) while their
-    clocks disagree: rank 0's clock decides, broadcast every :attr:`TIME_SYNC_EVERY` steps, so
-    that the other steps have no collective. SIGTERM is acted on when every process has agreed
-    on it (:class:`~mfg_lightning.run.together.StopTogether` sets Lightning's flag after the same
-    step everywhere), so the save on SIGTERM is collective too.
+    clocks disagree: rank 0's clock decides, broadcast at the logging steps
+    (:func:`~mfg_lightning.models.agreement.logging_step`, every ``trainer.log_every_n_steps``),
+    where the host waits for the loggers anyway, so that the other steps have no collective.
+    SIGTERM is acted on when every process has agreed on it
+    (:class:`~mfg_lightning.run.together.StopTogether` sets Lightning's flag after the same step
+    everywhere), so the save on SIGTERM is collective too.
 
     Args:
         dirpath: the run's checkpoint directory (``<run dir>/checkpoints``).
@@ -220,9 +222,6 @@ class LastCheckpoint(Checkpoint):
             the fit (None: none by time). With both periods 0/None the file is saved only at
             the end and on SIGTERM.
     """
-
-    #: under DDP, the steps between two broadcasts of rank 0's "the time is up"
-    TIME_SYNC_EVERY = 20
 
     def __init__(
         self,
@@ -283,7 +282,7 @@ class LastCheckpoint(Checkpoint):
             return False
         if trainer.world_size == 1:
             return self.clock() - self._last_save_time >= self.every_seconds
-        if trainer.global_step % self.TIME_SYNC_EVERY:
+        if not logging_step(trainer, done=True):
             return False
         up = self.clock() - self._last_save_time >= self.every_seconds
         return bool(trainer.strategy.broadcast(up, src=0))
@@ -444,13 +443,13 @@ class BatchChecks(L.Callback):
             raise_on_bad_values(batch, flags)
             return
         self._read_pending(training, wait=False)  # the earlier batches whose flags have landed
+        # into pinned memory without waiting on a GPU (read when the event has passed); on a
+        # CPU the flags themselves
+        host = flags.to("cpu", non_blocking=flags.is_cuda)
         event = None
         if flags.is_cuda:
-            host = flags.to("cpu", non_blocking=True)  # into pinned memory, without waiting
             event = torch.cuda.Event()
             event.record()
-        else:
-            host = flags.cpu()
         self._pending[training].append((host, event, {"sample_id": batch.get("sample_id")}))
         self._batches += 1
         if self._batches % self.check_every == 0:
@@ -470,7 +469,7 @@ class BatchChecks(L.Callback):
                     return
                 event.synchronize()
             pending.pop(0)
-            raise_on_bad_values(ids, host)
+            raise_on_bad_values(ids, host.numpy())  # landed: an array, read without a wait
 
     @staticmethod
     def _agreement(trainer: L.Trainer | None, pl_module: L.LightningModule) -> Agreement | None:

@@ -7,6 +7,11 @@ far the run is. :class:`RunProgressBar` keeps Lightning's bar for runs that ``ma
 and, for runs that ``max_steps`` limits, shows the optimiser steps of the whole run instead: the
 bar's total is ``max_steps``, its count the steps done (``trainer.global_step``), and the title
 ``Epoch e · s steps to go``. Validation, test and predict bars are Lightning's.
+
+The training loss is shown without being a progress-bar value of Lightning's (``prog_bar=True``):
+Lightning converts such a value to a Python number after every training step until the epoch
+ends, a host wait per step on a GPU, although the module logs it only at the logging steps. The
+bar reads the logged tensor itself, once per new value (:attr:`RunProgressBar.SHOWN`).
 """
 
 from __future__ import annotations
@@ -43,7 +48,33 @@ def steps_limit(trainer: L.Trainer) -> int | None:
 
 class RunProgressBar(RichProgressBar):
     """:class:`~lightning.pytorch.callbacks.RichProgressBar` that counts the run's steps when
-    ``trainer.max_steps`` limits it (module docstring); takes the same arguments."""
+    ``trainer.max_steps`` limits it, and shows the training loss read once per logged value
+    (module docstring); takes the same arguments."""
+
+    #: logged training values the bar shows beside Lightning's progress-bar values
+    SHOWN = ("train/loss",)
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        # name -> (the logged tensor last read, kept alive; its value)
+        self._read: dict[str, tuple[Any, float]] = {}
+
+    def get_metrics(self, trainer: L.Trainer, pl_module: L.LightningModule) -> dict[str, Any]:
+        """Lightning's items, and :attr:`SHOWN`'s latest logged values: a value is read from
+        its tensor (a host wait on a GPU) only when the module has logged a new one."""
+        items = super().get_metrics(trainer, pl_module)
+        for name in self.SHOWN:
+            value = trainer.callback_metrics.get(name)
+            if value is None:
+                continue
+            last = self._read.get(name)
+            # Lightning hands out a new view of the same logged tensor at every step: the
+            # storage tells a new value (the one held here stays alive, so no new value can
+            # take its address)
+            if last is None or last[0].data_ptr() != value.data_ptr():
+                last = self._read[name] = (value, float(value))
+            items[name] = last[1]
+        return items
 
     def _steps(self) -> int | None:
         return steps_limit(self.trainer) if self._trainer is not None else None

@@ -13,6 +13,7 @@ from typing import Any
 
 import lightning as L
 from hydra.utils import instantiate
+from lightning.fabric.plugins.environments import ClusterEnvironment
 from lightning.fabric.plugins.io.checkpoint_io import CheckpointIO
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
@@ -21,7 +22,8 @@ from mfg_lightning.core.machine import cpu_kind
 from mfg_lightning.core.tables import finite_or_none
 from mfg_lightning.run.callbacks import AtomicCheckpointIO
 from mfg_lightning.run.precision import PRECISION_AUTO, resolve_precision, with_precision_setup
-from mfg_lightning.run.together import StopTogether
+from mfg_lightning.run.slurm import slurm_environment
+from mfg_lightning.run.together import BuffersWhereNeeded, StopTogether
 
 log = logging.getLogger(__name__)
 
@@ -69,19 +71,29 @@ def resolve_configured_precision(cfg: DictConfig) -> Any:
 def build_trainer(cfg: DictConfig, callbacks: list[Any], loggers: list[Any]) -> L.Trainer:
     """The configured ``lightning.Trainer``, writing checkpoints atomically unless the config
     brings its own checkpoint IO plugin (``trainer.plugins``: one or a list, configs with a
-    ``_target_`` or Lightning's plugin names), and with the precision rules
-    (:class:`mfg_lightning.run.precision.PrecisionSetup`) and the SIGTERM handling that stops
-    every DDP process after the same step (:class:`mfg_lightning.run.together.StopTogether`)
-    among its callbacks."""
+    ``_target_`` or Lightning's plugin names), inside a SLURM allocation with Lightning's SLURM
+    environment without its auto-requeue (:func:`mfg_lightning.run.slurm.slurm_environment`),
+    and with the precision rules
+    (:class:`mfg_lightning.run.precision.PrecisionSetup`), the SIGTERM handling that stops
+    every DDP process after the same step (:class:`mfg_lightning.run.together.StopTogether`) and
+    DDP's buffer broadcast only where a buffer needs it
+    (:class:`mfg_lightning.run.together.BuffersWhereNeeded`) among its callbacks."""
     resolve_configured_precision(cfg)
     given = cfg.trainer.get("plugins") or []
     given = list(given) if isinstance(given, (list, ListConfig)) else [given]
     plugins = [instantiate(p) if isinstance(p, DictConfig) else p for p in given]
     if not any(isinstance(p, CheckpointIO) for p in plugins):
         plugins.append(AtomicCheckpointIO())
+    if not any(isinstance(p, ClusterEnvironment) for p in plugins):
+        # inside a SLURM allocation: Lightning's environment without its auto-requeue (a
+        # requeue goes through last.ckpt and resume=true: mfg_lightning.run.slurm)
+        slurm = slurm_environment()
+        if slurm is not None:
+            plugins.append(slurm)
     callbacks = with_precision_setup(callbacks)
-    if not any(isinstance(cb, StopTogether) for cb in callbacks):
-        callbacks.append(StopTogether())
+    for needed in (StopTogether, BuffersWhereNeeded):
+        if not any(isinstance(cb, needed) for cb in callbacks):
+            callbacks.append(needed())
     return instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False, plugins=plugins)
 
 

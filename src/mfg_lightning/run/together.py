@@ -8,7 +8,8 @@
   (:class:`~mfg_lightning.models.agreement.Agreement`) turns it into a stop after the same step on
   every process, where this callback sets Lightning's flag: ``LastCheckpoint`` saves there, and
   Lightning stops there, on every process alike. Without a process group the flag is set at once,
-  as Lightning's handler does.
+  as Lightning's handler does. Lightning's per-step broadcast of rank 0's flag (a collective and a
+  host read before every DDP step) is then redundant and is turned off.
 * **An error.** The errors the processes agree on (a refused batch, too many non-finite losses)
   are raised by all at the same step. Any other error ends its own process, and
   :func:`ending_together` makes sure that the others end within seconds, not at the process
@@ -17,6 +18,10 @@
   them from the first) waits up to :data:`CHILDREN_GRACE` seconds for them, then kills those left.
   Elsewhere the launcher does it (torchrun ends every process when one fails; under SLURM,
   ``srun --kill-on-bad-exit=1``).
+
+DDP's broadcast of the module's buffers before every forward is kept only where a buffer needs it
+(:class:`BuffersWhereNeeded`): the buffers this project's modules have are set before training
+and equal on every process after DDP's first synchronisation.
 
 Lightning watches the processes it started and kills the first one (SIGKILL) as soon as another
 exits with an error status, which a process stopped by SIGTERM (143) or by an agreed error (2)
@@ -38,15 +43,17 @@ from types import FrameType
 from typing import Any
 
 import lightning as L
+import torch
 import torch.distributed as dist
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from lightning.pytorch.utilities.rank_zero import rank_prefixed_message
 
 from mfg_lightning.models.agreement import Agreement
+from mfg_lightning.run.slurm import SlurmRequeue
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CHILDREN_GRACE", "StopTogether", "ending_together"]
+__all__ = ["CHILDREN_GRACE", "BuffersWhereNeeded", "StopTogether", "ending_together"]
 
 #: seconds the first process of ``trainer=ddp`` waits for the others to end after it stopped
 #: (they stop at the same step, or their collectives fail once it has left the process group)
@@ -79,6 +86,11 @@ class StopTogether(L.Callback):
         # Lightning composes the handler it registers before each stage from this attribute
         # (with SLURM's requeue handler and any handler already there).
         connector._sigterm_notifier_fn = functools.partial(_on_sigterm, trainer, agreement)
+        epoch_loop = trainer.fit_loop.epoch_loop
+        if hasattr(epoch_loop, "_broadcast_sigterm_tensor"):
+            # Lightning broadcasts rank 0's flag and reads it before every DDP step (a collective
+            # and a host wait per step); the agreement carries the signal instead.
+            epoch_loop._broadcast_sigterm_tensor = _no_sigterm_broadcast
 
     def on_train_batch_end(
         self, trainer: L.Trainer, pl_module: L.LightningModule, *args: Any, **kwargs: Any
@@ -113,6 +125,46 @@ class StopTogether(L.Callback):
         self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException
     ) -> None:
         _take_over_the_watch(trainer)
+
+
+def _no_sigterm_broadcast() -> None:
+    """In place of Lightning's per-step SIGTERM broadcast (see :meth:`StopTogether.setup`)."""
+
+
+class BuffersWhereNeeded(L.Callback):
+    """DDP broadcasts the module's buffers from rank 0 before every forward (``broadcast_buffers``,
+    True by default): a collective per step. Only buffers that the forward changes need it, those
+    of normalisation layers with running statistics; without such a layer this callback turns the
+    broadcast off. DDP's one synchronisation when it wraps the module still makes every buffer
+    equal on every process (this project's modules set theirs, the mean motion, before training).
+
+    A ``broadcast_buffers`` given to the strategy (``trainer.strategy.broadcast_buffers``) is
+    kept as given: set it to true for a module with other buffers that change in training.
+    :func:`mfg_lightning.run.runs.build_trainer` adds this callback to every Trainer a run builds.
+    """
+
+    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        # Callbacks' setup runs before the strategy wraps the module (strategy.setup)
+        from lightning.pytorch.strategies import DDPStrategy
+
+        strategy = trainer.strategy
+        if not isinstance(strategy, DDPStrategy) or "broadcast_buffers" in strategy._ddp_kwargs:
+            return
+        needs = buffers_change_in_forward(pl_module)
+        strategy._ddp_kwargs["broadcast_buffers"] = needs
+        if not needs:
+            log.debug("DDP: no buffer changes in a forward, broadcast_buffers=False")
+
+
+def buffers_change_in_forward(module: torch.nn.Module) -> bool:
+    """Whether ``module`` has buffers its forward updates: normalisation layers that track
+    running statistics (batch norm and its kin)."""
+    from torch.nn.modules.batchnorm import _NormBase
+
+    return any(
+        isinstance(m, _NormBase) and m.track_running_stats and m.running_mean is not None
+        for m in module.modules()
+    )
 
 
 def _on_sigterm(
@@ -194,10 +246,12 @@ def ending_together(trainer: L.Trainer) -> Iterator[None]:
     Lightning ends a fit or test stopped by SIGTERM with ``SIGTERMException`` (a ``SystemExit``
     of status 0): exit with 143 instead, the conventional status of a process ended by SIGTERM,
     so that schedulers and scripts see an interrupted job. During a fit, ``LastCheckpoint`` has
-    saved ``last.ckpt`` by then. Any end by an exception tears the datamodule down (its threads
-    stopped before the interpreter exits). Under DDP it also ends the other processes (the
-    module's docstring): this one leaves a gloo process group unless every process stopped
-    together on SIGTERM, and the first process of ``trainer=ddp`` waits for the others.
+    saved ``last.ckpt`` by then; a stop on SLURM's requeue signal requeues the job now
+    (:class:`~mfg_lightning.run.slurm.SlurmRequeue`). Any end by an exception tears the
+    datamodule down (its threads stopped before the interpreter exits). Under DDP it also ends
+    the other processes (the module's docstring): this one leaves a gloo process group unless
+    every process stopped together on SIGTERM, and the first process of ``trainer=ddp`` waits
+    for the others.
     """
     try:
         yield
@@ -210,5 +264,8 @@ def ending_together(trainer: L.Trainer) -> Iterator[None]:
             _end_children(trainer, CHILDREN_GRACE)
         if stopped:
             log.warning("stopped by SIGTERM at step %d", trainer.global_step)
+            for callback in trainer.callbacks:
+                if isinstance(callback, SlurmRequeue):  # stopped by SLURM's requeue signal
+                    callback.requeue(trainer)
             raise SystemExit(128 + signal.SIGTERM) from None
         raise
