@@ -50,10 +50,13 @@ from typing import Any
 
 import lightning as L
 import torch
+from hydra.utils import instantiate
+
+from mfg_lightning.data.workers import plan_workers, sample_bytes
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import TINY_OVERRIDES, Report, add_common_arguments, fmt, markdown_table
-from gpu_check_parts.state import flags_restored, plan_workers, sample_bytes, set_cublas_workspace
+from gpu_check_parts.state import flags_restored, set_cublas_workspace
 
 #: The test metrics compared between the devices.
 COMPARED = ("test/ate", "test/rpe_trans", "test/rpe_rot", "test/trans_err", "test/rot_err")
@@ -395,7 +398,7 @@ def main(argv: list[str] | None = None) -> Path:
             int(base.dataset.num_workers),
             int(base.dataset.batch_size),
             int(base.dataset.eval_batch_size),
-            sample_bytes(base.dataset),
+            sample_bytes(instantiate(base.dataset).dataset("train")[0]),
             args.shm,
         )
         if shm.workers != int(base.dataset.num_workers):

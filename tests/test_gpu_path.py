@@ -235,16 +235,18 @@ def test_make_gpu_check_runs_every_part_on_a_cpu(tmp_path: Path) -> None:
 
 
 def test_gpu_check_fits_the_loader_workers_to_dev_shm(tmp_path: Path, monkeypatch) -> None:
+    from mfg_lightning.data.workers import plan_workers
+
     gpu_check = bench_module("gpu_check")
     kb = 154 * 1024  # one sample of the quick start
-    roomy = gpu_check.plan_workers(6, 16, 64, kb, tmp_path)
-    assert roomy.workers == 6 and "enough" in roomy.note
+    roomy = plan_workers(6, 16, 64, kb, tmp_path)
+    assert roomy.workers == 6 and roomy.enough and "enough" in roomy.note
     Usage = type(shutil.disk_usage(tmp_path))
     monkeypatch.setattr(shutil, "disk_usage", lambda _: Usage(64 << 20, 0, 64 << 20))
-    small = gpu_check.plan_workers(6, 16, 64, kb, Path("/dev/shm"))  # Docker's default 64 MB
-    assert 0 <= small.workers < 6
+    small = plan_workers(6, 16, 64, kb, Path("/dev/shm"))  # Docker's default 64 MB
+    assert 0 <= small.workers < 6 and not small.enough
     assert f"dataset.num_workers={small.workers}" in small.note and "--shm-size=" in small.note
-    assert gpu_check.plan_workers(0, 16, 64, kb, Path("/dev/shm")).workers == 0
+    assert plan_workers(0, 16, 64, kb, Path("/dev/shm")).workers == 0
     # Lightning's precision aliases are accepted, anything else refused before any work.
     assert gpu_check.parse_args(["--precisions", "bf16", "32"]).precisions == [
         "bf16-mixed",
@@ -485,3 +487,30 @@ def test_the_tests_run_on_the_cpu_whatever_the_machine_has() -> None:
     kept = os.environ["MFG_TESTS_CUDA_VISIBLE_DEVICES"]  # the machine's own setting
     assert cuda_env().get("CUDA_VISIBLE_DEVICES", "<unset>") == kept
     assert "MFG_TESTS_CUDA_VISIBLE_DEVICES" not in cuda_env()
+
+
+def test_a_datamodule_runs_the_loader_workers_that_dev_shm_holds(monkeypatch, caplog) -> None:
+    import logging
+
+    from mfg_lightning.data import base
+    from mfg_lightning.data.workers import loader_workers
+    from module_helpers import small_datamodule
+
+    Usage = type(shutil.disk_usage("/"))
+    free = {"bytes": 1 << 40}
+    monkeypatch.setattr(shutil, "disk_usage", lambda _: Usage(free["bytes"], 0, free["bytes"]))
+    monkeypatch.setattr(base, "SHM", Path("/"))  # a directory on every system the tests run on
+
+    roomy = small_datamodule(num_workers=2)
+    assert roomy.val_dataloader().num_workers == 2
+    free["bytes"] = 1 << 20  # 1 MB: room for no worker's batches
+    small = small_datamodule(num_workers=2, persistent_workers=True)
+    with caplog.at_level(logging.WARNING, logger="mfg_lightning.data.base"):
+        loader = small.val_dataloader()
+    assert loader.num_workers == 0 and not loader.persistent_workers
+    assert "too small for 2 loader workers" in caplog.text and "--shm-size=" in caplog.text
+    # the workers follow the cores: one core each for the processes, the rest for workers
+    monkeypatch.setattr("mfg_lightning.data.workers.usable_cores", lambda: 16)
+    assert loader_workers(6) == 6 and loader_workers(6, 4) == 3 and loader_workers(6, 16) == 0
+    monkeypatch.setattr("mfg_lightning.data.workers.usable_cores", lambda: 2)
+    assert loader_workers(6) == 1 and loader_workers(6, "auto") == 1

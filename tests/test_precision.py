@@ -10,6 +10,7 @@ import contextlib
 import math
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import lightning as L
 import pytest
@@ -435,10 +436,20 @@ def test_the_deterministic_upsampling_is_bilinear_interpolation(align_corners: b
     assert torch.equal(upsample_bilinear(f, (48, 128), align_corners), ref)
 
 
+def _raw(node: Any, key: str) -> Any:
+    """``node[key]`` as written, interpolations unresolved."""
+    from omegaconf import OmegaConf
+
+    return OmegaConf.to_container(node, resolve=False)[key]
+
+
 def test_gpu_trainer_configs() -> None:
     cfg = compose("train", ["trainer=gpu", "paths.output_dir=/tmp/unused"])
     assert cfg.trainer.accelerator == "gpu" and cfg.trainer.benchmark is True
-    assert cfg.dataset.num_workers > 0 and cfg.dataset.pin_memory and cfg.dataset.persistent_workers
+    assert cfg.dataset.pin_memory and cfg.dataset.persistent_workers
+    # the workers follow the usable cores (mfg_lightning.data.workers.loader_workers), at most 6
+    assert _raw(cfg.dataset, "num_workers") == "${loader_workers:6}"
+    assert 0 <= cfg.dataset.num_workers <= 6
     assert cfg.dataset._target_.endswith("SyntheticDataModule")  # merged into the dataset
     user = compose("train", ["trainer=gpu", "dataset.num_workers=1", "paths.output_dir=/tmp/u"])
     assert user.dataset.num_workers == 1  # the command line wins
@@ -449,7 +460,9 @@ def test_gpu_trainer_configs() -> None:
     nodes = compose("train", ["trainer=ddp_slurm", "paths.output_dir=/tmp/unused"])
     assert nodes.trainer.strategy.process_group_backend == "nccl" and nodes.trainer.num_nodes == 2
     assert nodes.trainer.benchmark is True and nodes.dataset.pin_memory
-    assert nodes.dataset.persistent_workers and nodes.dataset.num_workers == ddp.dataset.num_workers
+    assert nodes.dataset.persistent_workers
+    assert _raw(nodes.dataset, "num_workers") == _raw(ddp.dataset, "num_workers")
+    assert _raw(ddp.dataset, "num_workers") == "${loader_workers:4,${trainer.devices}}"
     det = compose("train", ["trainer=gpu", "trainer.deterministic=true", "paths.output_dir=/tmp/u"])
     check_trainer_settings(det)
     assert det.trainer.benchmark is False

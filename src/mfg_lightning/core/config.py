@@ -24,9 +24,19 @@ def processes_cpus(workers: int | None) -> int:
     return 1 + n
 
 
+def loader_workers(most: int, processes: object = 1) -> int:
+    """The ``${loader_workers:most[,processes]}`` resolver of ``conf/trainer/gpu.yaml`` and
+    ``ddp_gpu.yaml``: :func:`mfg_lightning.data.workers.loader_workers` (at most ``most`` loader
+    workers per training process, as the usable cores allow)."""
+    from mfg_lightning.data.workers import loader_workers as sized
+
+    return sized(int(most), processes)
+
+
 # registered at import: every entry point imports this module before Hydra composes
-if not OmegaConf.has_resolver("processes_cpus"):
-    OmegaConf.register_new_resolver("processes_cpus", processes_cpus)
+for _name, _resolver in (("processes_cpus", processes_cpus), ("loader_workers", loader_workers)):
+    if not OmegaConf.has_resolver(_name):
+        OmegaConf.register_new_resolver(_name, _resolver)
 
 
 def config_dir() -> Path:

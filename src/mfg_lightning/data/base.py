@@ -35,6 +35,7 @@ from mfg_lightning.core.data_errors import (
 )
 from mfg_lightning.data import transforms
 from mfg_lightning.data.resumable_loader import ResumableDataLoader
+from mfg_lightning.data.workers import SHM, plan_workers, sample_bytes
 
 log = logging.getLogger(__name__)
 
@@ -388,6 +389,8 @@ class MFGDataModule(L.LightningDataModule):
         self.pin_memory = pin_memory
         self.persistent_workers = persistent_workers and num_workers > 0
         self.datasets: dict[str, MotionDataset] = {}
+        # the workers /dev/shm holds (None: not checked yet; mfg_lightning.data.workers)
+        self._shm_workers: int | None = None
 
     # -- to implement ------------------------------------------------------------------------
 
@@ -432,6 +435,7 @@ class MFGDataModule(L.LightningDataModule):
         """The loader of ``split``; ``num_workers``, ``persistent_workers``: the DataModule's
         unless given (a split's own, e.g. one persistent worker that keeps its sample cache)."""
         workers = self.num_workers if num_workers is None else num_workers
+        workers = self._workers_that_fit(workers, split)
         if persistent_workers is None:
             persistent_workers = self.persistent_workers
         generator = torch.Generator().manual_seed(self.seed) if shuffle else None
@@ -454,6 +458,25 @@ class MFGDataModule(L.LightningDataModule):
             persistent_workers=persistent_workers and workers > 0,
             drop_last=False,
         )
+
+    def _workers_that_fit(self, workers: int, split: str) -> int:
+        """``workers``, or fewer where shared memory (``/dev/shm``) cannot hold their batches
+        (:func:`mfg_lightning.data.workers.plan_workers`, sized by a sample of ``split``):
+        checked once, with a warning that says what to change, since a worker that runs out of
+        it dies with a bus error."""
+        if workers <= 0 or not SHM.is_dir():  # not Linux: no /dev/shm to run out of
+            return workers
+        if self._shm_workers is None:
+            try:
+                per_sample = sample_bytes(self.dataset(split)[0])
+            except Exception as err:  # the loader will name a bad sample; not this check
+                log.debug("/dev/shm not checked: the first %s sample failed (%s)", split, err)
+                return workers
+            plan = plan_workers(workers, self.batch_size, self.eval_batch_size, per_sample)
+            if not plan.enough:
+                log.warning("%s", plan.note)
+            self._shm_workers = plan.workers
+        return min(workers, self._shm_workers)
 
     def train_dataloader(self) -> DataLoader:
         # Epoch e's order depends on (seed, e) only, and the position is checkpointed mid-epoch.
