@@ -1,5 +1,5 @@
 """The quick start, ``python -m mfg_lightning.train`` as the README runs it, without and with the
-sample cache: wall time, training time, the precision ``auto`` chose and the test metrics, in a
+sample cache, and with the training split held in memory (``dataset.device_resident``): wall time, training time, the precision ``auto`` chose and the test metrics, in a
 marked section of throughput.md per instruction set torch's kernels run
 (:func:`~mfg_lightning.core.machine.isa_caps`: an imitated machine is said in the heading).
 ``--quick-start`` runs only it."""
@@ -22,12 +22,16 @@ from mfg_lightning.core.machine import isa_caps
 
 from .measure import UNCACHED_SAMPLES, throughput_report
 
-#: The runs, one after the other: label → (overrides, the cache directory's name; the third
-#: run shares the second's, whose disk tier it finds filled).
+#: The runs, one after the other: label → (overrides, the cache directory's name; the third and
+#: the fifth run share the second's, whose disk tier they find filled).
 RUNS = {
     "without the cache (`memory_mb=0 disk=false prefetch=none`)": (UNCACHED_SAMPLES, "a"),
     "the defaults, empty cache": ([], "b"),
     "the defaults, disk tier filled by the run before": ([], "b"),
+    "device-resident (`+dataset.device_resident=true`), empty cache": (
+        ["+dataset.device_resident=true"], "c"),
+    "device-resident, disk tier filled by the runs before": (
+        ["+dataset.device_resident=true"], "b"),
 }
 
 
@@ -83,8 +87,11 @@ def section(args: argparse.Namespace) -> Path:
             quick_start_wall(args.tiny, torch.get_num_threads()),
         )
         + "\nOne run each, one after the other. The cache hands out the generated samples bit "
-        "for bit (tests/test_sample_cache.py): the test metrics differ only by the training's "
-        "own run-to-run variation."
+        "for bit (tests/test_sample_cache.py), and the device-resident split the same batches in "
+        "the same order (tests/test_device_resident.py): the test metrics differ only by the "
+        "training's own run-to-run variation. The device-resident runs read the whole training "
+        "split before their first step (on a CPU the device is the host's memory), where the "
+        "others render the first epoch while they train."
     )  # fmt: skip
     marker = f"quick-start-{capability.lower()}" + ("-capped" if caps else "")
     heading = f"The quick start at {capability}" + (" (imitated)" if caps else "")

@@ -361,6 +361,11 @@ class MFGDataModule(L.LightningDataModule):
         seed: seed of the training shuffle (the sample content has its own seeds).
         pin_memory: pin host memory for faster GPU transfer.
         persistent_workers: keep workers alive between epochs (only with ``num_workers > 0``).
+        device_resident: hold the training split whole on the training device once it has been
+            read, and gather its batches there by index (no workers, no copies:
+            :mod:`mfg_lightning.data.device_resident`).
+        device_resident_mb: the largest split held so (MB); a larger one keeps the ordinary
+            loader, with a warning.
     """
 
     def __init__(
@@ -373,6 +378,8 @@ class MFGDataModule(L.LightningDataModule):
         seed: int = 0,
         pin_memory: bool = False,
         persistent_workers: bool = False,
+        device_resident: bool = False,
+        device_resident_mb: float = 8192,
     ) -> None:
         super().__init__()
         if height <= 0 or width <= 0:
@@ -388,6 +395,8 @@ class MFGDataModule(L.LightningDataModule):
         self.seed = seed
         self.pin_memory = pin_memory
         self.persistent_workers = persistent_workers and num_workers > 0
+        self.device_resident = bool(device_resident)
+        self.device_resident_mb = float(device_resident_mb)
         self.datasets: dict[str, MotionDataset] = {}
         # the workers /dev/shm holds (None: not checked yet; mfg_lightning.data.workers)
         self._shm_workers: int | None = None
@@ -478,7 +487,32 @@ class MFGDataModule(L.LightningDataModule):
             self._shm_workers = plan.workers
         return min(workers, self._shm_workers)
 
+    def _device_resident_loader(self) -> DataLoader | None:
+        """The training loader of ``device_resident=true``, or None (with a warning) where the
+        split does not fit (:func:`~mfg_lightning.data.device_resident.fits_on_device`)."""
+        from mfg_lightning.data.device_resident import DeviceResidentLoader, fits_on_device
+
+        trainer = self.trainer  # None outside a fit (a direct call)
+        device = trainer.strategy.root_device if trainer is not None else torch.device("cpu")
+        dataset = self.dataset("train")
+        nbytes = len(dataset) * sample_bytes(dataset[0])  # type: ignore[arg-type]
+        fits, why = fits_on_device(nbytes, device, self.device_resident_mb)
+        if not fits:
+            log.warning("dataset.device_resident: the training split does not fit (%s): "
+                        "the ordinary loader trains it", why)  # fmt: skip
+            return None
+        # the whole split, in its own order, on every process (the order picks any index)
+        workers = self._workers_that_fit(self.num_workers, "train")
+        source = DataLoader(dataset, batch_size=self.eval_batch_size, shuffle=False,
+                            num_workers=workers, collate_fn=collate_samples,
+                            worker_init_fn=seed_worker)  # fmt: skip
+        return DeviceResidentLoader(dataset, source=source, device=device, seed=self.seed,
+                                    batch_size=self.batch_size, shuffle=True,
+                                    collate_fn=collate_samples)  # fmt: skip
+
     def train_dataloader(self) -> DataLoader:
+        if self.device_resident and (loader := self._device_resident_loader()) is not None:
+            return loader
         # Epoch e's order depends on (seed, e) only, and the position is checkpointed mid-epoch.
         return ResumableDataLoader.like(
             self._loader("train", shuffle=True, batch_size=self.batch_size), seed=self.seed

@@ -226,9 +226,14 @@ class ResumableDataLoader(DataLoader):
         assert self.generator is not None
         self.generator.manual_seed(epoch_seed(order.seed, epoch, "workers"))
         self._epoch, self._position = epoch, skip
-        for batch in super().__iter__():
+        for batch in self._batches(order):
             self._position += 1
             yield batch
+
+    def _batches(self, order: EpochShuffleSampler) -> Iterator[Any]:
+        """The pass's batches, in ``order`` (a subclass may gather them otherwise:
+        :class:`~mfg_lightning.data.device_resident.DeviceResidentLoader`)."""
+        return DataLoader.__iter__(self)
 
     def state_dict(self) -> dict[str, int]:
         if self.order is None:
