@@ -1,6 +1,7 @@
 """The quick start, ``python -m mfg_lightning.train`` as the README runs it, without and with the
-sample cache, and with the training split held in memory (``dataset.device_resident``): wall time, training time, the precision ``auto`` chose and the test metrics, in a
-marked section of throughput.md per instruction set torch's kernels run
+sample cache, and with the training split held in memory (``dataset.device_resident``): wall
+time, training time, the precision ``auto`` chose and the test metrics, in a marked section of
+throughput.md per instruction set torch's kernels run
 (:func:`~mfg_lightning.core.machine.isa_caps`: an imitated machine is said in the heading).
 ``--quick-start`` runs only it."""
 
@@ -29,9 +30,13 @@ RUNS = {
     "the defaults, empty cache": ([], "b"),
     "the defaults, disk tier filled by the run before": ([], "b"),
     "device-resident (`+dataset.device_resident=true`), empty cache": (
-        ["+dataset.device_resident=true"], "c"),
+        ["+dataset.device_resident=true"],
+        "c",
+    ),
     "device-resident, disk tier filled by the runs before": (
-        ["+dataset.device_resident=true"], "b"),
+        ["+dataset.device_resident=true"],
+        "b",
+    ),
 }
 
 
