@@ -20,6 +20,7 @@ GPU_CHECK_ARGS ?=
 
 install:
 	$(PYTHON) -c "import torch" 2>/dev/null || $(PYTHON) -m pip install $(TORCH_SPEC)
+	$(PYTHON) bench/install_opencv.py
 	$(PYTHON) -m pip install -e ".[dev]"
 
 # Keeps a working CUDA torch >= 2.4, else installs TORCH_GPU_SPEC; the project without [dev];

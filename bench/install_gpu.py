@@ -173,6 +173,10 @@ def main(argv: list[str] | None = None) -> int:
         torch, args.torch_spec, sys.executable, pip_args, installed_here(), args.extras
     )
     print(f"install-gpu: {why}", flush=True)
+    # OpenCV's plain wheel out of the way of the contrib one the project needs (install_opencv.py)
+    opencv = [sys.executable, str(REPO / "bench" / "install_opencv.py")]
+    if subprocess.run([*opencv, *(["--dry-run"] if args.dry_run else [])], check=False).returncode:
+        return 1
     for command in commands:
         print("install-gpu: " + shlex.join(command), flush=True)
         if subprocess.run(command, check=False).returncode:

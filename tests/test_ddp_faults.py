@@ -220,7 +220,8 @@ def test_ddp_broadcasts_buffers_only_for_a_module_whose_forward_changes_them() -
         strategy = DDPStrategy(process_group_backend="gloo", **given)
         trainer = L.Trainer(accelerator="cpu", devices=2, strategy=strategy, logger=False)
         BuffersWhereNeeded().setup(trainer, module, "fit")
-        return strategy._ddp_kwargs.get("broadcast_buffers")
+        kwargs = strategy._ddp_kwargs
+        return kwargs.get("forward_sync_buffers", kwargs.get("broadcast_buffers"))
 
     mfg = small_module()
     assert [name for name, _ in mfg.named_buffers()]  # it has buffers (the mean motion)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 
+import pytest
 import torch
 
 from conftest import quiet_trainer
@@ -86,3 +87,22 @@ def test_a_split_above_its_bound_keeps_the_ordinary_loader(caplog) -> None:
         loader = dm.train_dataloader()
     assert not isinstance(loader, DeviceResidentLoader)
     assert "does not fit" in caplog.text and "device_resident_mb=0.01" in caplog.text
+
+
+def test_a_split_with_unreadable_samples_is_refused_naming_the_count() -> None:
+    plain, _ = _loaders()
+    dataset = plain.dataset
+
+    class OneUnreadable(torch.utils.data.Dataset):
+        def __len__(self) -> int:
+            return len(dataset)
+
+        def __getitem__(self, i: int):
+            return None if i == 3 else dataset[i]
+
+    holed = OneUnreadable()
+    source = torch.utils.data.DataLoader(holed, batch_size=5, collate_fn=plain.collate_fn)
+    bad = DeviceResidentLoader(holed, source=source, device=torch.device("cpu"), seed=0,
+                               batch_size=3, collate_fn=plain.collate_fn)  # fmt: skip
+    with pytest.raises(ValueError, match=r"1 of the \d+ training samples did not load"):
+        next(iter(bad))

@@ -512,5 +512,16 @@ def test_a_datamodule_runs_the_loader_workers_that_dev_shm_holds(monkeypatch, ca
     # the workers follow the cores: one core each for the processes, the rest for workers
     monkeypatch.setattr("mfg_lightning.data.workers.usable_cores", lambda: 16)
     assert loader_workers(6) == 6 and loader_workers(6, 4) == 3 and loader_workers(6, 16) == 0
+    assert loader_workers(6, [0, 1]) == 6 and loader_workers(6, "0,1,2,3") == 3
+    monkeypatch.setenv("SLURM_PROCID", "3")  # a task srun started: its cores are its own
+    assert loader_workers(6, 4) == 6
+    monkeypatch.delenv("SLURM_PROCID")
     monkeypatch.setattr("mfg_lightning.data.workers.usable_cores", lambda: 2)
     assert loader_workers(6) == 1 and loader_workers(6, "auto") == 1
+    # the node's training processes share /dev/shm
+    from mfg_lightning.data.workers import plan_workers
+
+    free["bytes"] = 256 << 20  # 6 workers keep ~144 MB in flight, x1.5 headroom
+    kb = 154 * 1024
+    assert plan_workers(6, 16, 64, kb, Path("/"), processes=1).workers == 6
+    assert plan_workers(6, 16, 64, kb, Path("/"), processes=4).workers < 6

@@ -290,6 +290,13 @@ def test_inside_slurm_the_trainer_has_lightnings_slurm_environment_without_auto_
         monkeypatch.setenv(key, value)
     inside = build_trainer(cfg, [], [])._accelerator_connector.cluster_environment
     assert isinstance(inside, SLURMEnvironment) and inside.auto_requeue is False
+    # torchrun inside a SLURM task: Lightning's torchrun environment, not SLURM's
+    for key, value in {"TORCHELASTIC_RUN_ID": "x", "GROUP_RANK": "0", "RANK": "0",
+                       "LOCAL_RANK": "0", "WORLD_SIZE": "1"}.items():  # fmt: skip
+        monkeypatch.setenv(key, value)
+    from mfg_lightning.run.slurm import slurm_environment
+
+    assert slurm_environment() is None
     assert cfg.callbacks.slurm_requeue._target_.endswith("SlurmRequeue")
     assert job_id() == "4242"
     assert (

@@ -34,6 +34,7 @@ from mfg_lightning.core.data_errors import (
     report_skipped,
 )
 from mfg_lightning.data import transforms
+from mfg_lightning.data.device_resident import DeviceResidentLoader, fits_on_device
 from mfg_lightning.data.resumable_loader import ResumableDataLoader
 from mfg_lightning.data.workers import SHM, plan_workers, sample_bytes
 
@@ -397,6 +398,7 @@ class MFGDataModule(L.LightningDataModule):
         self.persistent_workers = persistent_workers and num_workers > 0
         self.device_resident = bool(device_resident)
         self.device_resident_mb = float(device_resident_mb)
+        self._resident: DataLoader | bool | None = None  # device_resident_loader's decision
         self.datasets: dict[str, MotionDataset] = {}
         # the workers /dev/shm holds (None: not checked yet; mfg_lightning.data.workers)
         self._shm_workers: int | None = None
@@ -481,7 +483,11 @@ class MFGDataModule(L.LightningDataModule):
             except Exception as err:  # the loader will name a bad sample; not this check
                 log.debug("/dev/shm not checked: the first %s sample failed (%s)", split, err)
                 return workers
-            plan = plan_workers(workers, self.batch_size, self.eval_batch_size, per_sample)
+            # the node's processes share /dev/shm (DDP: one per device)
+            trainer = self.trainer
+            local = max(1, int(trainer.num_devices)) if trainer is not None else 1
+            plan = plan_workers(workers, self.batch_size, self.eval_batch_size, per_sample,
+                                processes=local)  # fmt: skip
             if not plan.enough:
                 log.warning("%s", plan.note)
             self._shm_workers = plan.workers
@@ -489,14 +495,19 @@ class MFGDataModule(L.LightningDataModule):
 
     def _device_resident_loader(self) -> DataLoader | None:
         """The training loader of ``device_resident=true``, or None (with a warning) where the
-        split does not fit (:func:`~mfg_lightning.data.device_resident.fits_on_device`)."""
-        from mfg_lightning.data.device_resident import DeviceResidentLoader, fits_on_device
-
+        split does not fit (:func:`~mfg_lightning.data.device_resident.fits_on_device`; under
+        DDP every process takes the answer of all: one that does not fit decides for all)."""
         trainer = self.trainer  # None outside a fit (a direct call)
         device = trainer.strategy.root_device if trainer is not None else torch.device("cpu")
         dataset = self.dataset("train")
-        nbytes = len(dataset) * sample_bytes(dataset[0])  # type: ignore[arg-type]
-        fits, why = fits_on_device(nbytes, device, self.device_resident_mb)
+        try:
+            nbytes = len(dataset) * sample_bytes(dataset[0])  # type: ignore[arg-type]
+            fits, why = fits_on_device(nbytes, device, self.device_resident_mb)
+        except Exception as err:  # an unreadable first sample: the ordinary loader names it
+            fits, why = False, f"its first sample did not load: {err}"
+        if trainer is not None and trainer.world_size > 1:
+            fits = bool(trainer.strategy.reduce_boolean_decision(fits, all=True))
+            why = why if fits else f"{why}, or another process's split does not"
         if not fits:
             log.warning("dataset.device_resident: the training split does not fit (%s): "
                         "the ordinary loader trains it", why)  # fmt: skip
@@ -510,8 +521,18 @@ class MFGDataModule(L.LightningDataModule):
                                     batch_size=self.batch_size, shuffle=True,
                                     collate_fn=collate_samples)  # fmt: skip
 
+    def device_resident_loader(self) -> DataLoader | None:
+        """:meth:`_device_resident_loader` once per fit where ``device_resident`` is set (a
+        subclass's own loader asks first, the base class's after it: one decision, one
+        warning); else None."""
+        if not self.device_resident:
+            return None
+        if self._resident is None:
+            self._resident = self._device_resident_loader() or False
+        return self._resident or None
+
     def train_dataloader(self) -> DataLoader:
-        if self.device_resident and (loader := self._device_resident_loader()) is not None:
+        if (loader := self.device_resident_loader()) is not None:
             return loader
         # Epoch e's order depends on (seed, e) only, and the position is checkpointed mid-epoch.
         return ResumableDataLoader.like(

@@ -132,7 +132,15 @@ class DeviceResidentLoader(ResumableDataLoader):
 
     def _batches(self, order: EpochShuffleSampler) -> Iterator[Any]:
         if self.store is None:
-            self.store = DeviceBatches.load(self.source, self.device)
+            store = DeviceBatches.load(self.source, self.device)
+            if store.n != len(self.dataset):  # type: ignore[arg-type]
+                raise ValueError(
+                    f"dataset.device_resident: {len(self.dataset) - store.n} of the "  # type: ignore[arg-type]
+                    f"{len(self.dataset)} training samples did not load (skipped as unreadable): "  # type: ignore[arg-type]
+                    "a split held on the device needs every sample; fix them or set "
+                    "dataset.device_resident=false"
+                )
+            self.store = store
             log.info(
                 "training split on %s: %d samples, %.0f MB, gathered by index from now on",
                 self.device, self.store.n, self.store.nbytes / 2**20,

@@ -348,8 +348,8 @@ class SyntheticDataModule(MFGDataModule):
         ``thread`` hooks a :class:`~mfg_lightning.data.sample_cache.Prefetcher` to its sampler
         (each pass's order, a resumed one's remaining indices included), ``worker`` gives it at
         least one persistent worker process."""
-        if self.device_resident:  # read once, then gathered on the device: nothing to prefetch
-            return super().train_dataloader()
+        if (loader := self.device_resident_loader()) is not None:
+            return loader  # read once, then gathered on the device: nothing to prefetch
         exact = not isinstance(self.flow, EstimatedFlow)
         if exact and self.prefetch == "worker":
             base = self._loader(

@@ -15,6 +15,7 @@ process a core of its own.
 from __future__ import annotations
 
 import math
+import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -57,23 +58,30 @@ def sample_bytes(sample: dict[str, Any]) -> int:
 
 
 def plan_workers(
-    workers: int, batch: int, eval_batch: int, per_sample: int, shm: Path = SHM
+    workers: int,
+    batch: int,
+    eval_batch: int,
+    per_sample: int,
+    shm: Path = SHM,
+    processes: int = 1,
 ) -> ShmPlan:
     """How many loader workers fit in ``shm``: each keeps :data:`PREFETCH` batches of the train
     and of the evaluation loader in flight there; :data:`SHM_HEADROOM` times that must be free.
 
     Args:
-        workers: the workers asked for (``dataset.num_workers``).
+        workers: the workers asked for (``dataset.num_workers``), per training process.
         batch, eval_batch: the training and evaluation batch sizes.
         per_sample: bytes of one sample's tensors (:func:`sample_bytes`).
         shm: the shared-memory file system.
+        processes: the training processes of this machine sharing it (DDP: one per device);
+            each gets its share.
     """
     if workers <= 0:
         return ShmPlan(0, "no loader workers: nothing goes through /dev/shm", True)
     per_worker = PREFETCH * (batch + eval_batch) * per_sample
     need = workers * per_worker
     try:
-        free = shutil.disk_usage(shm).free
+        free = shutil.disk_usage(shm).free // max(1, processes)
     except OSError:
         free = 0
     mb = 2**20
@@ -104,15 +112,23 @@ def loader_workers(most: int, processes: Any = 1) -> int:
 
     Args:
         most: the most workers wanted per process.
-        processes: training processes on this machine (``trainer.devices``; ``"auto"`` or -1:
-            every visible GPU, else 1).
+        processes: training processes on this machine (``trainer.devices``: a count, a list
+            or ``"0,1"`` of device indices; ``"auto"`` or -1: every visible GPU). Inside a task
+            ``srun`` started (``SLURM_PROCID``), 1: its cores are its own.
     """
     if most < 0:
         raise ValueError(f"loader_workers: the most workers must be >= 0, got {most}")
-    try:
-        n = int(processes)
-    except (TypeError, ValueError):
-        n = -1
-    if n < 1:
+    if os.environ.get("SLURM_PROCID") is not None:
+        n = 1  # a task srun started: its cores (--cpus-per-task) are its own already
+    elif not isinstance(processes, str) and hasattr(processes, "__len__"):
+        n = len(processes)  # type: ignore[arg-type]  # device indices, e.g. [0, 1]
+    elif isinstance(processes, str) and "," in processes:
+        n = len([p for p in processes.split(",") if p.strip()])  # "0,1"
+    else:
+        try:
+            n = int(processes)  # type: ignore[call-overload]
+        except (TypeError, ValueError):
+            n = -1
+    if n < 1:  # "auto", -1: every visible GPU
         n = max(1, torch.cuda.device_count()) if torch.cuda.is_available() else 1
     return max(0, min(most, usable_cores() // n - 1))

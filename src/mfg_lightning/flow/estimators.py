@@ -5,7 +5,8 @@ The ``flow`` group (``conf/flow/``) picks the source of the flow that a dataset 
 
 * :class:`ExactFlow` (``flow=exact``): the exact reprojection flow of a synthetic scene with
   Gaussian noise and single-pixel outliers (the synthetic default);
-* :class:`EstimatedFlow` (``flow=dis``): an estimator run on images (rendered synthetic frames or
+* :class:`EstimatedFlow` (``flow=dis``, ``flow=deepflow``, ``tvl1``, ``pcaflow``, ``farneback``,
+  ``sparse_to_dense``, ``rlof``): an estimator run on images (rendered synthetic frames or
   KITTI's real ones) at ``flow.height × flow.width``, resized to the model input with the vectors
   rescaled, cached; the KITTI default. An estimator is any class in :data:`ESTIMATORS` with the
   :class:`FlowEstimator` interface (a learned one registers itself there and gets a
@@ -16,8 +17,10 @@ The ``flow`` group (``conf/flow/``) picks the source of the flow that a dataset 
 
 Each dataset accepts the sources it can give and refuses the others naming ``flow.source``.
 
-The DIS estimator is OpenCV's Dense Inverse Search, installed from the package registries with
-``opencv-python-headless``; :class:`FlowCache` stores what was computed once so that later epochs
+The DIS estimator is OpenCV's Dense Inverse Search; the others are OpenCV's contrib algorithms
+(:class:`OpenCVFlowEstimator`), all from ``opencv-contrib-python-headless`` (the plain
+``opencv-python-headless`` has DIS only; the two packages must not be installed together);
+:class:`FlowCache` stores what was computed once so that later epochs
 and runs read it back (atomic writes: concurrent runs sharing a cache never see half a file).
 """
 
@@ -48,6 +51,7 @@ __all__ = [
     "FlowEstimator",
     "FlowFiles",
     "GroundTruthFlow",
+    "OpenCVFlowEstimator",
     "flow_sources",
     "parse_flow",
 ]
@@ -141,9 +145,103 @@ class DISFlowEstimator:
         return {**self.__dict__, "_dis": None}
 
 
+class OpenCVFlowEstimator:
+    """One of OpenCV's dense optical-flow algorithms of its contrib modules (``cv2.optflow``,
+    from the ``opencv-contrib-python-headless`` package), at its defaults.
+
+    A subclass names the algorithm: :attr:`name` (its ``flow.source``), :attr:`factory` (the
+    ``cv2.optflow`` function that creates it) and :attr:`channels` (1: grey input, 3: BGR).
+    The flow follows DIS's convention: ``image0(x) ≈ image1(x + flow(x))``.
+    """
+
+    name = ""
+    factory = ""
+    channels = 1
+
+    def __init__(self) -> None:
+        optflow = getattr(cv2, "optflow", None)
+        if optflow is None or not hasattr(optflow, self.factory):
+            raise ImportError(
+                f"flow={self.name} needs OpenCV's contrib modules (cv2.optflow.{self.factory}), "
+                f"which this cv2 ({cv2.__version__}, {cv2.__file__}) lacks: replace "
+                "opencv-python-headless by opencv-contrib-python-headless (`make install` does "
+                "it; the two must not be installed together)"
+            )
+        self._algorithm: Any = None
+
+    def key(self) -> dict[str, Any]:
+        """Everything about the estimator that changes its output (for the cache key)."""
+        return {"estimator": self.name, "opencv": cv2.__version__}
+
+    def prepare(self, rgb: np.ndarray) -> np.ndarray:
+        """``(H, W, 3)`` uint8 RGB → the algorithm's input: ``(H, W)`` grey or ``(H, W, 3)``
+        BGR uint8."""
+        code = cv2.COLOR_RGB2GRAY if self.channels == 1 else cv2.COLOR_RGB2BGR
+        return cv2.cvtColor(rgb, code)
+
+    def __call__(self, image0: np.ndarray, image1: np.ndarray) -> np.ndarray:
+        """Flow from ``image0`` to ``image1``: ``(H, W, 2)`` float32 pixels."""
+        if self._algorithm is None:
+            self._algorithm = getattr(cv2.optflow, self.factory)()
+        return self._algorithm.calc(image0, image1, None)
+
+    def __getstate__(self) -> dict[str, Any]:
+        # cv2 objects do not pickle; each DataLoader worker builds its own.
+        return {**self.__dict__, "_algorithm": None}
+
+
+class DeepFlowEstimator(OpenCVFlowEstimator):
+    """DeepFlow (Weinzaepfel et al. 2013): variational, with deep matching's constraints."""
+
+    name, factory = "deepflow", "createOptFlow_DeepFlow"
+
+
+class TVL1Estimator(OpenCVFlowEstimator):
+    """Dual TV-L1 (Zach et al. 2007): total-variation regularised, L1 data term."""
+
+    name, factory = "tvl1", "createOptFlow_DualTVL1"
+
+
+class PCAFlowEstimator(OpenCVFlowEstimator):
+    """PCA-Flow (Wulff & Black 2015): sparse matches fit by a learned low-dimensional basis."""
+
+    name, factory = "pcaflow", "createOptFlow_PCAFlow"
+
+
+class FarnebackEstimator(OpenCVFlowEstimator):
+    """Farnebäck (2003): polynomial expansion, coarse to fine."""
+
+    name, factory = "farneback", "createOptFlow_Farneback"
+
+
+class SparseToDenseEstimator(OpenCVFlowEstimator):
+    """Sparse Lucas-Kanade matches interpolated densely (``calcOpticalFlowSparseToDense``)."""
+
+    name, factory = "sparse_to_dense", "createOptFlow_SparseToDense"
+
+
+class DenseRLOFEstimator(OpenCVFlowEstimator):
+    """Dense robust local optical flow (Senst et al.), on colour images."""
+
+    name, factory, channels = "rlof", "createOptFlow_DenseRLOF", 3
+
+
 #: ``flow.source`` of an estimator → its class; its constructor takes the rest of ``flow.*`` but
 #: ``height`` and ``width``. A learned estimator adds itself here.
-ESTIMATORS: dict[str, type] = {"dis": DISFlowEstimator}
+ESTIMATORS: dict[str, type] = {
+    "dis": DISFlowEstimator,
+    **{
+        cls.name: cls
+        for cls in (
+            DeepFlowEstimator,
+            TVL1Estimator,
+            PCAFlowEstimator,
+            FarnebackEstimator,
+            SparseToDenseEstimator,
+            DenseRLOFEstimator,
+        )
+    },
+}
 
 
 @dataclass(frozen=True)

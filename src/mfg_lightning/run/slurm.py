@@ -27,6 +27,7 @@ import os
 import re
 import signal
 import subprocess
+import threading
 from collections.abc import Sequence
 from types import FrameType
 from typing import Any
@@ -51,8 +52,11 @@ def job_id(environ: dict[str, str] | None = None) -> str | None:
 
 def slurm_environment() -> SLURMEnvironment | None:
     """Lightning's SLURM environment with its auto-requeue off, where Lightning would pick the
-    SLURM environment by itself (tasks started by ``srun``); else None."""
-    if not SLURMEnvironment.detect():
+    SLURM environment by itself (tasks started by ``srun``, not by torchrun inside them); else
+    None."""
+    from lightning.fabric.plugins.environments import TorchElasticEnvironment
+
+    if TorchElasticEnvironment.detect() or not SLURMEnvironment.detect():
         return None
     return SLURMEnvironment(auto_requeue=False)
 
@@ -81,12 +85,25 @@ class SlurmRequeue(L.Callback):
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
         if stage != "fit" or job_id() is None:
             return
+        if threading.current_thread() is not threading.main_thread():
+            log.warning("not in the main thread: SLURM's requeue signal is not handled")
+            return
         self._previous = signal.signal(self.signum, self._on_signal)
 
-    def teardown(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
-        if stage == "fit" and self._previous is not None:
+    def _restore(self) -> None:
+        if self._previous is not None and threading.current_thread() is threading.main_thread():
             signal.signal(self.signum, self._previous)
             self._previous = None
+
+    def teardown(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        if stage == "fit":
+            self._restore()
+
+    def on_exception(
+        self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException
+    ) -> None:
+        # a fit ended by an exception (SIGTERM's included) gets no teardown hook
+        self._restore()
 
     def _on_signal(self, signum: int, frame: FrameType | None) -> None:
         """The requeue signal: remembered, then handled as SIGTERM (whatever handles SIGTERM

@@ -132,28 +132,38 @@ def _no_sigterm_broadcast() -> None:
 
 
 class BuffersWhereNeeded(L.Callback):
-    """DDP broadcasts the module's buffers from rank 0 before every forward (``broadcast_buffers``,
-    True by default): a collective per step. Only buffers that the forward changes need it, those
-    of normalisation layers with running statistics; without such a layer this callback turns the
-    broadcast off. DDP's one synchronisation when it wraps the module still makes every buffer
-    equal on every process (this project's modules set theirs, the mean motion, before training).
+    """DDP broadcasts the module's buffers from rank 0 before every forward: a collective per
+    step. Only buffers that the forward changes need it, those of normalisation layers with
+    running statistics; without such a layer this callback turns the per-forward broadcast off
+    (``forward_sync_buffers=False``, torch ≥ 2.13: DDP's one synchronisation when it wraps the
+    module still makes every buffer equal on every process; older torch:
+    ``broadcast_buffers=False``, which skips that one too, harmless here since this project's
+    modules compute theirs, the mean motion, alike on every process or load them from the
+    checkpoint).
 
-    A ``broadcast_buffers`` given to the strategy (``trainer.strategy.broadcast_buffers``) is
-    kept as given: set it to true for a module with other buffers that change in training.
-    :func:`mfg_lightning.run.runs.build_trainer` adds this callback to every Trainer a run builds.
+    A ``broadcast_buffers`` or ``forward_sync_buffers`` given to the strategy
+    (``trainer.strategy.*``) is kept as given: set it for a module with other buffers that
+    change in training. :func:`mfg_lightning.run.runs.build_trainer` adds this callback to every
+    Trainer a run builds.
     """
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
         # Callbacks' setup runs before the strategy wraps the module (strategy.setup)
+        import inspect
+
         from lightning.pytorch.strategies import DDPStrategy
+        from torch.nn.parallel import DistributedDataParallel
 
         strategy = trainer.strategy
-        if not isinstance(strategy, DDPStrategy) or "broadcast_buffers" in strategy._ddp_kwargs:
+        given = {"broadcast_buffers", "forward_sync_buffers"} & set(strategy._ddp_kwargs)
+        if not isinstance(strategy, DDPStrategy) or given:
             return
         needs = buffers_change_in_forward(pl_module)
-        strategy._ddp_kwargs["broadcast_buffers"] = needs
+        accepted = inspect.signature(DistributedDataParallel).parameters
+        key = "forward_sync_buffers" if "forward_sync_buffers" in accepted else "broadcast_buffers"
+        strategy._ddp_kwargs[key] = needs
         if not needs:
-            log.debug("DDP: no buffer changes in a forward, broadcast_buffers=False")
+            log.debug("DDP: no buffer changes in a forward, %s=False", key)
 
 
 def buffers_change_in_forward(module: torch.nn.Module) -> bool:
