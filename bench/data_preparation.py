@@ -209,11 +209,13 @@ def main(argv: list[str] | None = None) -> Path:
     torch.set_num_threads(args.threads or 1)
     cv2.setNumThreads(args.threads or 1)
     args.work.mkdir(parents=True, exist_ok=True)
+    # made first, so that its environment's wall time covers the measurements (a resumed run:
+    # the stages it measured)
+    report = Report("scaleout", "Scale-out: data-parallel training (DDP)", args.out)
     rows = [measure(args, n) for n in args.processes]
     if max(args.processes) > 2 * args.sequences:
         rows.append(measure(args, max(args.processes), whole=True))
     kind, cores = cpu_kind(), usable_cores()
-    report = Report("scaleout", "Scale-out: data-parallel training (DDP)", args.out)
     report.add(
         f"CPU **{kind}**, {cores} usable cores. `SyntheticDataModule.prepare_data()` with "
         f"`flow=dis` (DIS `{args.preset}`, rendered at {args.height} × {args.width}) on "

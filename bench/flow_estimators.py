@@ -200,6 +200,8 @@ def main(argv: list[str] | None = None) -> None:
     args = parse_args(argv)
     settings = {"sequences": args.sequences, "frames": args.frames, "render": list(RENDER_HW)}
     args.work.mkdir(parents=True, exist_ok=True)
+    # made first, so that its environment's wall time covers the measurements
+    report = Report("flow_quality", "Flow of rendered worlds", args.out)
     scenes: Scenes | None = None
     results: dict[str, dict] = {}
     for label, cfg in ESTIMATOR_RUNS:
@@ -210,12 +212,11 @@ def main(argv: list[str] | None = None) -> None:
             if scenes is None:
                 scenes = Scenes(args.poses_dir, args.sequences, args.frames)
             print(f"{label}: {len(scenes.pairs)} pairs", flush=True)
-            cached = {"settings": settings, **measure(scenes, {**cfg, "height": RENDER_HW[0],
-                                                                "width": RENDER_HW[1]})}  # fmt: skip
+            sized = {**cfg, "height": RENDER_HW[0], "width": RENDER_HW[1]}
+            cached = {"settings": settings, **measure(scenes, sized)}
             path.write_text(json.dumps(cached, indent=1) + "\n")
         results[label] = cached
     pairs = next(iter(results.values()))["pairs"]
-    report = Report("flow_quality", "Flow of rendered worlds", args.out)
     report.add(
         f"{pairs} pairs of the test worlds ({', '.join(args.sequences)}; {args.frames} source "
         f"frames per sequence, offsets {', '.join(f'{o:+d}' for o in OFFSETS)}), rendered at "
