@@ -110,11 +110,20 @@ def versions() -> dict[str, str]:
     from importlib.metadata import PackageNotFoundError, version
 
     out = {"python": platform.python_version()}
-    for dist in ("torch", "lightning", "torchmetrics", "numpy", "opencv-python-headless"):
+    for dist in ("torch", "lightning", "torchmetrics", "numpy"):
         try:
             out[dist] = version(dist)
         except PackageNotFoundError:
             out[dist] = "-"
+    # OpenCV under whichever wheel provides cv2 (the project's: the contrib build)
+    for dist in ("opencv-contrib-python-headless", "opencv-python-headless"):
+        try:
+            out[dist] = version(dist)
+            break
+        except PackageNotFoundError:
+            continue
+    else:
+        out["opencv"] = "-"
     try:
         from mfg_lightning.run.runs import git_commit, git_dirty
 
