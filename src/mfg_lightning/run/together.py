@@ -155,9 +155,10 @@ class BuffersWhereNeeded(L.Callback):
         from torch.nn.parallel import DistributedDataParallel
 
         strategy = trainer.strategy
-        given = {"broadcast_buffers", "forward_sync_buffers"} & set(strategy._ddp_kwargs)
-        if not isinstance(strategy, DDPStrategy) or given:
+        if not isinstance(strategy, DDPStrategy):
             return
+        if {"broadcast_buffers", "forward_sync_buffers"} & set(strategy._ddp_kwargs):
+            return  # given: kept
         needs = buffers_change_in_forward(pl_module)
         accepted = inspect.signature(DistributedDataParallel).parameters
         key = "forward_sync_buffers" if "forward_sync_buffers" in accepted else "broadcast_buffers"
