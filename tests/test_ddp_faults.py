@@ -229,3 +229,5 @@ def test_ddp_broadcasts_buffers_only_for_a_module_whose_forward_changes_them() -
     assert chosen(mfg) is False
     assert chosen(WithBatchNorm()) is True
     assert chosen(mfg, broadcast_buffers=True) is True  # a given setting is kept
+    one = L.Trainer(accelerator="cpu", devices=1, logger=False)
+    BuffersWhereNeeded().setup(one, mfg, "fit")  # one process: nothing to set, no error
