@@ -492,8 +492,8 @@ def test_the_tests_run_on_the_cpu_whatever_the_machine_has() -> None:
 def test_a_datamodule_runs_the_loader_workers_that_dev_shm_holds(monkeypatch, caplog) -> None:
     import logging
 
+    from mfg_lightning.core.machine import loader_workers
     from mfg_lightning.data import base
-    from mfg_lightning.data.workers import loader_workers
     from module_helpers import small_datamodule
 
     Usage = type(shutil.disk_usage("/"))
@@ -510,13 +510,13 @@ def test_a_datamodule_runs_the_loader_workers_that_dev_shm_holds(monkeypatch, ca
     assert loader.num_workers == 0 and not loader.persistent_workers
     assert "too small for 2 loader workers" in caplog.text and "--shm-size=" in caplog.text
     # the workers follow the cores: one core each for the processes, the rest for workers
-    monkeypatch.setattr("mfg_lightning.data.workers.usable_cores", lambda: 16)
+    monkeypatch.setattr("mfg_lightning.core.machine.usable_cores", lambda: 16)
     assert loader_workers(6) == 6 and loader_workers(6, 4) == 3 and loader_workers(6, 16) == 0
     assert loader_workers(6, [0, 1]) == 6 and loader_workers(6, "0,1,2,3") == 3
     monkeypatch.setenv("SLURM_PROCID", "3")  # a task srun started: its cores are its own
     assert loader_workers(6, 4) == 6
     monkeypatch.delenv("SLURM_PROCID")
-    monkeypatch.setattr("mfg_lightning.data.workers.usable_cores", lambda: 2)
+    monkeypatch.setattr("mfg_lightning.core.machine.usable_cores", lambda: 2)
     assert loader_workers(6) == 1 and loader_workers(6, "auto") == 1
     # the node's training processes share /dev/shm
     from mfg_lightning.data.workers import plan_workers

@@ -447,7 +447,7 @@ def test_gpu_trainer_configs() -> None:
     cfg = compose("train", ["trainer=gpu", "paths.output_dir=/tmp/unused"])
     assert cfg.trainer.accelerator == "gpu" and cfg.trainer.benchmark is True
     assert cfg.dataset.pin_memory and cfg.dataset.persistent_workers
-    # the workers follow the usable cores (mfg_lightning.data.workers.loader_workers), at most 6
+    # the workers follow the usable cores (mfg_lightning.core.machine.loader_workers), at most 6
     assert _raw(cfg.dataset, "num_workers") == "${loader_workers:6}"
     assert 0 <= cfg.dataset.num_workers <= 6
     assert cfg.dataset._target_.endswith("SyntheticDataModule")  # merged into the dataset

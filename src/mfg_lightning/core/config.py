@@ -26,9 +26,9 @@ def processes_cpus(workers: int | None) -> int:
 
 def loader_workers(most: int, processes: object = 1) -> int:
     """The ``${loader_workers:most[,processes]}`` resolver of ``conf/trainer/gpu.yaml`` and
-    ``ddp_gpu.yaml``: :func:`mfg_lightning.data.workers.loader_workers` (at most ``most`` loader
+    ``ddp_gpu.yaml``: :func:`mfg_lightning.core.machine.loader_workers` (at most ``most`` loader
     workers per training process, as the usable cores allow)."""
-    from mfg_lightning.data.workers import loader_workers as sized
+    from mfg_lightning.core.machine import loader_workers as sized
 
     return sized(int(most), processes)
 

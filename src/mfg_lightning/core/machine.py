@@ -90,3 +90,33 @@ def usable_cores() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # not on Linux: no affinity to read
         return max(1, os.cpu_count() or 1)
+
+
+def loader_workers(most: int, processes: object = 1) -> int:
+    """Loader workers per training process: at most ``most``, and no more than the usable cores
+    leave each of ``processes`` training processes beside itself (``cores // processes - 1``).
+
+    Args:
+        most: the most workers wanted per process.
+        processes: training processes on this machine (``trainer.devices``: a count, a list
+            or ``"0,1"`` of device indices; ``"auto"`` or -1: every visible GPU). Inside a task
+            ``srun`` started (``SLURM_PROCID``), 1: its cores are its own.
+    """
+    if most < 0:
+        raise ValueError(f"loader_workers: the most workers must be >= 0, got {most}")
+    if os.environ.get("SLURM_PROCID") is not None:
+        n = 1  # a task srun started: its cores (--cpus-per-task) are its own already
+    elif not isinstance(processes, str) and hasattr(processes, "__len__"):
+        n = len(processes)  # type: ignore[arg-type]  # device indices, e.g. [0, 1]
+    elif isinstance(processes, str) and "," in processes:
+        n = len([p for p in processes.split(",") if p.strip()])  # "0,1"
+    else:
+        try:
+            n = int(processes)  # type: ignore[call-overload]
+        except (TypeError, ValueError):
+            n = -1
+    if n < 1:  # "auto", -1: every visible GPU
+        import torch  # here only: this module stays free of torch for the light tools
+
+        n = max(1, torch.cuda.device_count()) if torch.cuda.is_available() else 1
+    return max(0, min(most, usable_cores() // n - 1))

@@ -7,15 +7,13 @@ says how many workers fit; :class:`~mfg_lightning.data.base.MFGDataModule` uses 
 first loader with workers: too few megabytes give a warning that says what to change, and the run
 goes on with the workers that fit (0: loading in the main process).
 
-:func:`loader_workers` sizes the workers from the cores (the ``${loader_workers:n}`` resolver of
-``conf/trainer/gpu.yaml`` and ``ddp_gpu.yaml``): at most ``n`` per training process, leaving each
-process a core of its own.
+How many workers the cores allow is :func:`mfg_lightning.core.machine.loader_workers` (the
+``${loader_workers:n}`` resolver of ``conf/trainer/gpu.yaml`` and ``ddp_gpu.yaml``).
 """
 
 from __future__ import annotations
 
 import math
-import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,9 +21,7 @@ from typing import Any
 
 import torch
 
-from mfg_lightning.core.machine import usable_cores
-
-__all__ = ["PREFETCH", "SHM", "SHM_HEADROOM", "ShmPlan", "loader_workers", "plan_workers"]
+__all__ = ["PREFETCH", "SHM", "SHM_HEADROOM", "ShmPlan", "plan_workers", "sample_bytes"]
 
 #: torch DataLoader's default ``prefetch_factor`` (batches each worker keeps ready)
 PREFETCH = 2
@@ -104,31 +100,3 @@ def plan_workers(
         "mounted on /dev/shm)",
         False,
     )
-
-
-def loader_workers(most: int, processes: Any = 1) -> int:
-    """Loader workers per training process: at most ``most``, and no more than the usable cores
-    leave each of ``processes`` training processes beside itself (``cores // processes - 1``).
-
-    Args:
-        most: the most workers wanted per process.
-        processes: training processes on this machine (``trainer.devices``: a count, a list
-            or ``"0,1"`` of device indices; ``"auto"`` or -1: every visible GPU). Inside a task
-            ``srun`` started (``SLURM_PROCID``), 1: its cores are its own.
-    """
-    if most < 0:
-        raise ValueError(f"loader_workers: the most workers must be >= 0, got {most}")
-    if os.environ.get("SLURM_PROCID") is not None:
-        n = 1  # a task srun started: its cores (--cpus-per-task) are its own already
-    elif not isinstance(processes, str) and hasattr(processes, "__len__"):
-        n = len(processes)  # type: ignore[arg-type]  # device indices, e.g. [0, 1]
-    elif isinstance(processes, str) and "," in processes:
-        n = len([p for p in processes.split(",") if p.strip()])  # "0,1"
-    else:
-        try:
-            n = int(processes)  # type: ignore[call-overload]
-        except (TypeError, ValueError):
-            n = -1
-    if n < 1:  # "auto", -1: every visible GPU
-        n = max(1, torch.cuda.device_count()) if torch.cuda.is_available() else 1
-    return max(0, min(most, usable_cores() // n - 1))
