@@ -70,6 +70,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--work", type=Path, default=RESULTS_DIR / "flow_estimators",
                    help="the stages' cached results")  # fmt: skip
     p.add_argument("--fresh", action="store_true", help="measure every stage again")
+    p.add_argument("--estimators", nargs="+", default=None,
+                   help="only these stages (dis_medium, deepflow, ...); default: all")  # fmt: skip
     add_common_arguments(p)
     args = p.parse_args(argv)
     if args.tiny:
@@ -206,6 +208,8 @@ def main(argv: list[str] | None = None) -> None:
     results: dict[str, dict] = {}
     for label, cfg in ESTIMATOR_RUNS:
         stem = cfg["source"] + (f"_{cfg['preset']}" if "preset" in cfg else "")
+        if args.estimators is not None and stem not in args.estimators:
+            continue
         path = args.work / f"{stem}{'_tiny' if args.tiny else ''}.json"
         cached = json.loads(path.read_text()) if path.is_file() and not args.fresh else None
         if cached is None or cached.get("settings") != settings:

@@ -1,4 +1,5 @@
-"""Regenerate every benchmark table (``make bench``): accuracy, throughput, images to poses (a
+"""Regenerate every benchmark table (``make bench``): accuracy, every flow estimator on the test
+worlds (a section of flow_quality.md), throughput, images to poses (a
 section of throughput.md), scale-out, data preparation over processes (a section of
 scaleout.md), the KITTI flow cache, and on a machine with a CUDA GPU the GPU check.
 
@@ -19,6 +20,7 @@ import torch
 BENCH = Path(__file__).resolve().parent
 SCRIPTS = (
     "accuracy.py",
+    "flow_estimators.py",  # after accuracy.py: a section of flow_quality.md
     "throughput.py",
     "images_to_poses.py",  # after throughput.py: a section of its file
     "scaleout.py",

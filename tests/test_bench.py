@@ -177,10 +177,30 @@ def test_quick_start_benchmark(tmp_path: Path) -> None:
     capability = torch.backends.cpu.get_cpu_capability()
     rows = _table_rows(text, f"## The quick start at {capability}")
     assert [r[0].split(" (")[0].split(",")[0] for r in rows] == [
-        "without the cache", "the defaults", "the defaults"
+        "without the cache", "the defaults", "the defaults", "device-resident", "device-resident"
     ]  # fmt: skip
     assert all(_number(r[1]) > 0 and _number(r[3]) > 0 for r in rows)
     assert rows[0][2] == "1.00" and len({(r[5], r[6]) for r in rows}) == 1, rows
+
+
+def test_flow_estimators_benchmark(tmp_path: Path, shared_poses: Path) -> None:
+    """Two estimators on the tiny pair set: a row each, by region and by offset; the stages are
+    cached and a rerun reads them."""
+    args = ("--poses-dir", str(shared_poses), "--work", str(tmp_path / "work"),
+            "--estimators", "dis_medium", "farneback")  # fmt: skip
+    env = dict(os.environ, OMP_NUM_THREADS="1", MFG_CACHE_DIR=str(tmp_path))
+    command = [sys.executable, str(BENCH / "flow_estimators.py"), "--tiny", "--out",
+               str(tmp_path), *args]  # fmt: skip
+    proc = subprocess.run(command, env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-5000:]
+    text = (tmp_path / "flow_quality.md").read_text()  # a section of flow_quality.md
+    assert "### Environment of this section" in text and "opencv" in text
+    rows = _table_rows(text, "## Every estimator on the same test pairs")
+    assert [r[0] for r in rows[:2]] == ["DIS medium", "Farnebäck"]
+    assert all(_number(r[1]) > 0 and 0 < _number(r[-2]) < 100 for r in rows[:2])
+    assert sorted(p.name for p in (tmp_path / "work").iterdir()) == [
+        "dis_medium_tiny.json", "farneback_tiny.json"
+    ]  # fmt: skip
 
 
 def test_scaleout_benchmark(tmp_path: Path) -> None:
@@ -216,6 +236,7 @@ def test_run_all_runs_every_script_and_fails_loudly(tmp_path: Path) -> None:
         "run_all.py",
         "_common.py",
         "install_gpu.py",  # the GPU set-up that `make gpu-check` runs first, not a benchmark
+        "install_opencv.py",  # the OpenCV step of `make install`, not a benchmark
     }
     # An unknown argument makes every script fail: run_all reports it with a non-zero status.
     assert run_all.main(["--no-such-option"]) == 1

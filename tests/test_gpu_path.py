@@ -74,7 +74,8 @@ def test_make_install_hands_a_torch_spec_with_options_to_pip_as_separate_argumen
     argv = [c.strip("\n").split("\n") for c in calls.read_text().split("<end>\n") if c]
     assert argv[0] == ["-c", "import torch"]
     assert argv[1] == ["-m", "pip", "install", *spec.split()]
-    assert argv[2] == ["-m", "pip", "install", "-e", ".[dev]"]  # the CPU set-up as before
+    assert argv[2] == ["bench/install_opencv.py"]  # a plain OpenCV wheel out of the way
+    assert argv[3] == ["-m", "pip", "install", "-e", ".[dev]"]  # the CPU set-up as before
 
 
 def test_make_install_gpu_hands_its_spec_to_the_installer_whole() -> None:

@@ -303,12 +303,19 @@ def test_project_slurm_launcher_sets_resources_on_top_of_the_plugin() -> None:
     assert launcher.submitit_folder.endswith(".submitit/%j")
 
 
-@pytest.mark.parametrize(("overrides", "cpus"), [([], 1), (["trainer=gpu"], 7),
+@pytest.mark.parametrize(("overrides", "cpus"), [([], 1), (["trainer=gpu"], None),
+                                                 (["trainer=gpu", "dataset.num_workers=6"], 7),
                                                  (["dataset.num_workers=3"], 4)])  # fmt: skip
-def test_slurm_jobs_ask_for_the_cores_their_trainer_starts(overrides: list[str], cpus: int) -> None:
+def test_slurm_jobs_ask_for_the_cores_their_trainer_starts(
+    overrides: list[str], cpus: int | None
+) -> None:
     """sbatch --cpus-per-task is the training process plus its loader workers, so a GPU job's 6
-    workers do not share 4 cores (the launcher's earlier fixed value)."""
+    workers do not share 4 cores (the launcher's earlier fixed value). trainer=gpu's workers
+    follow the cores of the machine composing (None: 1 + loader_workers(6) here)."""
+    from mfg_lightning.core.machine import loader_workers
+
     cfg = _compose_with_hydra(["hydra/launcher=slurm", *overrides])
+    cpus = 1 + loader_workers(6) if cpus is None else cpus
     assert cfg.hydra.launcher.cpus_per_task == cpus == 1 + cfg.dataset.num_workers
     with pytest.raises(ValueError, match="num_workers"):
         processes_cpus(-1)
