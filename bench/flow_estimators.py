@@ -217,17 +217,22 @@ def main(argv: list[str] | None = None) -> None:
                 scenes = Scenes(args.poses_dir, args.sequences, args.frames)
             print(f"{label}: {len(scenes.pairs)} pairs", flush=True)
             sized = {**cfg, "height": RENDER_HW[0], "width": RENDER_HW[1]}
+            start = time.perf_counter()
             cached = {"settings": settings, **measure(scenes, sized)}
+            # the stage's wall time (a resumed run's environment counts only what it measured)
+            cached["seconds"] = time.perf_counter() - start
             path.write_text(json.dumps(cached, indent=1) + "\n")
         results[label] = cached
     pairs = next(iter(results.values()))["pairs"]
+    staged = sum(r.get("seconds", 0.0) for r in results.values())
     report.add(
         f"{pairs} pairs of the test worlds ({', '.join(args.sequences)}; {args.frames} source "
         f"frames per sequence, offsets {', '.join(f'{o:+d}' for o in OFFSETS)}), rendered at "
         f"{RENDER_HW[0]} × {RENDER_HW[1]}; every estimator at its defaults (DIS at each preset) "
         "on the same pairs, against the renderer's exact flow. ms / pair: the estimator's call "
         "alone, median over the pairs, one OpenCV thread (`bench/flow_estimators.py`; stage "
-        "results in `bench/results/flow_estimators/`).\n\n" + tables(results)
+        f"results in `bench/results/flow_estimators/`, measured in {staged:.0f} s of wall time "
+        "in all, the first stage's rendering included).\n\n" + tables(results)
     )
     report.write_section(MARKER, HEADING)
 
