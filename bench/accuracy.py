@@ -327,7 +327,7 @@ def run(args: argparse.Namespace) -> Path:
             loading = stage_loading(args, frames)
             breakdown = stage_breakdown(args, frames, pairs=4 if args.tiny else 20)
     if rendered is not None:
-        quality_path = write_flow_quality(args, rendered, loading, breakdown)
+        quality_path = write_flow_quality(args, rendered, loading, breakdown, report.started)
         if args.flow_only:
             return quality_path
     results = [stage_accuracy(args, flow, frames) for flow, frames in runs]

@@ -257,14 +257,22 @@ def cost_section(rendered: dict, loading: dict | None, train_pairs: int) -> str:
 
 
 def write_flow_quality(
-    args: argparse.Namespace, rendered: dict, loading: dict | None, breakdown: dict | None
+    args: argparse.Namespace,
+    rendered: dict,
+    loading: dict | None,
+    breakdown: dict | None,
+    started: float | None = None,
 ) -> Path:
-    """``flow_quality.md``: the DIS flow's quality by region and the cost of the split."""
+    """``flow_quality.md``: the DIS flow's quality by region and the cost of the split
+    (``started``: when the measurements began, ``time.time()``, for the environment's wall
+    time; None: now)."""
     quality = Report(
         "flow_quality",
         "Flow of rendered worlds: quality of DIS against the exact flow, and its cost",
         args.out,
     )
+    if started is not None:
+        quality.started = started
     quality.add(
         "Worlds rendered along the real KITTI trajectories 00–10 "
         f"(`flow=dis flow.preset={rendered['preset']}`, "
