@@ -62,6 +62,16 @@ def _sites(counts: dict[str, int]) -> str:
     return ", ".join(f"{k} ×{v}" for k, v in counts.items() if " at " in k)
 
 
+#: the first process's counts at a logging step, docs/gpu.md's table: the loggers' values
+#: (10 .item()), the deferred counts (2 .tolist()), the progress bar's loss (1 float()); under
+#: DDP also the agreed flags (1 .tolist()), last.ckpt's clock (1 broadcast_object_list) and the
+#: step's all_reduce
+LOGGING_STEP = {
+    1: {"item": 10, "tolist": 2, "__float__": 1},
+    2: {"item": 10, "tolist": 3, "__float__": 1, "all_reduce": 1, "broadcast_object_list": 1},
+}
+
+
 def _check(ranks: list[dict], world_size: int, per_step: dict[str, int]) -> None:
     assert len(ranks) == world_size
     for rank, result in enumerate(ranks):
@@ -77,6 +87,12 @@ def _check(ranks: list[dict], world_size: int, per_step: dict[str, int]) -> None
             )
         for s in logging:  # the counter sees the reads the loggers make
             assert steps[s].get("item", 0) > 0, f"rank {rank}, logging step {s}: {steps[s]}"
+            if rank == 0:  # what the docs say, exactly
+                got = _totals(steps[s])
+                assert got == LOGGING_STEP[world_size], (
+                    f"logging step {s}: {got}; docs/gpu.md says {LOGGING_STEP[world_size]}; "
+                    f"made at {_sites(steps[s])}"
+                )
         if world_size > 1:  # the pending batch checks are settled together
             assert _totals(steps["epoch_end"]).get("all_reduce", 0) >= 1
 

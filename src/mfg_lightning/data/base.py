@@ -398,10 +398,10 @@ class MFGDataModule(L.LightningDataModule):
         self.persistent_workers = persistent_workers and num_workers > 0
         self.device_resident = bool(device_resident)
         self.device_resident_mb = float(device_resident_mb)
-        self._resident: DataLoader | bool | None = None  # device_resident_loader's decision
         self.datasets: dict[str, MotionDataset] = {}
         # the workers /dev/shm holds (None: not checked yet; mfg_lightning.data.workers)
         self._shm_workers: int | None = None
+        self._sample_bytes: dict[str, int] = {}  # split -> bytes of a sample's tensors
 
     # -- to implement ------------------------------------------------------------------------
 
@@ -470,6 +470,12 @@ class MFGDataModule(L.LightningDataModule):
             drop_last=False,
         )
 
+    def _bytes_per_sample(self, split: str) -> int:
+        """Bytes of the tensors of a sample of ``split`` (its first, read once)."""
+        if split not in self._sample_bytes:
+            self._sample_bytes[split] = sample_bytes(self.dataset(split)[0])
+        return self._sample_bytes[split]
+
     def _workers_that_fit(self, workers: int, split: str) -> int:
         """``workers``, or fewer where shared memory (``/dev/shm``) cannot hold their batches
         (:func:`mfg_lightning.data.workers.plan_workers`, sized by a sample of ``split``):
@@ -479,7 +485,7 @@ class MFGDataModule(L.LightningDataModule):
             return workers
         if self._shm_workers is None:
             try:
-                per_sample = sample_bytes(self.dataset(split)[0])
+                per_sample = self._bytes_per_sample(split)
             except Exception as err:  # the loader will name a bad sample; not this check
                 log.debug("/dev/shm not checked: the first %s sample failed (%s)", split, err)
                 return workers
@@ -501,7 +507,7 @@ class MFGDataModule(L.LightningDataModule):
         device = trainer.strategy.root_device if trainer is not None else torch.device("cpu")
         dataset = self.dataset("train")
         try:
-            nbytes = len(dataset) * sample_bytes(dataset[0])  # type: ignore[arg-type]
+            nbytes = len(dataset) * self._bytes_per_sample("train")  # type: ignore[arg-type]
             fits, why = fits_on_device(nbytes, device, self.device_resident_mb)
         except Exception as err:  # an unreadable first sample: the ordinary loader names it
             fits, why = False, f"its first sample did not load: {err}"
@@ -521,19 +527,15 @@ class MFGDataModule(L.LightningDataModule):
                                     batch_size=self.batch_size, shuffle=True,
                                     collate_fn=collate_samples)  # fmt: skip
 
-    def device_resident_loader(self) -> DataLoader | None:
-        """:meth:`_device_resident_loader` once per fit where ``device_resident`` is set (a
-        subclass's own loader asks first, the base class's after it: one decision, one
-        warning); else None."""
-        if not self.device_resident:
-            return None
-        if self._resident is None:
-            self._resident = self._device_resident_loader() or False
-        return self._resident or None
-
     def train_dataloader(self) -> DataLoader:
-        if (loader := self.device_resident_loader()) is not None:
+        """The device-resident loader where ``device_resident`` is set and the split fits,
+        else :meth:`ordinary_train_loader`."""
+        if self.device_resident and (loader := self._device_resident_loader()) is not None:
             return loader
+        return self.ordinary_train_loader()
+
+    def ordinary_train_loader(self) -> ResumableDataLoader:
+        """The training loader that reads the dataset (a subclass adds its prefetch here)."""
         # Epoch e's order depends on (seed, e) only, and the position is checkpointed mid-epoch.
         return ResumableDataLoader.like(
             self._loader("train", shuffle=True, batch_size=self.batch_size), seed=self.seed

@@ -343,13 +343,11 @@ class SyntheticDataModule(MFGDataModule):
 
     # -- the training loader: the first epoch computed ahead of the step ---------------------
 
-    def train_dataloader(self) -> ResumableDataLoader:
+    def ordinary_train_loader(self) -> ResumableDataLoader:
         """The training loader (:class:`MFGDataModule`'s), with ``flow=exact``'s prefetch:
         ``thread`` hooks a :class:`~mfg_lightning.data.sample_cache.Prefetcher` to its sampler
         (each pass's order, a resumed one's remaining indices included), ``worker`` gives it at
         least one persistent worker process."""
-        if (loader := self.device_resident_loader()) is not None:
-            return loader  # read once, then gathered on the device: nothing to prefetch
         exact = not isinstance(self.flow, EstimatedFlow)
         if exact and self.prefetch == "worker":
             base = self._loader(
@@ -357,7 +355,7 @@ class SyntheticDataModule(MFGDataModule):
                 persistent_workers=True,
             )  # fmt: skip
             return ResumableDataLoader.like(base, seed=self.seed)
-        loader = super().train_dataloader()
+        loader = super().ordinary_train_loader()
         dataset = self.dataset("train")
         if exact and self.prefetch == "thread" and loader.order is not None:
             assert isinstance(dataset, SyntheticDrivingDataset)
