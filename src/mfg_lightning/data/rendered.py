@@ -191,10 +191,26 @@ class RenderedDrivingDataset(TrajectoryDataset):
         self.world_config = world_config(self.world_fields)
         self._worlds: dict[str, Any] = {}
         self.span = max(abs(o) for o in self.offsets)
+        if cache_dir is None:
+            from mfg_lightning.flow.cache import default_cache_dir
+
+            cache_dir = default_cache_dir()
+        self.cache = FlowCache.create(cache_dir, self.cache_key(), namespace=self.cache_namespace)
+        # What this object rendered and estimated (the tests count them; a cached run: 0).
+        self.rendered_frames = 0
+        self.estimated_pairs = 0
+
+    #: The cache directory under ``paths.cache_dir`` (a subclass caching other arrays has its own)
+    cache_namespace = "synthetic_flow"
+    #: Whether preparation leaves a picture grid per sequence (:meth:`picture_path`)
+    pictures = True
+
+    def cache_key(self) -> dict[str, Any]:
+        """Everything that changes a cached pair (hashed into the cache directory's name)."""
         worlds, render = _renderer()
-        key = {
+        return {
             "format": _RENDER_CACHE_FORMAT,
-            "flow": flow.key(),
+            "flow": self.flow_source.key(),
             "image_hw": list(self.image_hw),
             "output_hw": [self.height, self.width],
             "seed": self.seed,
@@ -209,14 +225,6 @@ class RenderedDrivingDataset(TrajectoryDataset):
             "torch": torch.__version__,
             "numpy": np.__version__,
         }
-        if cache_dir is None:
-            from mfg_lightning.flow.cache import default_cache_dir
-
-            cache_dir = default_cache_dir()
-        self.cache = FlowCache.create(cache_dir, key, namespace="synthetic_flow")
-        # What this object rendered and estimated (the tests count them; a cached run: 0).
-        self.rendered_frames = 0
-        self.estimated_pairs = 0
 
     # -- cache -------------------------------------------------------------------------------
 
@@ -339,7 +347,7 @@ class RenderedDrivingDataset(TrajectoryDataset):
             pair = self.compute_pair(seq, src, tgt, frames[(seq, src)], frames[(seq, tgt)])
             self._store(i, pair)
             stats[i] = _stats_of(pair)
-            if i in middle:
+            if self.pictures and i in middle:
                 self.cache.store(self.picture_path(seq), flow_picture(pair["full"]))
             if bar is not None:
                 bar.update(1)

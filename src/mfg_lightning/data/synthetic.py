@@ -291,7 +291,13 @@ class SyntheticDataModule(MFGDataModule):
         self._trajectories[which] = trajs
         return trajs
 
-    def build_dataset(self, split: str) -> SyntheticDrivingDataset | RenderedDrivingDataset:
+    def split_spec(
+        self, split: str
+    ) -> tuple[dict[str, torch.Tensor], dict[str, tuple[int, int]], dict[str, Any]]:
+        """What a split samples: its trajectories (sequence → poses), the ``(first, last)``
+        source frames of each, and the :class:`~mfg_lightning.data.driving.TrajectoryDataset`
+        arguments ``seed``, ``offsets``, ``name`` and ``stride`` (``split`` in ``train``,
+        ``val``, ``train+val``, ``test``)."""
         trajs = self._load("test" if split == "test" else "train")
         frames: dict[str, tuple[int, int]] = {}
         for seq, poses in trajs.items():
@@ -315,6 +321,10 @@ class SyntheticDataModule(MFGDataModule):
             "name": f"synthetic/{split}",
             "stride": self.frame_stride if split == "train" else 1,
         }
+        return trajs, frames, common
+
+    def build_dataset(self, split: str) -> SyntheticDrivingDataset | RenderedDrivingDataset:
+        trajs, frames, common = self.split_spec(split)
         exact = self.input_flow == "exact"
         # Test samples are read once a run (memory would hold them for nothing) and train+val
         # is prepare_data's pass over the flow cache: neither is kept in memory.

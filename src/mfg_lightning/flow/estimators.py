@@ -6,10 +6,10 @@ The ``flow`` group (``conf/flow/``) picks the source of the flow that a dataset 
 * :class:`ExactFlow` (``flow=exact``): the exact reprojection flow of a synthetic scene with
   Gaussian noise and single-pixel outliers (the synthetic default);
 * :class:`EstimatedFlow` (``flow=dis``, ``flow=deepflow``, ``tvl1``, ``pcaflow``, ``farneback``,
-  ``sparse_to_dense``, ``rlof``): an estimator run on images (rendered synthetic frames or
-  KITTI's real ones) at ``flow.height × flow.width``, resized to the model input with the vectors
-  rescaled, cached; the KITTI default. An estimator is any class in :data:`ESTIMATORS` with the
-  :class:`FlowEstimator` interface (a learned one registers itself there and gets a
+  ``sparse_to_dense``, ``rlof``, ``learned``): an estimator run on images (rendered synthetic
+  frames or KITTI's real ones) at ``flow.height × flow.width``, resized to the model input with
+  the vectors rescaled, cached; the KITTI default. An estimator is any class in
+  :data:`ESTIMATORS` with the :class:`FlowEstimator` interface (each gets a
   ``conf/flow/<name>.yaml`` with ``source: <name>``);
 * :class:`FlowFiles` (``flow=files``): the user's own flow files;
 * :class:`GroundTruthFlow` (``flow=ground_truth``): the flow files a dataset ships as ground
@@ -40,6 +40,7 @@ import cv2
 import numpy as np
 
 from mfg_lightning.core.atomic import atomic_write_bytes
+from mfg_lightning.flow.learned import LearnedFlowEstimator
 
 __all__ = [
     "DIS_PRESETS",
@@ -227,7 +228,7 @@ class DenseRLOFEstimator(OpenCVFlowEstimator):
 
 
 #: ``flow.source`` of an estimator → its class; its constructor takes the rest of ``flow.*`` but
-#: ``height`` and ``width``. A learned estimator adds itself here.
+#: ``height`` and ``width`` (``learned``: the framework's own network, :mod:`.learned`).
 ESTIMATORS: dict[str, type] = {
     "dis": DISFlowEstimator,
     **{
@@ -239,6 +240,7 @@ ESTIMATORS: dict[str, type] = {
             FarnebackEstimator,
             SparseToDenseEstimator,
             DenseRLOFEstimator,
+            LearnedFlowEstimator,
         )
     },
 }

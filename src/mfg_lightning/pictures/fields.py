@@ -35,6 +35,7 @@ __all__ = [
     "basis_figure",
     "field_figure",
     "field_max",
+    "flow_estimate_figure",
     "unit_colour",
 ]
 
@@ -228,6 +229,73 @@ def basis_figure(
             pax.set_title(f"unit {int(u)}: {name}", fontsize=_LABEL, color=unit_colour(i))
     if n_units:
         _show_wheel(fig.add_subplot(grid[0, 3]))
+    if title:
+        fig.suptitle(title, fontsize=_SUPTITLE)
+    return fig
+
+
+#: End-point errors at or above this many pixels get the brightest colour of
+#: :func:`flow_estimate_figure`'s error panel.
+FLOW_ERROR_MAX = 10.0
+
+
+def flow_estimate_figure(
+    image0: Sequence[np.ndarray],
+    image1: Sequence[np.ndarray],
+    exact: Sequence[np.ndarray],
+    estimated: Sequence[np.ndarray],
+    labels: Sequence[str],
+    title: str = "",
+) -> Figure:
+    """A learned flow against the exact one, a row per pair: both frames, the exact flow, the
+    estimate in the same colour scale, its end-point error (magma, 0 to
+    :data:`FLOW_ERROR_MAX` px; black where the exact flow is unknown) captioned with its mean.
+
+    Args:
+        image0, image1: ``(H, W, 3)`` uint8 RGB frames.
+        exact, estimated: ``(2, H, W)`` flows in pixels (exact: NaN where unknown).
+        labels: each row's label (the pair).
+        title: the figure's title.
+    """
+    from matplotlib import colormaps
+
+    if not labels:
+        raise ValueError("flow_estimate_figure needs at least one pair")
+    height, width = np.asarray(image0[0]).shape[:2]
+    panel_w = 2.6
+    panel_h = panel_w * height / width
+    fig = _new_figure(
+        panel_w * 5.45 + 0.7, (panel_h + 0.45) * len(labels) + 0.75 + 0.4 * bool(title)
+    )
+    grid = fig.add_gridspec(len(labels), 6, width_ratios=[1.0] * 5 + [0.45])
+    headers = ("frame t", "frame t + offset", "exact flow", "estimated flow", "end-point error")
+    for r in range(len(labels)):
+        gt = np.asarray(exact[r], dtype=np.float64)
+        est = np.asarray(estimated[r], dtype=np.float64)
+        known = np.isfinite(gt).all(axis=0)
+        scale = field_max(np.where(known, gt, 0.0))
+        epe = np.where(known, np.sqrt(((est - np.nan_to_num(gt)) ** 2).sum(0)), 0.0)
+        error = colormaps["magma"](np.clip(epe / FLOW_ERROR_MAX, 0, 1))[..., :3]
+        error[~known] = 0
+        mean = float(epe[known].mean()) if known.any() else float("nan")
+        axes = [fig.add_subplot(grid[r, c]) for c in range(6)]
+        for ax, image in zip(axes[:2], (image0[r], image1[r]), strict=True):
+            ax.imshow(image, interpolation="nearest")
+            ax.set_xticks([])
+            ax.set_yticks([])
+        _show_field(axes[2], np.where(known, gt, 0.0), scale)
+        _show_field(axes[3], est, scale, f"same scale ({scale:.3g} px)")
+        axes[4].imshow(error, interpolation="nearest")
+        axes[4].set_xticks([])
+        axes[4].set_yticks([])
+        axes[4].set_xlabel(f"mean {mean:.2f} px (0–{FLOW_ERROR_MAX:g} px)", fontsize=_LABEL,
+                           labelpad=2)  # fmt: skip
+        axes[0].set_ylabel(labels[r], fontsize=_LABEL)
+        _show_wheel(axes[5])
+        if r == 0:
+            for ax, header in zip(axes, headers, strict=False):
+                ax.set_title(header, fontsize=_TITLE)
+            axes[5].set_title("colour key", fontsize=_TITLE)
     if title:
         fig.suptitle(title, fontsize=_SUPTITLE)
     return fig

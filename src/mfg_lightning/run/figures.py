@@ -48,7 +48,7 @@ from mfg_lightning.run.runs import tensorboard_writer
 
 log = logging.getLogger(__name__)
 
-__all__ = ["TensorBoardFigures", "sample_plan"]
+__all__ = ["FlowFigures", "TensorBoardFigures", "sample_plan"]
 
 #: The trajectory figures logged at each validation, of :data:`plots.SEQUENCE_FIGURES`.
 TRAJECTORY_FIGURES = ("trajectory", "drift")
@@ -363,3 +363,51 @@ def _log_legacy_images(writer: Any, stage: str, samples: list[_Sample], step: in
         writer.add_images(f"{stage}/{name}_pred", rgb[n:], step, dataformats="NCHW")
     maps = np.stack([activation_map(s.hidden) for s in samples]).transpose(0, 3, 1, 2)
     writer.add_images(f"{stage}/hidden_activations", maps, step, dataformats="NCHW")
+
+
+class FlowFigures(L.Callback):
+    """The learned flow's figures (``python -m mfg_lightning.train_flow``): ``<stage>/flow``,
+    :func:`mfg_lightning.pictures.fields.flow_estimate_figure` of the first ``num_samples``
+    pairs of a batch (both frames, the exact and the estimated flow, the error), from what
+    :class:`~mfg_lightning.models.flow_module.FlowLitModule`'s steps hand out: a training
+    step every ``model.image_log_every_n_steps``, the first validation batch at every
+    validation (the same pairs every time). Nothing without a TensorBoard logger.
+    """
+
+    def __init__(self, num_samples: int = 3) -> None:
+        self.num_samples = int(num_samples)
+
+    def _draw(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        from mfg_lightning.pictures.fields import flow_estimate_figure
+
+        batch = getattr(pl_module, "figure_batch", None)
+        pl_module.figure_batch = None  # type: ignore[assignment]
+        writer = tensorboard_writer(trainer)
+        if batch is None or writer is None or not trainer.is_global_zero or self.num_samples < 1:
+            return
+        n = min(self.num_samples, batch["flow"].shape[0])
+
+        def rgb(images: Tensor) -> list[np.ndarray]:
+            return list(
+                (images[:n].float().clamp(0, 1) * 255).byte().permute(0, 2, 3, 1).cpu().numpy()
+            )
+
+        figure = flow_estimate_figure(
+            rgb(batch["image0"]),
+            rgb(batch["image1"]),
+            list(batch["flow"][:n].float().cpu().numpy()),
+            list(batch["pred"][:n].float().cpu().numpy()),
+            [f"pair {i}" for i in range(n)],
+            title=f"{batch['stage']}, step {trainer.global_step}",
+        )
+        writer.add_figure(f"{batch['stage']}/flow", figure, trainer.global_step, close=True)
+
+    def on_train_batch_end(
+        self, trainer: L.Trainer, pl_module: L.LightningModule, *args: Any
+    ) -> None:
+        if getattr(pl_module, "figure_batch", None) is not None:
+            self._draw(trainer, pl_module)
+
+    def on_validation_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if not trainer.sanity_checking:
+            self._draw(trainer, pl_module)

@@ -194,7 +194,8 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     info = {**run_info(), "seed": cfg.seed, "resumed_from": ckpt_path}
     atomic_write_text(output_dir / "run_info.json", json.dumps(info, indent=2) + "\n")
     model = build_model(cfg)
-    set_baseline(model, datamodule)
+    if hasattr(model, "set_mean_motion"):  # (MFG's baseline; the flow network has none)
+        set_baseline(model, datamodule)
     callbacks = instantiate_list(cfg.get("callbacks"))
     # LastCheckpoint saves after ModelCheckpoint has recorded a validation's score (stable sort).
     callbacks.sort(key=lambda cb: isinstance(cb, LastCheckpoint))

@@ -1,0 +1,204 @@
+"""The learned flow's LightningModule: :class:`~mfg_lightning.flow.pwc.PWCFlowNet` trained on
+rendered pairs with their exact flow (``python -m mfg_lightning.train_flow``).
+
+Loss: PWC-Net's multi-scale one, the mean end-point error of every decoder level's flow against
+the exact flow averaged down to that level (over the pixels where it is known), weighted per
+level (``level_weights``, coarsest first). Augmentation: a random left-right flip of a pair
+(its flow's ``u`` negated), per sample.
+
+Validation: the flow at the input size (:meth:`PWCFlowNet.estimate`: the finest level upsampled)
+against the exact flow, pooled pixel by pixel over the split, by offset and by region:
+``val/epe`` (px, all pixels, every offset), ``val/epe_+1`` …, ``val/epe/<region>``, ``val/fl``
+(KITTI's outlier rate, %).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import lightning as L
+import torch
+import torch.nn.functional as F
+
+from mfg_lightning.flow.pwc import PWCConfig, PWCFlowNet, config_from
+
+__all__ = ["FlowLitModule", "downsample_flow", "endpoint_error"]
+
+
+def downsample_flow(flow: torch.Tensor, factor: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The mean of the known vectors of each ``factor × factor`` block.
+
+    Args:
+        flow: ``(B, 2, H, W)`` pixels of the input, NaN where unknown.
+        factor: the block side (``H`` and ``W`` multiples of it).
+
+    Returns:
+        ``(B, 2, H / f, W / f)`` (still input pixels; 0 where no vector of the block is known)
+        and ``(B, H / f, W / f)`` bool, where some vector is known.
+    """
+    known = torch.isfinite(flow).all(dim=1, keepdim=True)
+    if factor == 1:
+        return torch.where(known, flow, 0.0), known[:, 0]
+    values = F.avg_pool2d(torch.where(known, flow, 0.0), factor)
+    share = F.avg_pool2d(known.float(), factor)
+    mean = values / share.clamp_min(1e-6)
+    return torch.where(share > 0, mean, 0.0), share[:, 0] > 0
+
+
+def endpoint_error(flow: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """``(B, H, W)`` end-point errors of ``(B, 2, H, W)`` flows (same units)."""
+    return torch.linalg.vector_norm(flow.float() - target.float(), dim=1)
+
+
+class FlowLitModule(L.LightningModule):
+    """Trains a :class:`PWCFlowNet`.
+
+    Args:
+        net: the network's :class:`~mfg_lightning.flow.pwc.PWCConfig` fields.
+        optimizer: a partial optimiser (``params`` missing).
+        scheduler: a partial per-step LR scheduler, or None.
+        level_weights: the loss weight of each decoder level, coarsest first (as many as the
+            network has decoder levels).
+        flip: probability of a left-right flip of a training pair.
+        image_log_every_n_steps: how often a training step hands its pairs to the figures
+            callback (0: never).
+    """
+
+    def __init__(
+        self,
+        net: dict[str, Any] | None = None,
+        optimizer: Callable[..., torch.optim.Optimizer] | None = None,
+        scheduler: Callable[..., Any] | None = None,
+        level_weights: Sequence[float] = (0.25, 0.25, 0.5, 1.0),
+        flip: float = 0.5,
+        image_log_every_n_steps: int = 500,
+    ) -> None:
+        super().__init__()
+        self.config: PWCConfig = config_from(net)
+        self.net = PWCFlowNet(self.config)
+        levels = len(self.config.pyramid) - self.config.output_level + 1
+        self.level_weights = tuple(float(w) for w in level_weights)
+        if len(self.level_weights) != levels:
+            raise ValueError(
+                f"model.level_weights needs {levels} weights (decoder levels "
+                f"{len(self.config.pyramid)} … {self.config.output_level}), got "
+                f"{list(self.level_weights)}"
+            )
+        if not 0.0 <= flip <= 1.0:
+            raise ValueError(f"model.flip must be a probability, got {flip}")
+        self.flip = float(flip)
+        self.optimizer_factory = optimizer
+        self.scheduler_factory = scheduler
+        self.image_log_every_n_steps = int(image_log_every_n_steps)
+        #: what the figures callback draws (set by the steps, consumed by the callback)
+        self.figure_batch: dict[str, torch.Tensor] | None = None
+        self._val_sums: dict[str, torch.Tensor] = {}
+
+    # -- steps --------------------------------------------------------------------------------
+
+    @staticmethod
+    def images(batch: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
+        """The batch's ``(B, 3, H, W)`` uint8 frames as float in [0, 1]."""
+        return batch["image0"].float() / 255.0, batch["image1"].float() / 255.0
+
+    def _flipped(self, batch: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        image0, image1 = self.images(batch)
+        flow = batch["flow"].float()
+        if self.flip > 0:
+            flip = torch.rand(flow.shape[0], device=flow.device) < self.flip
+            f = flip.view(-1, 1, 1, 1)
+            image0 = torch.where(f, image0.flip(-1), image0)
+            image1 = torch.where(f, image1.flip(-1), image1)
+            mirrored = flow.flip(-1) * torch.tensor([-1.0, 1.0], device=flow.device).view(
+                1, 2, 1, 1
+            )
+            flow = torch.where(f, mirrored, flow)
+        return image0, image1, flow
+
+    def multiscale_loss(
+        self, flows: Sequence[torch.Tensor], target: torch.Tensor
+    ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """``Σ_l w_l · mean EPE_l`` (input px) over the known pixels of each level, and the
+        per-level mean EPEs (coarsest first)."""
+        height = target.shape[-2]
+        total = target.new_zeros(())
+        per_level = []
+        for weight, flow in zip(self.level_weights, flows, strict=True):
+            gt, known = downsample_flow(target, height // flow.shape[-2])
+            epe = endpoint_error(flow, gt)
+            mean = (epe * known).sum() / known.sum().clamp_min(1)
+            per_level.append(mean)
+            total = total + weight * mean
+        return total, per_level
+
+    def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor:
+        image0, image1, flow = self._flipped(batch)
+        flows = self.net(image0, image1)
+        loss, per_level = self.multiscale_loss(flows, flow)
+        self.log("train/loss", loss, prog_bar=False)
+        self.log("train/epe", per_level[-1])
+        every = self.image_log_every_n_steps
+        if every and self.global_step % every == 0:
+            size = flow.shape[-2:]
+            pred = F.interpolate(flows[-1].detach().float(), size=size, mode="bilinear")
+            self.figure_batch = {"stage": "train", "image0": image0, "image1": image1,
+                                 "flow": flow, "pred": pred}  # fmt: skip
+        return loss
+
+    def on_validation_epoch_start(self) -> None:
+        self._val_sums = {}
+
+    def validation_step(self, batch: dict[str, Any], batch_idx: int) -> None:
+        from mfg_lightning.data.rendered import region_codes
+
+        image0, image1 = self.images(batch)
+        target = batch["flow"].float()
+        pred = self.net.estimate(image0, image1)
+        known = torch.isfinite(target).all(dim=1)
+        epe = torch.where(known, endpoint_error(pred, torch.nan_to_num(target)), 0.0)
+        magnitude = torch.linalg.vector_norm(torch.nan_to_num(target), dim=1)
+        outlier = (epe > 3.0) & (epe > 0.05 * magnitude) & known
+        offsets = batch["offset"].view(-1, 1, 1)
+        masks = {"all": known}
+        for name, code in region_codes():
+            if code is not None:
+                masks[name] = known & (batch["region"] == code)
+        for off in torch.unique(batch["offset"]).tolist():
+            masks[f"{int(off):+d}"] = known & (offsets == off)
+        for name, m in masks.items():
+            sums = torch.stack((epe[m].sum(), outlier[m].sum().float(), m.sum().float()))
+            self._val_sums[name] = self._val_sums.get(name, 0) + sums.double()
+        if batch_idx == 0:
+            self.figure_batch = {"stage": "val", "image0": image0, "image1": image1,
+                                 "flow": target, "pred": pred}  # fmt: skip
+
+    def on_validation_epoch_end(self) -> None:
+        for name, (epe, outliers, n) in sorted(self._val_sums.items()):
+            if n <= 0:
+                continue
+            if name == "all":
+                self.log("val/epe", epe / n, prog_bar=True)
+                self.log("val/fl", 100 * outliers / n)
+            elif name[0] in "+-":
+                self.log(f"val/epe_{name}", epe / n)
+            else:
+                self.log(f"val/epe/{name}", epe / n)
+
+    # -- optimisation and checkpoints ---------------------------------------------------------
+
+    def configure_optimizers(self) -> Any:
+        if self.optimizer_factory is None:
+            return torch.optim.Adam(self.parameters(), lr=1e-4)
+        optimizer = self.optimizer_factory(params=self.parameters())
+        if self.scheduler_factory is None:
+            return optimizer
+        scheduler = self.scheduler_factory(optimizer=optimizer)
+        return {
+            "optimizer": optimizer,
+            "lr_scheduler": {"scheduler": scheduler, "interval": "step"},
+        }
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        # what flow.weights=<this .ckpt> needs to rebuild the network
+        checkpoint["flow_net_config"] = self.config.to_dict()
