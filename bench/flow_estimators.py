@@ -57,6 +57,7 @@ ESTIMATOR_RUNS = (
     ("Farnebäck", {"source": "farneback"}),
     ("sparse to dense", {"source": "sparse_to_dense"}),
     ("dense RLOF", {"source": "rlof"}),
+    ("learned (PWC-Net design)", {"source": "learned"}),
 )
 OFFSETS = (-2, -1, 1, 2)
 RENDER_HW = (192, 512)
@@ -136,11 +137,13 @@ class Scenes:
 def measure(scenes: Scenes, flow_cfg: dict) -> dict:
     """One estimator on every pair: summed quality per offset and region, ms per pair."""
     import cv2
+    import torch
 
     from mfg_lightning.data.rendered import QUALITY_REGIONS, flow_quality, summarize_quality
     from mfg_lightning.flow.estimators import parse_flow
 
     cv2.setNumThreads(1)
+    torch.set_num_threads(1)  # the learned network, on one core as OpenCV's
     estimator = parse_flow(flow_cfg, default="dis").estimator
     prepared: dict[tuple[str, int], np.ndarray] = {}
     stats = {o: np.zeros((len(QUALITY_REGIONS), 3)) for o in OFFSETS}
@@ -199,6 +202,8 @@ def tables(results: dict[str, dict]) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
+    from mfg_lightning.flow.estimators import parse_flow
+
     args = parse_args(argv)
     settings = {"sequences": args.sequences, "frames": args.frames, "render": list(RENDER_HW)}
     args.work.mkdir(parents=True, exist_ok=True)
@@ -212,7 +217,8 @@ def main(argv: list[str] | None = None) -> None:
             continue
         path = args.work / f"{stem}{'_tiny' if args.tiny else ''}.json"
         cached = json.loads(path.read_text()) if path.is_file() and not args.fresh else None
-        if cached is None or cached.get("settings") != settings:
+        key = parse_flow(cfg, default="dis").estimator.key()  # (the learned one's weights)
+        if cached is None or cached.get("settings") != settings or cached.get("key") != key:
             if scenes is None:
                 scenes = Scenes(args.poses_dir, args.sequences, args.frames)
             print(f"{label}: {len(scenes.pairs)} pairs", flush=True)
@@ -230,7 +236,9 @@ def main(argv: list[str] | None = None) -> None:
         f"frames per sequence, offsets {', '.join(f'{o:+d}' for o in OFFSETS)}), rendered at "
         f"{RENDER_HW[0]} × {RENDER_HW[1]}; every estimator at its defaults (DIS at each preset) "
         "on the same pairs, against the renderer's exact flow. ms / pair: the estimator's call "
-        "alone, median over the pairs, one OpenCV thread (`bench/flow_estimators.py`; stage "
+        "alone, median over the pairs, one OpenCV thread and one torch thread (the learned "
+        "network: `flow=learned`, the shipped weights, `docs/flow.md`); "
+        "`bench/flow_estimators.py` (stage "
         f"results in `bench/results/flow_estimators/`, measured in {staged:.0f} s of wall time "
         "in all, the first stage's rendering included).\n\n" + tables(results)
     )

@@ -72,7 +72,8 @@ CLASSICAL_STAGES = ("read", "flow", "method", "composition")
 STAGE_NOTES = {
     "read": "PNG decode, resize to the input (its cache written once), grey; each frame twice, "
     "as the loader decodes it (source of one pair, target of the other)",
-    "flow": "DIS on the grey frames, resized to the input (its cache write: the rest)",
+    "flow": "the estimator (DIS on the grey frames; the learned network on the RGB ones), "
+    "resized to the input (its cache write: the rest)",
     "network": "the module's forward, in batches of the predict loader",
     "recovery": "closed-form (t, ω) from the fields",
     "method": "frame by frame on the same flows",
@@ -87,13 +88,18 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--repeats", type=int, default=5, help="timed rounds (after one warm-up)")
     p.add_argument("--train-steps", type=int, default=20, help="the checkpoint's training")
     p.add_argument("--preset", default="medium", help="DIS preset (the image folder's default)")
+    p.add_argument("--learned-sizes", nargs="*", default=["192x512"],
+                   help="image sizes at which flow=learned (the shipped weights) is measured "
+                   "too, HxW (none: DIS only)")  # fmt: skip
     p.add_argument("--readme", type=Path, default=None, help="README to update (default: the "
                    "repository's when writing into bench/results, else none)")  # fmt: skip
     add_common_arguments(p, "torch and OpenCV threads (default: all)")
     args = p.parse_args(argv)
     args.sizes = [parse_size(s) for s in args.sizes]
+    args.learned_sizes = [parse_size(s) for s in args.learned_sizes]
     if args.tiny:
         args.frames, args.sizes, args.repeats, args.train_steps = 6, [(48, 128)], 1, 2
+        args.learned_sizes = [(48, 128)] if args.learned_sizes else []
     if args.frames < 4:
         p.error("--frames: at least 4")
     return args
@@ -162,9 +168,12 @@ def render_folder(folder: Path, height: int, width: int, frames: int, tiny: bool
     return [float(v) for v in dataset.image_intrinsics]
 
 
-def predict_config(ckpt: Path, folder: Path, camera: list[float], work: Path, args) -> Any:
+def predict_config(
+    ckpt: Path, folder: Path, camera: list[float], work: Path, args, flow: str = "dis"
+) -> Any:
     """The config of ``python -m mfg_lightning.predict`` on ``folder`` (``dataset=image_folder``),
-    its outputs and an empty flow cache under ``work``."""
+    its outputs and an empty flow cache under ``work``; ``flow``: ``dis`` (at ``args.preset``)
+    or ``learned`` (the shipped weights)."""
     from mfg_lightning.core.config import compose
 
     fx, fy, cx, cy = camera
@@ -172,7 +181,8 @@ def predict_config(ckpt: Path, folder: Path, camera: list[float], work: Path, ar
     return compose("predict", [
         f"ckpt_path={ckpt}", "dataset=image_folder", f"dataset.data_root={folder}",
         f"dataset.fx={fx}", f"dataset.fy={fy}", f"dataset.cx={cx}", f"dataset.cy={cy}",
-        *input_hw, f"flow.preset={args.preset}", f"paths.output_dir={work / 'run'}",
+        *input_hw, *([f"flow.preset={args.preset}"] if flow == "dis" else [f"flow={flow}"]),
+        f"paths.output_dir={work / 'run'}",
         f"paths.cache_dir={work / 'cache'}", "trainer.accelerator=cpu",
         "++trainer.enable_progress_bar=false", "trainer.enable_model_summary=false",
     ])  # fmt: skip
@@ -279,6 +289,7 @@ class SizeResult:
     height: int
     width: int
     pairs: int
+    flow: str  # dis or learned
     predict_s: float  # the whole folder
     startup_s: float  # the first two frames (start-up and one pair)
     mfg: dict[str, float]  # seconds per pass, per stage
@@ -292,20 +303,23 @@ class SizeResult:
         return {k: 1000 * v / self.pairs for k, v in stages.items()}
 
 
-def measure_size(ckpt: Path, folder: Path, camera: list[float], work: Path, args) -> SizeResult:
-    """The medians of one image size: one warm-up round, then ``args.repeats`` rounds of
-    predict on the folder, predict on its first two frames and the staged pass, interleaved,
+def measure_size(
+    ckpt: Path, folder: Path, camera: list[float], work: Path, args, flow: str = "dis"
+) -> SizeResult:
+    """The medians of one image size and flow: one warm-up round, then ``args.repeats`` rounds
+    of predict on the folder, predict on its first two frames and the staged pass, interleaved,
     each with empty caches."""
     import shutil
 
     two = folder.parent / f"{folder.name}-2"
-    two.mkdir()
-    for path in sorted(folder.glob("*.png"))[:2]:
-        shutil.copy(path, two / path.name)
+    if not two.exists():
+        two.mkdir()
+        for path in sorted(folder.glob("*.png"))[:2]:
+            shutil.copy(path, two / path.name)
     whole, start, passes = [], [], []
     for r in range(args.repeats + 1):
         round_dir = work / f"round{r}"
-        cfgs = [predict_config(ckpt, f, camera, round_dir / n, args)
+        cfgs = [predict_config(ckpt, f, camera, round_dir / n, args, flow)
                 for f, n in ((folder, "whole"), (two, "two"), (folder, "stages"))]  # fmt: skip
         times = (time_predict(cfgs[0]), time_predict(cfgs[1]), time_stages(cfgs[2]))
         shutil.rmtree(round_dir)
@@ -314,15 +328,16 @@ def measure_size(ckpt: Path, folder: Path, camera: list[float], work: Path, args
         whole.append(times[0])
         start.append(times[1])
         passes.append(times[2])
-        print(f"{folder.name} round {r}: predict {times[0]:.2f} s, its start-up {times[1]:.2f} s,"
-              f" stages {sum(times[2].mfg.values()):.2f} s", flush=True)  # fmt: skip
+        mfg_s = sum(times[2].mfg.values())
+        print(f"{folder.name} {flow} round {r}: predict {times[0]:.2f} s, its start-up "
+              f"{times[1]:.2f} s, stages {mfg_s:.2f} s", flush=True)  # fmt: skip
 
     def median_stages(which: str) -> dict[str, float]:
         keys = getattr(passes[0], which)
         return {k: statistics.median(getattr(p, which)[k] for p in passes) for k in keys}
 
     return SizeResult(
-        *parse_size(folder.name), passes[0].pairs, statistics.median(whole),
+        *parse_size(folder.name), passes[0].pairs, flow, statistics.median(whole),
         statistics.median(start), median_stages("mfg"), median_stages("classical"),
     )  # fmt: skip
 
@@ -337,19 +352,25 @@ def share(part: float, whole: float) -> str:
     return f"{100 * part / whole:.0f} %" if whole > 0 else "–"
 
 
+#: How the tables name each flow.
+FLOW_NAMES = {"dis": "DIS", "learned": "learned (`flow=learned`)"}
+
+
 def rates_table(results: list[SizeResult], kind: str) -> str:
     rows = []
     for r in results:
         whole_ms = 1000 * r.predict_s / r.pairs
         mfg_ms, classical_ms = (sum(r.ms(s).values()) for s in (r.mfg, r.classical))
+        flow = FLOW_NAMES[r.flow]
         for name, ms in (
             ("MFG: `predict`, end to end (the whole call)", whole_ms),
             ("MFG: `predict` after its start-up", r.marginal_ms()),
             ("MFG: its stages alone", mfg_ms),
-            (f"DIS + {CLASSICAL[0]}: its stages", classical_ms),
+            (f"{flow.split()[0]} flow + {CLASSICAL[0]}: its stages", classical_ms),
         ):
-            rows.append([f"{r.height} × {r.width}", kind, name, rate(ms), fmt(ms, 2)])
-    return markdown_table(["image size", "CPU", "pipeline", "frames/s", "ms / frame"], rows)
+            rows.append([f"{r.height} × {r.width}", flow, kind, name, rate(ms), fmt(ms, 2)])
+    heads = ["image size", "flow", "CPU", "pipeline", "frames/s", "ms / frame"]
+    return markdown_table(heads, rows)
 
 
 def stages_table(r: SizeResult) -> str:
@@ -376,13 +397,18 @@ def stages_table(r: SizeResult) -> str:
 
 
 def readme_line(results: list[SizeResult], kind: str, cores: int) -> str:
-    """The README's one line: the first size's end-to-end rate beside the classical one."""
+    """The README's one line: the first size's end-to-end rate beside the classical one (and
+    the learned flow's at that size, when measured)."""
     r = results[0]
     classical_ms = sum(r.ms(r.classical).values())
+    learned = [
+        x for x in results if x.flow == "learned" and (x.height, x.width) == (r.height, r.width)
+    ]
+    also = f"; with `flow=learned` {rate(learned[0].marginal_ms())} frames/s" if learned else ""
     return (
         f"Images to poses: `predict` on a folder of {r.height} × {r.width} PNG frames runs at "
         f"{rate(r.marginal_ms())} frames/s after a {r.startup_s:.1f} s start-up (DIS + "
-        f"MAGSAC++: {rate(classical_ms)} frames/s) on {cores} {kind} CPU cores "
+        f"MAGSAC++: {rate(classical_ms)} frames/s{also}) on {cores} {kind} CPU cores "
         "([bench/results/throughput.md](bench/results/throughput.md)).\n"
     )
 
@@ -428,13 +454,19 @@ def main(argv: list[str] | None = None) -> Path:
             print(f"{args.frames} frames rendered at {h} × {w}: "
                   f"{time.perf_counter() - start:.1f} s", flush=True)  # fmt: skip
             results.append(measure_size(ckpt, folder, camera, tmp / f"work-{h}x{w}", args))
+            if (h, w) in args.learned_sizes:
+                results.append(measure_size(ckpt, folder, camera, tmp / f"work-{h}x{w}-learned",
+                                            args, "learned"))  # fmt: skip
     model = "the tiny test model (32 × 64 input)" if args.tiny else "the default MFG (48 × 128"
     model += "" if args.tiny else " input, M = 1000)"
     report.add(
         f"{args.frames} consecutive frames of a procedural drive through the synthetic worlds "
         f"(the renderer of `flow=dis`), written as PNG files at each image size; {model} from "
         f"a checkpoint trained {args.train_steps} steps (its accuracy is not what is measured "
-        f"here); DIS `{args.preset}` at the image size; CPU **{kind}** ({cores} cores, "
+        f"here); DIS `{args.preset}` at the image size, and `flow=learned` (the shipped "
+        "weights of the framework's PWC-Net-design network, `docs/flow.md`) at "
+        + (", ".join(f"{h} × {w}" for h, w in args.learned_sizes) or "no size")
+        + f"; CPU **{kind}** ({cores} cores, "
         f"{torch.get_num_threads()} torch threads). Medians of {args.repeats} interleaved rounds "
         "after one warm-up round, each run with an empty flow cache (a first run on a folder). "
         "A frame is one pose: the pairs k → k + 1 of the folder."
@@ -457,7 +489,8 @@ def main(argv: list[str] | None = None) -> Path:
         "translation keeps unit length."
     )
     for r in results:
-        report.add(f"### Where the time goes, {r.height} × {r.width}\n\n{stages_table(r)}")
+        report.add(f"### Where the time goes, {r.height} × {r.width}, {FLOW_NAMES[r.flow]} flow"
+                   f"\n\n{stages_table(r)}")  # fmt: skip
     report.add(
         "Shares: of `predict` after its start-up (MFG) and of the stages' sum (classical). "
         "*The rest of `predict`*: its time after start-up less its stages, what the loop "

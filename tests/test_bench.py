@@ -184,10 +184,10 @@ def test_quick_start_benchmark(tmp_path: Path) -> None:
 
 
 def test_flow_estimators_benchmark(tmp_path: Path, shared_poses: Path) -> None:
-    """Two estimators on the tiny pair set: a row each, by region and by offset; the stages are
-    cached and a rerun reads them."""
+    """Three estimators on the tiny pair set, the learned one among them: a row each, by region
+    and by offset; the stages are cached and a rerun reads them."""
     args = ("--poses-dir", str(shared_poses), "--work", str(tmp_path / "work"),
-            "--estimators", "dis_medium", "farneback")  # fmt: skip
+            "--estimators", "dis_medium", "farneback", "learned")  # fmt: skip
     env = dict(os.environ, OMP_NUM_THREADS="1", MFG_CACHE_DIR=str(tmp_path))
     command = [sys.executable, str(BENCH / "flow_estimators.py"), "--tiny", "--out",
                str(tmp_path), *args]  # fmt: skip
@@ -196,10 +196,10 @@ def test_flow_estimators_benchmark(tmp_path: Path, shared_poses: Path) -> None:
     text = (tmp_path / "flow_quality.md").read_text()  # a section of flow_quality.md
     assert "### Environment of this section" in text and "opencv" in text
     rows = _table_rows(text, "## Every estimator on the same test pairs")
-    assert [r[0] for r in rows[:2]] == ["DIS medium", "Farnebäck"]
-    assert all(_number(r[1]) > 0 and 0 < _number(r[-2]) < 100 for r in rows[:2])
+    assert [r[0] for r in rows[:3]] == ["DIS medium", "Farnebäck", "learned (PWC-Net design)"]
+    assert all(_number(r[1]) > 0 and 0 < _number(r[-2]) < 100 for r in rows[:3])
     assert sorted(p.name for p in (tmp_path / "work").iterdir()) == [
-        "dis_medium_tiny.json", "farneback_tiny.json"
+        "dis_medium_tiny.json", "farneback_tiny.json", "learned_tiny.json"
     ]  # fmt: skip
 
 

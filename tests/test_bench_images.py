@@ -50,18 +50,25 @@ def test_images_to_poses_writes_its_section(
     assert f"## {bench.HEADING}" in section and "### Environment of this section" in section
     assert "bench/images_to_poses.py" in section  # the command that wrote it
     rates = _rows(section, bench.HEADING)
-    assert [r[2] for r in rates] == [
-        "MFG: `predict`, end to end (the whole call)",
-        "MFG: `predict` after its start-up",
-        "MFG: its stages alone",
-        "DIS + essential matrix + MAGSAC++ (OpenCV): its stages",
+    # DIS's rows, then the learned flow's (the shipped weights) at the same size
+    assert [(r[1], r[3]) for r in rates] == [
+        (flow, pipeline)
+        for flow, first in (("DIS", "DIS"), ("learned (`flow=learned`)", "learned"))
+        for pipeline in (
+            "MFG: `predict`, end to end (the whole call)",
+            "MFG: `predict` after its start-up",
+            "MFG: its stages alone",
+            f"{first} flow + essential matrix + MAGSAC++ (OpenCV): its stages",
+        )
     ]
     for row in rates:
-        assert row[0] == "48 × 128" and row[1] == cpu_kind()
-        if "after its start-up" in row[2]:
+        assert row[0] == "48 × 128" and row[2] == cpu_kind()
+        if "after its start-up" in row[3]:
             continue  # a difference of two timings: on a loaded machine and 5 pairs, any sign
-        assert float(row[3]) > 0 and float(row[4]) > 0, row
-    stages = {r[0]: r for r in _rows(section, "### Where the time goes, 48 × 128")}
+        assert float(row[4]) > 0 and float(row[5]) > 0, row
+    learned = {r[0]: r for r in _rows(section, "### Where the time goes, 48 × 128, learned")}
+    assert float(learned["flow"][2]) > 0 and float(learned["network"][2]) > 0
+    stages = {r[0]: r for r in _rows(section, "### Where the time goes, 48 × 128, DIS flow")}
     assert list(stages) == ["read", "flow", "network", "recovery", "composition", "method",
                             "the rest of `predict`", "total"]  # fmt: skip
     for name in ("read", "flow", "network", "recovery", "composition"):
@@ -74,6 +81,7 @@ def test_images_to_poses_writes_its_section(
     lines = readme.read_text().splitlines()
     assert lines[:3] == ["# x", "", "<!-- images-to-poses:start -->"]
     assert lines[3].startswith("Images to poses: `predict` on a folder of 48 × 128 PNG frames")
+    assert "with `flow=learned`" in lines[3]
     assert lines[4:] == ["<!-- images-to-poses:end -->", "", "end"]
     # bench/throughput.py rewriting the file keeps the section
     common = bench_module("_common")

@@ -237,7 +237,7 @@ def test_samples_carry_estimated_and_exact_flow_and_the_quality_is_stored(
 
 
 @pytest.mark.parametrize("name", sorted(set(ESTIMATORS) - {"dis"}))
-def test_each_opencv_contrib_estimator_follows_the_exact_flow_of_rendered_frames(
+def test_each_estimator_but_dis_follows_the_exact_flow_of_rendered_frames(
     tmp_path: Path, name: str
 ) -> None:
     flow = parse_flow({"source": name, "height": RH, "width": RW}, default="exact")

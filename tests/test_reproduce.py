@@ -77,7 +77,7 @@ def test_tiny_study_runs_resumes_and_rebuilds_from_committed_results(tmp_path: P
     assert "commit" in text and "cores" in text and "torch" in text
     # every trained model's convergence row, and no absolute path of this machine
     conv = text.split("## Did it converge")[1].split("## ")[0]
-    for name in ("main", "main, seed 1", "exact-flow twin", "table2", "table2_exact",
+    for name in ("main", "main, seed 1", "exact-flow twin", "learned", "table2", "table2_exact",
                  "size stride4", "size stride2", "balance_squared", "sparsity w_s=0",
                  "recipe paper", "table2 exact, seed 1", "table2 strided, seed 0"):  # fmt: skip
         assert f"| {name} |" in conv, name
@@ -86,6 +86,7 @@ def test_tiny_study_runs_resumes_and_rebuilds_from_committed_results(tmp_path: P
     # the size curve, each with its table (and figure)
     for head, png in (("## The flow against the method", "twin.png"),
                       ("## Table 2's setting on exact flow", None),
+                      ("## The learned flow: the main setting on flow=learned", None),
                       ("## Table 2's setting at every seed", "settle.png"),
                       ("## Claim 3's data size", "size.png")):  # fmt: skip
         section = text.split(head)[1].split("\n## ")[0]
@@ -94,20 +95,22 @@ def test_tiny_study_runs_resumes_and_rebuilds_from_committed_results(tmp_path: P
     assert "S9: The exact-flow Table-2-sized models (2 seeds)" in text
     assert "S4: Table 2's setting (" in text and "training pairs) at 2 seeds on exact flow" in text
     checkpoints = {p: p.stat().st_mtime_ns for p in work.glob("models/*/checkpoints/*.ckpt")}
-    # main, its second seed, its exact-flow twin, table2 on both flows, the size curve's two
-    # strides, 4 sparsity models (w_s 0, 100, input scale, low rate), balance, 2 recipes: the
-    # tiny main model runs past the other models' 2-step cap, so no model reuses its run
+    # main, its second seed, its exact-flow twin, its learned-flow run, table2 on both flows,
+    # the size curve's two strides, 4 sparsity models (w_s 0, 100, input scale, low rate),
+    # balance, 2 recipes: the tiny main model runs past the other models' 2-step cap, so no
+    # model reuses its run
     assert {p.parts[-3] for p in checkpoints} == {
-        "main", "seed1", "twin", "table2", "table2_exact", "size_stride4", "size_stride2",
-        "ws0", "ws100", "ws100_scale0.2", "ws100_lr0.0001", "balance_squared", "recipe_cpu",
-        "recipe_paper", "settle_exact_seed0", "settle_exact_seed1", "settle_strided_seed0",
+        "main", "seed1", "twin", "learned", "table2", "table2_exact", "size_stride4",
+        "size_stride2", "ws0", "ws100", "ws100_scale0.2", "ws100_lr0.0001", "balance_squared",
+        "recipe_cpu", "recipe_paper", "settle_exact_seed0", "settle_exact_seed1",
+        "settle_strided_seed0",
     }  # fmt: skip
     recipe = json.loads((results / "recipe.json").read_text())
     assert "same_as" not in recipe["cpu"] and recipe["cpu"]["epochs"] >= 0.5
     assert recipe["paper"]["epochs"] >= 0.5 and recipe["paper"]["batch_size"] == 1
     stage_files = sorted(p.relative_to(results) for p in results.glob("**/*.json"))
-    # 19, and the 2 × 2's: the classical methods, two seeds and one strided seed
-    assert len(stage_files) == 23
+    # 20, and the 2 × 2's: the classical methods, two seeds and one strided seed
+    assert len(stage_files) == 24
     for f in stage_files:
         assert str(tmp_path) not in (results / f).read_text(), f
 

@@ -62,7 +62,7 @@ def export_best(cfg: DictConfig, metrics: dict[str, float], seconds: float) -> P
             "validation": {k: v for k, v in metrics.items() if k.startswith("val/")},
             "train_seconds": round(seconds, 1),
             "cpu_kind": info.get("cpu_kind"),
-            "torch": torch.__version__,
+            "torch": str(torch.__version__),
             "threads": torch.get_num_threads(),
         }
         for key in ("poses_dir", "cache_dir"):  # (no absolute path of this machine)

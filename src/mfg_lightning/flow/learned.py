@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import hashlib
 import io
+import json
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -55,7 +56,8 @@ def save_weights(
             "format": WEIGHTS_FORMAT,
             "config": net.config.to_dict(),
             "state_dict": state,
-            "provenance": dict(provenance or {}),
+            # plain data only (json's types), so that weights_only loading reads it
+            "provenance": json.loads(json.dumps(provenance or {}, default=str)),
         },
         buffer,
     )
@@ -86,7 +88,9 @@ def load_weights(path: str | Path) -> tuple[PWCFlowNet, dict[str, Any]]:
     if not zipfile.is_zipfile(path):
         raise _refuse(path, "not a torch file (a zip archive), or cut short")
     try:
-        data = torch.load(path, map_location="cpu", weights_only=True)
+        # (TorchVersion: a str subclass that a provenance's torch.__version__ may have pickled)
+        with torch.serialization.safe_globals([torch.torch_version.TorchVersion]):
+            data = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # (torch raises several kinds for foreign files)
         raise _refuse(path, f"unreadable ({type(err).__name__}: {err})") from None
     if not isinstance(data, dict):

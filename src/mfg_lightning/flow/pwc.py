@@ -7,9 +7,12 @@ PWC-Net's parts, scaled down to train in hours on a 2-core CPU:
 * **Warping**: from the coarsest level to level 2 (1/4 of the input), the second image's
   features are warped towards the first by the flow of the level above, upsampled.
 * **Cost volume**: the correlation of the first image's features with the warped second ones
-  over every displacement within ``radius`` pixels of the level (``(2r + 1)²`` channels), the
-  channel mean of the product: written with shifted slices, so no CUDA correlation package is
-  needed (the authors' PWC code needs one).
+  over every displacement within ``radius`` pixels of the level (``(2r + 1)²`` channels),
+  written with shifted slices, so no CUDA correlation package is needed (the authors' PWC code
+  needs one). Unlike PWC-Net's raw feature products, the features are normalised to unit
+  length first (a cosine similarity): with raw products this small network, trained from
+  scratch on a CPU budget, shrank its features until the cost volume carried nothing and
+  predicted one mean flow for every pair.
 * **Flow decoder per level**: convolutions on ``[cost volume, first features, upsampled flow]``
   predicting the level's flow as a residual over the upsampled flow of the level above.
 * **Context network**: dilated convolutions (1, 2, 4, 8, 1) refining the finest flow.
@@ -185,12 +188,38 @@ class PWCFlowNet(nn.Module):
             c = c_out
         layers.append(nn.Conv2d(c, 2, 3, padding=1))
         self.context = nn.Sequential(*layers)
-        # the normalisation of the input images (PWC-Net's: per-channel mean removal)
-        self.register_buffer("mean", torch.tensor([0.5, 0.5, 0.5]).view(1, 3, 1, 1))
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        """He initialisation for the leaky-ReLU convolutions, zero biases, and flow heads 10×
+        smaller. Why: with PyTorch's default initialisation every layer shrinks its input's
+        scale, so that after the pyramid's ten layers the features are ~0.01 and the cost
+        volume (a mean of their products) ~1e-4, below what the decoders can tell from noise:
+        measured, the network then learns to ignore the second image and predicts one mean
+        flow for every pair. Small flow heads start the cascade near zero flow, so the first
+        warps read the features where they are."""
+        for module in self.modules():
+            if isinstance(module, nn.Conv2d):
+                nn.init.kaiming_normal_(module.weight, a=0.1, nonlinearity="leaky_relu")
+                nn.init.zeros_(module.bias)
+        heads = [d.flow for d in self.decoders.values()] + [self.context[-1]]
+        with torch.no_grad():
+            for head in heads:
+                head.weight.mul_(0.1)
+
+    @staticmethod
+    def normalize(image0: torch.Tensor, image1: torch.Tensor) -> torch.Tensor:
+        """Both images standardised per pair and channel (their joint mean and standard
+        deviation: brightness constancy between the two is kept), stacked ``(2B, 3, H, W)``."""
+        pair = torch.stack((image0, image1), dim=1).float()  # (B, 2, 3, H, W)
+        mean = pair.mean(dim=(1, 3, 4), keepdim=True)
+        std = pair.std(dim=(1, 3, 4), keepdim=True).clamp_min(1e-3)
+        pair = (pair - mean) / std
+        return torch.cat((pair[:, 0], pair[:, 1]), dim=0)
 
     def features(self, image: torch.Tensor) -> list[torch.Tensor]:
-        """The pyramid of ``(B, 3, H, W)`` images in [0, 1]: levels 1 … L."""
-        x = image - self.mean
+        """The pyramid of ``(B, 3, H, W)`` standardised images: levels 1 … L."""
+        x = image
         out = []
         for level in self.pyramid:
             x = level(x)
@@ -202,7 +231,7 @@ class PWCFlowNet(nn.Module):
         network: ``(B, 2, H / 2^l, W / 2^l)`` in input pixels, for ``l`` = L … output_level."""
         cfg = self.config
         b = image0.shape[0]
-        pyramids = self.features(torch.cat((image0, image1), dim=0))
+        pyramids = self.features(self.normalize(image0, image1))
         flows: list[torch.Tensor] = []
         flow: torch.Tensor | None = None
         hidden: torch.Tensor | None = None
@@ -215,7 +244,11 @@ class PWCFlowNet(nn.Module):
                 # network units (input px / FLOW_SCALE): the same numbers at every level
                 flow = F.interpolate(flow, size=f0.shape[-2:], mode="bilinear", align_corners=False)
                 warped = warp(f1, flow * (FLOW_SCALE / 2**level))
-            cost = F.leaky_relu(correlation(f0, warped, cfg.radius), 0.1)
+            # the correlation of unit feature vectors (cosine similarity, in [-1, 1]): the
+            # decoders read the same range at every level and step, which the pyramid cannot
+            # shrink away (measured: with raw features it does, and the flow stops using them)
+            cost = correlation(F.normalize(f0, dim=1), F.normalize(warped, dim=1), cfg.radius)
+            cost = F.leaky_relu(cost * f0.shape[1], 0.1)
             residual, hidden = self.decoders[str(level)](torch.cat((cost, f0, flow), dim=1))
             flow = flow + residual
             if level == cfg.output_level:

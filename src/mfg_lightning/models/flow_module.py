@@ -3,8 +3,9 @@ rendered pairs with their exact flow (``python -m mfg_lightning.train_flow``).
 
 Loss: PWC-Net's multi-scale one, the mean end-point error of every decoder level's flow against
 the exact flow averaged down to that level (over the pixels where it is known), weighted per
-level (``level_weights``, coarsest first). Augmentation: a random left-right flip of a pair
-(its flow's ``u`` negated), per sample.
+level (``level_weights``, coarsest first). Augmentation: a random crop of the batch (``crop``:
+the same window for every pair of a step, a new one each step) and a random left-right flip of
+a pair (its flow's ``u`` negated), per sample.
 
 Validation: the flow at the input size (:meth:`PWCFlowNet.estimate`: the finest level upsampled)
 against the exact flow, pooled pixel by pixel over the split, by offset and by region:
@@ -60,6 +61,8 @@ class FlowLitModule(L.LightningModule):
         scheduler: a partial per-step LR scheduler, or None.
         level_weights: the loss weight of each decoder level, coarsest first (as many as the
             network has decoder levels).
+        crop: ``[height, width]`` of the random training crop (multiples of the network's
+            divisor; None: whole frames). Validation always sees whole frames.
         flip: probability of a left-right flip of a training pair.
         image_log_every_n_steps: how often a training step hands its pairs to the figures
             callback (0: never).
@@ -71,6 +74,7 @@ class FlowLitModule(L.LightningModule):
         optimizer: Callable[..., torch.optim.Optimizer] | None = None,
         scheduler: Callable[..., Any] | None = None,
         level_weights: Sequence[float] = (0.25, 0.25, 0.5, 1.0),
+        crop: Sequence[int] | None = None,
         flip: float = 0.5,
         image_log_every_n_steps: int = 500,
     ) -> None:
@@ -88,6 +92,14 @@ class FlowLitModule(L.LightningModule):
         if not 0.0 <= flip <= 1.0:
             raise ValueError(f"model.flip must be a probability, got {flip}")
         self.flip = float(flip)
+        self.crop = None if crop is None else tuple(int(v) for v in crop)
+        d = self.config.divisor
+        if self.crop is not None and (
+            len(self.crop) != 2 or min(self.crop) < d or self.crop[0] % d or self.crop[1] % d
+        ):
+            raise ValueError(
+                f"model.crop must be [height, width], multiples of {d}, got {list(crop)}"
+            )  # fmt: skip
         self.optimizer_factory = optimizer
         self.scheduler_factory = scheduler
         self.image_log_every_n_steps = int(image_log_every_n_steps)
@@ -102,9 +114,16 @@ class FlowLitModule(L.LightningModule):
         """The batch's ``(B, 3, H, W)`` uint8 frames as float in [0, 1]."""
         return batch["image0"].float() / 255.0, batch["image1"].float() / 255.0
 
-    def _flipped(self, batch: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def _augmented(self, batch: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         image0, image1 = self.images(batch)
         flow = batch["flow"].float()
+        if self.crop is not None:
+            h, w = flow.shape[-2:]
+            ch, cw = min(self.crop[0], h), min(self.crop[1], w)
+            y = int(torch.randint(0, h - ch + 1, ()))
+            x = int(torch.randint(0, w - cw + 1, ()))
+            window = (..., slice(y, y + ch), slice(x, x + cw))
+            image0, image1, flow = image0[window], image1[window], flow[window]
         if self.flip > 0:
             flip = torch.rand(flow.shape[0], device=flow.device) < self.flip
             f = flip.view(-1, 1, 1, 1)
@@ -133,7 +152,7 @@ class FlowLitModule(L.LightningModule):
         return total, per_level
 
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor:
-        image0, image1, flow = self._flipped(batch)
+        image0, image1, flow = self._augmented(batch)
         flows = self.net(image0, image1)
         loss, per_level = self.multiscale_loss(flows, flow)
         self.log("train/loss", loss, prog_bar=False)

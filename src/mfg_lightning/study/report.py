@@ -80,7 +80,7 @@ def _trained_models(
 ) -> dict[str, dict]:
     """Every trained model's cached result, by the name the report gives it."""
     models = {}
-    for name in ("main", "twin", "table2", "table2_exact", "balance"):
+    for name in ("main", "twin", "learned", "table2", "table2_exact", "balance"):
         if (r := study.cached(name)) is not None:
             models[{"balance": "balance_squared", "twin": "exact-flow twin"}.get(name, name)] = r
     for seed in study.cfg.seeds.extra:
@@ -178,7 +178,7 @@ def write_report(study: S.Study, report: Path) -> Path:
     stage_rows, total = _stage_rows(study)
     text = [
         *_header(study, views, total),
-        *_verdicts_section(judged, verdict_link),
+        *_verdicts_section(judged, verdict_link, study_flow_name(study)),
         *_headline_section(views),
         *_diagnostics_section(table, sweep),
         *_methods_section(study.cached("methods")),
@@ -386,10 +386,12 @@ def _floors_text() -> str:
     return ", ".join(f"{v:g} {units.get(k, k)}" for k, v in FLOORS.items())
 
 
-def _verdicts_section(judged: list[Judged], figure: str) -> list[str]:
-    """The sentences, their measurement and verdict: one row per sentence."""
+def _verdicts_section(judged: list[Judged], figure: str, flow_name: str = "DIS") -> list[str]:
+    """The sentences, their measurement, the flow it uses (``flow_name``: the study's own) and
+    verdict: one row per sentence."""
     rows = [
         [j.sentence.key, f"“{j.sentence.quote}” ({j.sentence.where})", j.sentence.measured,
+         j.sentence.flow.format(study=flow_name),
          "; ".join(p.text() for p in j.parts) or "not run yet", j.verdict]
         for j in judged
     ]  # fmt: skip
@@ -417,10 +419,17 @@ def _verdicts_section(judged: list[Judged], figure: str) -> list[str]:
         "inconclusive) or **inconclusive** (none holds). Ratios of errors are judged as the log "
         "of the ratio and printed as ×ratio. The rules are data in "
         "`mfg_lightning.study.sentences.SENTENCES` and the construction is "
-        f"`mfg_lightning.study.intervals`. {figure}",
+        f"`mfg_lightning.study.intervals`. The flow column names the input flow each "
+        f"verdict's models read ({flow_name}: the flow estimated on the rendered frames; exact: "
+        "the renderer's exact flow; the learned flow's models are a diagnostic, no verdict "
+        f"reads them). {figure}",
         "",
         Table(
-            [Column(h) for h in ("#", "the paper", "measured as", "ours (parts)", "verdict")], rows
+            [
+                Column(h)
+                for h in ("#", "the paper", "measured as", "flow", "ours (parts)", "verdict")
+            ],
+            rows,
         ).markdown(),
         "",
         *[f"- {j.sentence.key}: {j.beside}" for j in judged if j.beside],
@@ -522,9 +531,19 @@ def _causes_sections(
         settle_lines[2] += " " + _figure(figdir, "settle.png", settle_fig)
         made.append("settle.png")
     t2 = causes.table2_flow_section(study.cached("table2_exact"), study.cached("table2"))
+    learned = causes.learned_section(
+        views, twin, study.cached("learned"), study.cached("flow_error"), study_flow_name(study)
+    )
     stale = {n: study.cached(n) for n in ("twin", "table2", "table2_exact")}
     stale["size/classical"] = study.cached("size/classical")
-    return [*twin_lines, *settle_lines, *t2, *size_lines, *stale_essential(stale)]
+    return [*twin_lines, *learned, *settle_lines, *t2, *size_lines, *stale_essential(stale)]
+
+
+def study_flow_name(study: S.Study) -> str:
+    """The study's own flow as the report names it (``flow=dis``: DIS)."""
+    chosen = [str(d).split("=", 1)[1] for d in study.cfg.data if str(d).startswith("flow=")]
+    name = chosen[-1] if chosen else "dis"
+    return {"dis": "DIS", "exact": "exact"}.get(name, name)
 
 
 def _pending(study: S.Study) -> list[str]:
@@ -533,7 +552,8 @@ def _pending(study: S.Study) -> list[str]:
     cfg = study.cfg
     names = [
         "data", "flow_error", "main", "table1", "basis", "object_motion", "methods",
-        *[f"seeds/seed{int(s)}" for s in cfg.seeds.extra], "twin", "table2", "table2_exact",
+        *[f"seeds/seed{int(s)}" for s in cfg.seeds.extra], "twin", "learned", "table2",
+        "table2_exact",
         *[f"settle_classical/{f}" for f in cfg.settle.flows],
         *[f"settle/{f}_seed{s}" for f, s in T.seed_runs(cfg)],
         *[f"settle/strided_seed{s}" for s in T.strided_runs(cfg)],

@@ -95,8 +95,12 @@ class Study:
 
         b = self.cfg.budget
         rule = [f"callbacks.convergence.{k}={v}" for k, v in self.cfg.convergence.items()]
+        # a group choice in ``extra`` (flow=learned) replaces the data's own (flow=dis): Hydra
+        # refuses two choices of one group
+        chosen = {e.split("=", 1)[0] for e in extra if "=" in e and "." not in e.split("=")[0]}
+        data = [d for d in self.cfg.data if str(d).split("=", 1)[0] not in chosen]
         ov = [
-            *self.cfg.data,
+            *data,
             f"trainer={self.trainer_choice}",
             f"trainer.max_steps={int(steps)}",
             f"trainer.val_check_interval={max(1, min(int(b.val_every), int(steps)))}",
@@ -117,7 +121,7 @@ class Study:
         ]
         if b.max_frames is not None:
             # before ``extra``, which may set its own (Table 2's smaller training set)
-            ov.insert(len(self.cfg.data), f"dataset.max_frames={int(b.max_frames)}")
+            ov.insert(len(data), f"dataset.max_frames={int(b.max_frames)}")
         if max_time:
             ov.append(f"++trainer.max_time={max_time}")
         return compose("train", ov)

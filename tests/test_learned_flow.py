@@ -1,0 +1,248 @@
+"""flow=learned: the PWC-Net-design network, its weight files, its training on rendered pairs
+(python -m mfg_lightning.train_flow) and its use as MFG's flow estimator."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import quiet_trainer, run_module
+from mfg_lightning.data.flow_pairs import FlowPairsDataModule
+from mfg_lightning.flow.estimators import EstimatedFlow, parse_flow
+from mfg_lightning.flow.learned import (
+    DEFAULT_WEIGHTS,
+    load_weights,
+    save_weights,
+)
+from mfg_lightning.flow.pwc import PWCConfig, PWCFlowNet, correlation, warp
+from mfg_lightning.models.flow_module import FlowLitModule, downsample_flow
+
+#: A network small enough for seconds-long tests (the shipped one: conf/model/pwc_flow.yaml)
+SMALL = PWCConfig(pyramid=(8, 8, 12, 16), decoder=(16, 16), context=(8, 8), dilations=(1, 2))
+
+
+# -- the network's parts, against slow direct computations --------------------------------------
+
+
+def test_the_cost_volume_is_the_channel_mean_of_products_at_every_displacement() -> None:
+    gen = torch.Generator().manual_seed(0)
+    f0, f1 = torch.randn(2, 3, 5, 6, 7, generator=gen)
+    r = 2
+    out = correlation(f0, f1, r)
+    assert out.shape == (3, 25, 6, 7)
+    slow = torch.zeros_like(out)
+    for b in range(3):
+        for k, (dy, dx) in enumerate(
+            (dy, dx) for dy in range(-r, r + 1) for dx in range(-r, r + 1)
+        ):
+            for y in range(6):
+                for x in range(7):
+                    if 0 <= y + dy < 6 and 0 <= x + dx < 7:
+                        slow[b, k, y, x] = (f0[b, :, y, x] * f1[b, :, y + dy, x + dx]).mean()
+    torch.testing.assert_close(out, slow, atol=1e-6, rtol=1e-5)
+
+
+def test_warping_by_a_whole_pixel_flow_reads_the_shifted_pixel_and_zero_outside() -> None:
+    features = torch.arange(2 * 4 * 5, dtype=torch.float32).view(1, 2, 4, 5)
+    flow = torch.zeros(1, 2, 4, 5)
+    torch.testing.assert_close(warp(features, flow), features)
+    flow[:, 0] = 1.0  # read one pixel to the right
+    shifted = warp(features, flow)
+    torch.testing.assert_close(shifted[..., :-1], features[..., 1:])
+    assert (shifted[..., -1] == 0).all()
+    flow[:, 0], flow[:, 1] = 0.0, -0.5  # half a pixel up: the mean of two rows
+    torch.testing.assert_close(
+        warp(features, flow)[..., 1:, :], 0.5 * (features[..., 1:, :] + features[..., :-1, :])
+    )
+
+
+def test_the_network_gives_every_level_and_the_input_size_for_any_image_size() -> None:
+    net = PWCFlowNet(SMALL).eval()
+    a, b = torch.rand(2, 2, 3, 64, 96)
+    flows = net(a, b)
+    assert [f.shape[-2:] for f in flows] == [(4, 6), (8, 12), (16, 24)]
+    odd = net.estimate(a[..., :50, :70], b[..., :50, :70])
+    assert odd.shape == (2, 2, 50, 70) and torch.isfinite(odd).all()
+
+
+def test_block_means_of_the_exact_flow_skip_unknown_vectors() -> None:
+    flow = torch.tensor([[1.0, 3.0], [float("nan"), 5.0]]).expand(1, 2, 2, 2).clone()
+    flow[:, :, 1, 0] = float("nan")
+    mean, known = downsample_flow(flow, 2)
+    torch.testing.assert_close(mean, torch.full((1, 2, 1, 1), 3.0))
+    assert known.all()
+    mean, known = downsample_flow(torch.full((1, 2, 2, 2), float("nan")), 2)
+    assert not known.any() and (mean == 0).all()
+
+
+# -- weight files ------------------------------------------------------------------------------
+
+
+def test_a_weight_file_round_trips_and_a_wrong_file_is_a_clear_error(tmp_path: Path) -> None:
+    net = PWCFlowNet(SMALL)
+    path = save_weights(tmp_path / "net.pt", net, {"command": "test"})
+    loaded, provenance = load_weights(path)
+    assert provenance == {"command": "test"} and loaded.config == SMALL
+    for k, v in net.state_dict().items():
+        torch.testing.assert_close(loaded.state_dict()[k], v)
+
+    text = tmp_path / "notes.txt"
+    text.write_text("not weights\n")
+    with pytest.raises(ValueError, match=r"flow.weights=.*notes.txt: not a torch file"):
+        load_weights(text)
+    other = tmp_path / "other.pt"
+    torch.save({"state_dict": {"encoder.weight": torch.zeros(1)}}, other)
+    with pytest.raises(ValueError, match=r"other.pt: not a flow-network file \(an MFG checkpoint"):
+        load_weights(other)
+    bigger = PWCFlowNet(PWCConfig(**{**SMALL.to_dict(), "decoder": (16, 16, 16)}))
+    mixed = save_weights(tmp_path / "mixed.pt", bigger)
+    data = torch.load(mixed, weights_only=True)
+    data["config"] = SMALL.to_dict()  # weights of another shape than the config says
+    torch.save(data, mixed)
+    with pytest.raises(ValueError, match=r"mixed.pt: its weights do not fit the network"):
+        load_weights(mixed)
+    with pytest.raises(FileNotFoundError, match="flow.weights: no such file"):
+        parse_flow({"source": "learned", "weights": str(tmp_path / "absent.pt")}, "exact")
+
+
+def test_the_estimator_keys_its_cache_by_the_weights_and_estimates_at_the_image_size(
+    tmp_path: Path,
+) -> None:
+    one = save_weights(tmp_path / "one.pt", PWCFlowNet(SMALL))
+    torch.manual_seed(1)
+    two = save_weights(tmp_path / "two.pt", PWCFlowNet(SMALL))
+    flow = parse_flow({"source": "learned", "weights": str(one), "device": "cpu"}, "exact")
+    assert isinstance(flow, EstimatedFlow) and flow.source == "learned"
+    other = parse_flow({"source": "learned", "weights": str(two)}, "exact")
+    assert flow.key() != other.key()
+    rgb = np.random.default_rng(0).integers(0, 256, (70, 100, 3), dtype=np.uint8)
+    est = flow.estimator(flow.estimator.prepare(rgb), flow.estimator.prepare(rgb))
+    assert est.shape == (70, 100, 2) and est.dtype == np.float32 and np.isfinite(est).all()
+
+
+def test_the_shipped_weights_load_with_their_provenance() -> None:
+    net, provenance = load_weights(DEFAULT_WEIGHTS)
+    assert net.config == PWCConfig()  # conf/model/pwc_flow.yaml's network
+    for key in ("command", "commit", "global_step", "data", "train_seconds", "cpu_kind"):
+        assert provenance.get(key) is not None, key
+    assert "train_flow" in provenance["command"]
+    assert provenance["data"]["trajectory"] == "kitti"
+    assert all(int(s) <= 8 for s in provenance["data"]["train_sequences"])  # never 09, 10
+    text = json.dumps(provenance)
+    assert "/work/" not in text and "/root/" not in text  # no path of the training machine
+
+
+# -- training ----------------------------------------------------------------------------------
+
+
+def _tiny_pairs(tmp_path: Path, **kw) -> FlowPairsDataModule:
+    settings = dict(
+        train_sequences=1, sequence_length=16, val_fraction=0.25, frame_stride=1, val_every=1,
+        image_hw=(64, 128), batch_size=4, eval_batch_size=8, num_workers=0, prepare_workers=0,
+        cache_dir=str(tmp_path / "cache"),
+    )  # fmt: skip
+    return FlowPairsDataModule(**{**settings, **kw})
+
+
+def _val_epe(module: FlowLitModule, data: FlowPairsDataModule) -> float:
+    trainer = quiet_trainer()
+    return float(trainer.validate(module, datamodule=data, verbose=False)[0]["val/epe"])
+
+
+def _blind_epe(data: FlowPairsDataModule) -> float:
+    """The validation EPE of the best flow that ignores the images: the training pairs' mean
+    flow at every pixel (per offset, which the network is not told: an upper hand it lacks)."""
+    by_offset: dict[int, list[torch.Tensor]] = {}
+    for s in data.dataset("train"):
+        by_offset.setdefault(s["offset"], []).append(s["flow"])
+    mean = {o: torch.nanmean(torch.stack(f), dim=0) for o, f in by_offset.items()}
+    total = count = 0.0
+    for s in data.dataset("val"):
+        known = torch.isfinite(s["flow"]).all(0)
+        err = (s["flow"] - mean[s["offset"]]).norm(dim=0)[known]
+        total, count = total + float(err.sum()), count + err.numel()
+    return total / count
+
+
+@pytest.mark.slow
+def test_training_the_flow_network_on_a_tiny_world_lowers_its_end_point_error(
+    tmp_path: Path,
+) -> None:
+    data = _tiny_pairs(tmp_path)
+    data.prepare_data()
+    assert data.dataset("train").samples and data.dataset("val").samples
+    train_frames = {s[1] for s in data.dataset("train").samples}
+    assert train_frames.isdisjoint({s[1] for s in data.dataset("val").samples})
+    torch.manual_seed(0)
+    module = FlowLitModule(
+        net=SMALL.to_dict(),
+        optimizer=lambda params: torch.optim.Adam(params, lr=2e-3),
+        level_weights=(1.0, 1.0, 1.0),
+    )
+    before = _val_epe(module, data)
+    quiet_trainer(max_steps=60, limit_val_batches=0).fit(module, datamodule=data)
+    after = _val_epe(module, data)
+    # lower than at the start, and lower than any flow that ignores the images could be (a
+    # network that learns one mean flow for every pair, as one whose cost volume is too weak
+    # to read does, stops above it)
+    blind = _blind_epe(data)
+    assert after < 0.7 * before and after < blind, (before, after, blind)
+
+
+@pytest.mark.slow
+def test_train_flow_runs_in_a_run_directory_exports_its_network_and_resumes(
+    tmp_path: Path,
+) -> None:
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    run = tmp_path / "run"
+    args = (
+        "dataset.train_sequences=1", "dataset.sequence_length=16", "dataset.val_fraction=0.25",
+        "dataset.frame_stride=2", "dataset.val_every=2", "dataset.image_hw=[64,128]",
+        "dataset.batch_size=2", "dataset.num_workers=0", "dataset.prepare_workers=0",
+        "model.net.pyramid=[8,8,12,16]", "model.net.decoder=[16,16]", "model.net.context=[8,8]",
+        "model.net.dilations=[1,2]", "model.level_weights=[1,1,1]",
+        "trainer.val_check_interval=2", "model.image_log_every_n_steps=2",
+        f"hydra.run.dir={run}",
+    )  # fmt: skip
+    run_module("mfg_lightning.train_flow", *args, "trainer.max_steps=2", cwd=tmp_path)
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["metrics"]["val/epe"] > 0 and "val/epe_+1" in metrics["metrics"]
+    net, provenance = load_weights(run / "flow_net.pt")
+    assert provenance["global_step"] == 2 and net.config.pyramid == (8, 8, 12, 16)
+    assert provenance["data"]["cache_dir"] == "<cache_dir>"
+    events = EventAccumulator(str(run / "tensorboard"), size_guidance={"images": 0})
+    events.Reload()
+    assert {"train/flow", "val/flow"} <= set(events.Tags()["images"])
+    assert "val/epe" in events.Tags()["scalars"]
+
+    run_module(
+        "mfg_lightning.train_flow", *args, "trainer.max_steps=4", "resume=true", cwd=tmp_path
+    )
+    info = json.loads((run / "run_info.json").read_text())
+    assert info["resumed_from"].endswith("last.ckpt")
+    _, provenance = load_weights(run / "flow_net.pt")
+    assert provenance["global_step"] == 4
+    # a train_flow checkpoint is a weight file too
+    assert load_weights(run / "checkpoints" / "last.ckpt")[1]["global_step"] == 4
+
+
+@pytest.mark.slow
+def test_mfg_trains_on_the_shipped_learned_flow_out_of_the_box(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    run_module(
+        "mfg_lightning.train", "flow=learned", "flow.height=64", "flow.width=128",
+        "dataset.train_sequences=1", "dataset.test_sequences=1", "dataset.sequence_length=8",
+        "dataset.batch_size=2", "dataset.eval_batch_size=4", "model.net.hidden_units=64",
+        "model.net.channels=[8,8,16,16,32]", "trainer.max_steps=2",
+        "trainer.val_check_interval=1", "logger=none", "callbacks=none",
+        f"hydra.run.dir={run}", cwd=tmp_path,
+    )  # fmt: skip
+    assert json.loads((run / "metrics.json").read_text())["metrics"]["test/ate"] is not None
+    meta = next((tmp_path / "cache" / "synthetic_flow").glob("*/meta.json"))
+    key = json.loads(meta.read_text())["flow"]
+    assert key["estimator"] == "learned" and len(key["weights_sha256"]) == 64
