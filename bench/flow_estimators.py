@@ -71,6 +71,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--work", type=Path, default=RESULTS_DIR / "flow_estimators",
                    help="the stages' cached results")  # fmt: skip
     p.add_argument("--fresh", action="store_true", help="measure every stage again")
+    p.add_argument("--whole-test", action="store_true",
+                   help="also DIS medium and the learned flow on every +1 pair of the study's "
+                   "test split (09, 10; minutes)")  # fmt: skip
     p.add_argument("--estimators", nargs="+", default=None,
                    help="only these stages (dis_medium, deepflow, ...); default: all")  # fmt: skip
     add_common_arguments(p)
@@ -172,6 +175,29 @@ def measure(scenes: Scenes, flow_cfg: dict) -> dict:
     }
 
 
+#: The whole-test stage's estimators (label, flow config).
+WHOLE_TEST_RUNS = (("DIS medium", {"source": "dis", "preset": "medium"}),
+                   ("learned (PWC-Net design)", {"source": "learned"}))  # fmt: skip
+
+
+def whole_test(poses_dir: Path, sequences: list[str], flow_cfg: dict) -> dict:
+    """One estimator on every +1 pair of the study's test split (``dataset=synthetic
+    trajectory=kitti``'s test worlds of ``sequences``, the pairs whose DIS quality
+    ``flow_quality.md``'s first table gives): its quality pooled by region, computed through
+    the data module's own preparation (rendered, estimated and cached on every core; a cached
+    pair is read back)."""
+    from mfg_lightning.data.rendered import prepare_pairs
+    from mfg_lightning.data.synthetic import SyntheticDataModule
+
+    dm = SyntheticDataModule(trajectory="kitti", poses_dir=str(poses_dir),
+                             train_sequences=sequences[:1], test_sequences=sequences,
+                             flow=flow_cfg, offsets=[1], scene_seed=0)  # fmt: skip
+    ds = dm.dataset("test")
+    done = prepare_pairs([ds])[0]
+    quality = ds.quality(done.stats)
+    return {"key": ds.flow_source.key(), "pairs": len(ds), "computed": done.pairs, **quality}
+
+
 def _cell(q: dict | None, key: str, digits: int) -> str:
     return "–" if q is None or q.get(key) is None else fmt(q[key], digits)
 
@@ -242,7 +268,39 @@ def main(argv: list[str] | None = None) -> None:
         f"results in `bench/results/flow_estimators/`, measured in {staged:.0f} s of wall time "
         "in all, the first stage's rendering included).\n\n" + tables(results)
     )
+    if args.whole_test or (args.work / "whole_test.json").is_file():
+        report.add(whole_test_section(args))
     report.write_section(MARKER, HEADING)
+
+
+def whole_test_section(args: argparse.Namespace) -> str:
+    """The whole-test stage (cached as ``--work/whole_test.json``; ``--whole-test`` measures
+    what is missing), as a paragraph and a table."""
+    from mfg_lightning.data.rendered import QUALITY_REGIONS
+    from mfg_lightning.flow.estimators import parse_flow
+
+    path = args.work / f"whole_test{'_tiny' if args.tiny else ''}.json"
+    cached = json.loads(path.read_text()) if path.is_file() else {}
+    for label, cfg in WHOLE_TEST_RUNS:
+        key = parse_flow(cfg, default="dis").estimator.key()
+        entry = cached.get(label)
+        if args.whole_test and (entry is None or entry.get("estimator_key") != key):
+            start = time.perf_counter()
+            entry = whole_test(args.poses_dir, args.sequences, cfg)
+            entry["estimator_key"], entry["seconds"] = key, time.perf_counter() - start
+            cached[label] = entry
+            path.write_text(json.dumps(cached, indent=1) + "\n")
+    rows = [[label, str(r["pairs"])] + [_cell(r["regions"][g], "epe", 2) for g in QUALITY_REGIONS]
+            + [_cell(r["regions"]["all"], "fl", 1)] for label, r in cached.items()]  # fmt: skip
+    head = ["estimator", "pairs", *(f"EPE {g}" for g in QUALITY_REGIONS), "Fl % all"]
+    return (
+        "### Every +1 pair of the study's test split\n\n"
+        f"Every +1 pair of the test worlds of {', '.join(args.sequences)} as the study renders "
+        "them (`dataset=synthetic trajectory=kitti`'s test split, its worlds' own seed: the "
+        "pairs of the first table's `test` row), through the data module's preparation "
+        "(`--whole-test`; cached as `bench/results/flow_estimators/whole_test.json`). EPE in "
+        "px at 192 × 512:\n\n" + markdown_table(head, rows)
+    )
 
 
 if __name__ == "__main__":

@@ -35,6 +35,7 @@ MAIN_JOB_WITHIN = 60
 #: ``python -m <module>`` → its config (the Hydra entry points).
 CONFIGS = {
     "mfg_lightning.train": "train",
+    "mfg_lightning.train_flow": "train_flow",
     "mfg_lightning.evaluate": "evaluate",
     "mfg_lightning.predict": "predict",
     "mfg_lightning.analyze_basis": "analyze_basis",

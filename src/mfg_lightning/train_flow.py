@@ -44,6 +44,9 @@ def export_best(cfg: DictConfig, metrics: dict[str, float], seconds: float) -> P
     checkpoints = sorted((output_dir / "checkpoints").glob("best-*.ckpt"))
     source = checkpoints[-1] if checkpoints else output_dir / "checkpoints" / "last.ckpt"
     info = run_info()
+    started = output_dir / "run_info.json"
+    if started.is_file():  # the commit the run trained with (a later one may be checked out)
+        info["git_commit"] = json.loads(started.read_text()).get("git_commit")
     payload: dict[str, Any] = {
         "metrics": dict(sorted(metrics.items())),
         "checkpoint": source.name,

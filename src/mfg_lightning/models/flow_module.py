@@ -24,7 +24,10 @@ import torch.nn.functional as F
 
 from mfg_lightning.flow.pwc import PWCConfig, PWCFlowNet, config_from
 
-__all__ = ["FlowLitModule", "downsample_flow", "endpoint_error"]
+__all__ = ["MAX_OFFSET", "FlowLitModule", "downsample_flow", "endpoint_error"]
+
+#: Validation scores per offset up to this many frames apart (larger offsets count in "all").
+MAX_OFFSET = 8
 
 
 def downsample_flow(flow: torch.Tensor, factor: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -45,6 +48,16 @@ def downsample_flow(flow: torch.Tensor, factor: int) -> tuple[torch.Tensor, torc
     share = F.avg_pool2d(known.float(), factor)
     mean = values / share.clamp_min(1e-6)
     return torch.where(share > 0, mean, 0.0), share[:, 0] > 0
+
+
+def pair_labels(batch: dict[str, Any]) -> list[str]:
+    """``"00: 1045 → 1047"`` for each pair of a batch (its sequence, source and target frame)."""
+    labels = []
+    for sid in batch.get("sample_id", []):
+        seq, frames = str(sid).split("/")[-2:]
+        src, tgt = (int(f) for f in frames.split("->"))
+        labels.append(f"{seq}: {src} → {tgt}")
+    return labels
 
 
 def endpoint_error(flow: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -162,7 +175,8 @@ class FlowLitModule(L.LightningModule):
             size = flow.shape[-2:]
             pred = F.interpolate(flows[-1].detach().float(), size=size, mode="bilinear")
             self.figure_batch = {"stage": "train", "image0": image0, "image1": image1,
-                                 "flow": flow, "pred": pred}  # fmt: skip
+                                 "flow": flow, "pred": pred,
+                                 "labels": pair_labels(batch)}  # fmt: skip
         return loss
 
     def on_validation_epoch_start(self) -> None:
@@ -190,10 +204,20 @@ class FlowLitModule(L.LightningModule):
             self._val_sums[name] = self._val_sums.get(name, 0) + sums.double()
         if batch_idx == 0:
             self.figure_batch = {"stage": "val", "image0": image0, "image1": image1,
-                                 "flow": target, "pred": pred}  # fmt: skip
+                                 "flow": target, "pred": pred,
+                                 "labels": pair_labels(batch)}  # fmt: skip
 
     def on_validation_epoch_end(self) -> None:
-        for name, (epe, outliers, n) in sorted(self._val_sums.items()):
+        from mfg_lightning.data.rendered import QUALITY_REGIONS
+
+        # every process's sums added up (DDP shares the validation pairs out), under one list
+        # of names on every process: a process may have seen no pair of some offset
+        names = [*QUALITY_REGIONS, *(f"{o:+d}" for o in range(-MAX_OFFSET, MAX_OFFSET + 1) if o)]
+        zero = torch.zeros(3, dtype=torch.float64, device=self.device)
+        sums = torch.stack([torch.as_tensor(self._val_sums.get(n, zero)) for n in names])
+        if self.trainer.world_size > 1:
+            sums = self.trainer.strategy.reduce(sums, reduce_op="sum")
+        for name, (epe, outliers, n) in zip(names, sums.tolist(), strict=True):
             if n <= 0:
                 continue
             if name == "all":

@@ -397,7 +397,7 @@ class FlowFigures(L.Callback):
             rgb(batch["image1"]),
             list(batch["flow"][:n].float().cpu().numpy()),
             list(batch["pred"][:n].float().cpu().numpy()),
-            [f"pair {i}" for i in range(n)],
+            (batch.get("labels") or [f"pair {i}" for i in range(n)])[:n],
             title=f"{batch['stage']}, step {trainer.global_step}",
         )
         writer.add_figure(f"{batch['stage']}/flow", figure, trainer.global_step, close=True)
