@@ -21,7 +21,8 @@ PACKAGE = REPO / "src" / "mfg_lightning"
 LINT = "import sys; from importlinter.cli import lint_imports_command; lint_imports_command()"
 #: The modules allowed at the package's top level besides ``__init__``: its entry points.
 ENTRY_POINTS = {
-    "train", "evaluate", "evaluate_poses", "predict", "report", "analyze_basis", "reproduce",
+    "train", "train_flow", "evaluate", "evaluate_poses", "predict", "report", "analyze_basis",
+    "reproduce",
 }  # fmt: skip
 
 

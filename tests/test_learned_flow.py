@@ -251,9 +251,10 @@ def test_train_flow_runs_in_a_run_directory_exports_its_network_and_resumes(
                        "--dis-val-epe", "5.66"])  # fmt: skip
     section = path.read_text().split("<!-- flow-training:start -->")[1]
     rows = [r for r in section.splitlines() if r.startswith("| ") and r[2].isdigit()]
-    assert [int(r.split("|")[1]) for r in rows] == [2, 4]  # the two validations
+    steps = [int(r.split("|")[1]) for r in rows]  # the two validations, one per run
+    assert len(steps) == 2 and 0 < steps[0] < steps[1] <= 4, steps
     assert (out / "flow_quality" / "learned_training.png").read_bytes()[:4] == b"\x89PNG"
-    assert json.loads((out / "work" / "curve.json").read_text())["curve"][0]["step"] == 2
+    assert json.loads((out / "work" / "curve.json").read_text())["curve"][0]["step"] == steps[0]
 
 
 @pytest.mark.slow
@@ -261,7 +262,8 @@ def test_mfg_trains_on_the_shipped_learned_flow_out_of_the_box(tmp_path: Path) -
     run = tmp_path / "run"
     run_module(
         "mfg_lightning.train", "flow=learned", "flow.height=64", "flow.width=128",
-        "dataset.train_sequences=1", "dataset.test_sequences=1", "dataset.sequence_length=8",
+        "dataset.train_sequences=1", "dataset.test_sequences=1", "dataset.sequence_length=12",
+        "dataset.val_fraction=0.3",
         "dataset.batch_size=2", "dataset.eval_batch_size=4", "model.net.hidden_units=64",
         "model.net.channels=[8,8,16,16,32]", "trainer.max_steps=2",
         "trainer.val_check_interval=1", "logger=none", "callbacks=none",

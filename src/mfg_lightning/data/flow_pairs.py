@@ -29,11 +29,8 @@ from torch.utils.data import DataLoader
 
 from mfg_lightning.data.rendered import (
     MIN_CHUNK_PAIRS,
+    QUALITY_REGIONS,
     RenderedDrivingDataset,
-    _Frame,
-    _hw2,
-    _numpy,
-    _renderer,
     prepare_pairs,
 )
 from mfg_lightning.flow.estimators import EstimatedFlow
@@ -112,21 +109,22 @@ class FlowPairsDataset(RenderedDrivingDataset):
             return None
         return arrays
 
-    def compute_pair(self, seq: str, src: int, tgt: int, a: _Frame, b: _Frame) -> dict:
-        """The two frames and the exact flow ``src → tgt`` at the render size."""
-        _, render = _renderer()
+    def compute_pair(self, seq: str, src: int, tgt: int, a: Any, b: Any) -> dict:
+        """The two frames (rendered, with their RGB as ``image``) and the exact flow
+        ``src → tgt`` at the render size."""
+        from mfg_lightning.scene import render
+
         exact = render.exact_flow(
             self.world(seq), src, tgt, self.image_intrinsics, *self.image_hw, source=a.rendered
         )
-        flow = _hw2(exact["flow"])
-        valid = _numpy(exact["flow_valid"]).astype(bool) & np.isfinite(flow).all(2)
-        # (the preparation's per-pair statistics: this dataset estimates nothing)
-        regions = len(_quality_regions())
+        flow = exact["flow"].detach().cpu().numpy().transpose(1, 2, 0).astype(np.float32)
+        valid = exact["flow_valid"].detach().cpu().numpy().astype(bool) & np.isfinite(flow).all(2)
         return {
             "images": np.concatenate((a.image, b.image), axis=2),
             "flow": np.where(valid[..., None], flow, np.nan).astype(np.float16),
-            "region": _numpy(a.rendered.region).astype(np.uint8),
-            "quality": np.zeros((regions, 3)),
+            "region": a.rendered.region.detach().cpu().numpy().astype(np.uint8),
+            # (the preparation's per-pair statistics: this dataset estimates nothing)
+            "quality": np.zeros((len(QUALITY_REGIONS), 3)),
             "nonfinite": np.int64(0),
         }
 
@@ -152,12 +150,6 @@ class FlowPairsDataset(RenderedDrivingDataset):
             "offset": tgt - src,
             "sample_id": f"{self.name}/{seq}/{src:06d}->{tgt:06d}",
         }
-
-
-def _quality_regions() -> tuple[str, ...]:
-    from mfg_lightning.data.rendered import QUALITY_REGIONS
-
-    return QUALITY_REGIONS
 
 
 class FlowPairsDataModule(L.LightningDataModule):
