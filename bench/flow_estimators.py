@@ -268,9 +268,14 @@ def main(argv: list[str] | None = None) -> None:
         f"results in `bench/results/flow_estimators/`, measured in {staged:.0f} s of wall time "
         "in all, the first stage's rendering included).\n\n" + tables(results)
     )
-    if args.whole_test or (args.work / "whole_test.json").is_file():
+    if args.whole_test or whole_test_path(args).is_file():
         report.add(whole_test_section(args))
     report.write_section(MARKER, HEADING)
+
+
+def whole_test_path(args: argparse.Namespace) -> Path:
+    """Where the whole-test stage is cached."""
+    return args.work / f"whole_test{'_tiny' if args.tiny else ''}.json"
 
 
 def whole_test_section(args: argparse.Namespace) -> str:
@@ -279,7 +284,7 @@ def whole_test_section(args: argparse.Namespace) -> str:
     from mfg_lightning.data.rendered import QUALITY_REGIONS
     from mfg_lightning.flow.estimators import parse_flow
 
-    path = args.work / f"whole_test{'_tiny' if args.tiny else ''}.json"
+    path = whole_test_path(args)
     cached = json.loads(path.read_text()) if path.is_file() else {}
     for label, cfg in WHOLE_TEST_RUNS:
         key = parse_flow(cfg, default="dis").estimator.key()

@@ -1,6 +1,6 @@
 """Regenerate every benchmark table (``make bench``): accuracy, every flow estimator on the test
-worlds (a section of flow_quality.md), throughput, images to poses (a
-section of throughput.md), scale-out, data preparation over processes (a section of
+worlds and the learned flow's training curve (sections of flow_quality.md), throughput, images
+to poses (a section of throughput.md), scale-out, data preparation over processes (a section of
 scaleout.md), the KITTI flow cache, and on a machine with a CUDA GPU the GPU check.
 
 Runs the scripts one after the other (each needs the whole machine), each in its own process,
@@ -21,6 +21,7 @@ BENCH = Path(__file__).resolve().parent
 SCRIPTS = (
     "accuracy.py",
     "flow_estimators.py",  # after accuracy.py: a section of flow_quality.md
+    "flow_training.py",  # the learned flow's curve (committed curve.json): a section of it too
     "throughput.py",
     "images_to_poses.py",  # after throughput.py: a section of its file
     "scaleout.py",

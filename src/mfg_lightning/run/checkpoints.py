@@ -186,6 +186,9 @@ PROJECT_TARGETS = (
     "mfg_lightning.data.kitti.KittiDataModule",
     "mfg_lightning.data.vkitti.VirtualKittiDataModule",
     "mfg_lightning.data.image_folder.ImageFolderDataModule",
+    # the learned flow's training (python -m mfg_lightning.train_flow)
+    "mfg_lightning.models.flow_module.FlowLitModule",
+    "mfg_lightning.data.flow_pairs.FlowPairsDataModule",
 )
 
 
