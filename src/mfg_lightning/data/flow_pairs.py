@@ -136,11 +136,7 @@ class FlowPairsDataset(RenderedDrivingDataset):
     def __getitem__(self, i: int) -> dict[str, Any]:
         self._check_index(i)
         seq, src, tgt = self.samples[i]
-        arrays = self._cached(i)
-        if arrays is None:
-            arrays = self._store(
-                i, self.compute_pair(seq, src, tgt, self.render(seq, src), self.render(seq, tgt))
-            )
+        arrays = self._pair_arrays(i)  # (cached, else rendered and stored)
         images = torch.from_numpy(np.ascontiguousarray(arrays["images"].transpose(2, 0, 1)))
         return {
             "image0": images[:3],
@@ -286,6 +282,3 @@ class FlowPairsDataModule(L.LightningDataModule):
             shuffle=False,
             num_workers=self.num_workers,
         )
-
-    def state_dict(self) -> dict[str, Any]:
-        return {}

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from mfg_lightning.flow.pwc import PWCConfig, PWCFlowNet, config_from
+from mfg_lightning.flow.pwc import PWCFlowNet, config_from
 
 __all__ = [
     "DEFAULT_WEIGHTS",
@@ -166,10 +166,6 @@ class LearnedFlowEstimator:
             torch.device(self.device)  # a malformed device string fails here
         self.digest = file_digest(path)
         self._net: PWCFlowNet | None = None
-
-    @property
-    def config(self) -> PWCConfig:
-        return self.net().config
 
     def net(self) -> PWCFlowNet:
         """The network, loaded on first use."""
