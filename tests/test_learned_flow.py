@@ -273,3 +273,38 @@ def test_mfg_trains_on_the_shipped_learned_flow_out_of_the_box(tmp_path: Path) -
     meta = next((tmp_path / "cache" / "synthetic_flow").glob("*/meta.json"))
     key = json.loads(meta.read_text())["flow"]
     assert key["estimator"] == "learned" and len(key["weights_sha256"]) == 64
+
+
+@pytest.mark.slow
+def test_train_flow_under_ddp_scores_each_validation_pair_once(tmp_path: Path) -> None:
+    """``trainer=ddp`` (2 gloo processes): the validation EPE the run logs is the one a single
+    process computes with the exported network on the same pairs. The split has an odd number
+    of pairs, so torch's padding sampler would count one twice on the second process."""
+    run = tmp_path / "run"
+    data = dict(
+        train_sequences=1, sequence_length=16, val_fraction=0.25, frame_stride=2, val_every=1,
+        image_hw=(64, 128), batch_size=2, eval_batch_size=2, num_workers=0, prepare_workers=0,
+        cache_dir=str(tmp_path / "cache"), offsets=(-1, 1, 2),
+    )  # fmt: skip
+    pairs = _tiny_pairs(tmp_path, **data)
+    pairs.prepare_data()
+    n_val = len(pairs.dataset("val"))
+    assert n_val % 2 == 1, n_val
+    run_module(
+        "mfg_lightning.train_flow", "trainer=ddp", "logger=none",
+        *(f"dataset.{k}={json.dumps(list(v) if isinstance(v, tuple) else v)}"
+          for k, v in data.items() if k != "cache_dir"),
+        f"paths.cache_dir={tmp_path / 'cache'}",
+        "model.net.pyramid=[8,8,12,16]", "model.net.decoder=[16,16]", "model.net.context=[8,8]",
+        "model.net.dilations=[1,2]", "model.level_weights=[1,1,1]",
+        "trainer.max_steps=2", "trainer.val_check_interval=2", f"hydra.run.dir={run}",
+        cwd=tmp_path, timeout=300,
+    )  # fmt: skip
+    logged = json.loads((run / "metrics.json").read_text())["metrics"]
+    net, provenance = load_weights(run / "flow_net.pt")
+    assert provenance["global_step"] == 2
+    module = FlowLitModule(net=net.config.to_dict(), level_weights=(1.0, 1.0, 1.0))
+    module.net.load_state_dict(net.state_dict())
+    single = quiet_trainer().validate(module, datamodule=pairs, verbose=False)[0]
+    for key in ("val/epe", "val/fl", "val/epe_+1", "val/epe_+2", "val/epe_-1"):
+        assert logged[key] == pytest.approx(single[key], rel=1e-5), key

@@ -25,8 +25,10 @@ from typing import Any
 import lightning as L
 import numpy as np
 import torch
-from torch.utils.data import DataLoader
+import torch.distributed as dist
+from torch.utils.data import DataLoader, Dataset
 
+from mfg_lightning.data.base import EvaluationShard, UnpaddedDistributedSampler, collate_samples
 from mfg_lightning.data.rendered import (
     MIN_CHUNK_PAIRS,
     QUALITY_REGIONS,
@@ -276,9 +278,19 @@ class FlowPairsDataModule(L.LightningDataModule):
         )
 
     def val_dataloader(self) -> DataLoader:
+        # Under DDP every validation pair goes to exactly one process (torch's sampler pads the
+        # last round with repeats, which the summed EPE would count twice); a process with no
+        # pair gets one None batch, which FlowLitModule.validation_step skips.
+        dataset: Dataset = self.dataset("val")
+        sampler = None
+        if dist.is_available() and dist.is_initialized():
+            sampler = UnpaddedDistributedSampler(dataset, dist.get_world_size(), dist.get_rank())
+            dataset = EvaluationShard(dataset)
         return DataLoader(
-            self.dataset("val"),
+            dataset,
             batch_size=self.eval_batch_size,
             shuffle=False,
+            sampler=sampler,
             num_workers=self.num_workers,
+            collate_fn=collate_samples,
         )

@@ -182,9 +182,11 @@ class FlowLitModule(L.LightningModule):
     def on_validation_epoch_start(self) -> None:
         self._val_sums = {}
 
-    def validation_step(self, batch: dict[str, Any], batch_idx: int) -> None:
+    def validation_step(self, batch: dict[str, Any] | None, batch_idx: int) -> None:
         from mfg_lightning.data.rendered import region_codes
 
+        if batch is None:  # a DDP process with no validation pair (FlowPairsDataModule)
+            return
         image0, image1 = self.images(batch)
         target = batch["flow"].float()
         pred = self.net.estimate(image0, image1)
