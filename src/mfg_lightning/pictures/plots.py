@@ -34,6 +34,7 @@ __all__ = [
     "SEQUENCE_FIGURES",
     "TrajectoryCurves",
     "bar_figure",
+    "curve_groups_figure",
     "curves_from_alignment",
     "drift_by_length_figure",
     "error_along_trajectory_figure",
@@ -469,6 +470,61 @@ def line_figure(
         if first.get_legend() is not None:
             first.get_legend().remove()
         fig.legend(handles, labels, fontsize="small", loc="outside right upper")
+    if title:
+        fig.suptitle(title)
+    return fig
+
+
+#: One group of curves: its members' ``(x, y)`` (y None: a gap), drawn in one colour.
+CurveGroup = Sequence[tuple[Sequence[float], Sequence[float | None]]]
+
+
+def curve_groups_figure(
+    panels: Sequence[tuple[str, Mapping[str, CurveGroup]]],
+    x_label: str,
+    y_label: str,
+    title: str = "",
+    log_y: bool = False,
+    columns: int = 2,
+) -> Figure:
+    """Panels in a grid, each with groups of curves: one colour and one legend entry per group
+    (its member count when several, e.g. the seeds of one setting), the colours counted within
+    a panel, so that no two groups of a panel share one (``line_figure`` gives every line of
+    every panel its own, which repeat after ten).
+
+    Args:
+        panels: ``(panel title, {group label: its curves})`` per panel.
+        x_label, y_label: the shared axis labels.
+        title: the figure's title.
+        log_y: a logarithmic y axis.
+        columns: panels per row.
+    """
+    from matplotlib.ticker import EngFormatter
+
+    cols = max(1, min(columns, len(panels)))
+    rows = max(1, -(-len(panels) // cols))
+    fig = _new_figure(5.0 * cols, 3.4 * rows)
+    axes = fig.subplots(rows, cols, squeeze=False, sharex=True, sharey=True)
+    for ax in axes.flat[len(panels) :]:
+        ax.set_visible(False)
+    for ax, (panel, groups) in zip(axes.flat, panels, strict=False):
+        for index, (label, curves) in enumerate(groups.items()):
+            colour = method_colour(index)
+            name = f"{label} ({len(curves)})" if len(curves) > 1 else label
+            for member, (x, y) in enumerate(curves):
+                ax.plot(x, _nan_for_none(y), marker="o", ms=3, lw=1.2, color=colour,
+                        label=name if member == 0 else None)  # fmt: skip
+        ax.set_title(panel, fontsize="medium")
+        if log_y:
+            ax.set_yscale("log")
+        ax.xaxis.set_major_formatter(EngFormatter(sep=""))
+        ax.grid(True, which="both", alpha=0.3)
+        if groups:
+            ax.legend(fontsize="x-small")
+    for ax in axes[-1, :]:
+        ax.set_xlabel(x_label)
+    for ax in axes[:, 0]:
+        ax.set_ylabel(y_label)
     if title:
         fig.suptitle(title)
     return fig

@@ -11,6 +11,7 @@ from its Tables 1 and 2, section 5 and the supplement. Convergence is not a clai
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 from typing import Any
 
@@ -510,14 +511,37 @@ def convergence_rows(models: dict[str, dict]) -> tuple[list[list[str]], Any]:
         )
         if curve:
             lines[name] = ([p["samples"] for p in curve], ates)
-    fig = (
-        plots.line_figure(
-            [("val ATE † (m)", lines)], "training samples seen", "Validation curves", log_y=True
+    fig = None
+    if lines:
+        fig = plots.curve_groups_figure(
+            _curve_panels(lines),
+            "training samples seen",
+            "val ATE † (m)",
+            "Validation curves",
+            log_y=True,
         )
-        if lines
-        else None
-    )
     return rows, fig
+
+
+#: The convergence figure's panels: a model goes to the first whose prefix its name has.
+CURVE_PANELS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("main setting", ("main", "exact-flow twin", "learned")),
+    ("Table 2 setting", ("table2", "balance")),
+    ("size curve", ("size",)),
+    ("sparsity, recipe", ("sparsity", "recipe")),
+)
+
+
+def _curve_panels(lines: dict[str, tuple]) -> list[tuple[str, dict[str, list[tuple]]]]:
+    """The models' curves in :data:`CURVE_PANELS` (the rest under "other"), a model's seeds
+    (``, seed N``, ``_seedN``) in one group."""
+    panels: dict[str, dict[str, list[tuple]]] = {}
+    for name, curve in lines.items():
+        panel = next((t for t, prefixes in CURVE_PANELS if name.startswith(prefixes)), "other")
+        group = re.sub(r"(, seed \d+|_seed\d+)$", "", name)
+        panels.setdefault(panel, {}).setdefault(group, []).append(curve)
+    order = [t for t, _ in CURVE_PANELS] + ["other"]
+    return [(t, panels[t]) for t in order if t in panels]
 
 
 def _flow_label(result: dict) -> str:
