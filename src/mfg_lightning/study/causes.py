@@ -209,11 +209,13 @@ def learned_section(
         "",
         Table([Column(h) for h in [*heads, "RPE rotation (rad)"]], table).markdown(),
         "",
-        *_against_seed_range(main, learned["table1"]["test"]["1"], learned.get("seed")),
+        *_against_seed_range(main, learned["table1"]["test"]["1"], learned.get("seed"), flow_name),
     ]
 
 
-def _against_seed_range(main: Mapping[int, Any], learned: Mapping[str, Any], seed: Any) -> Lines:
+def _against_seed_range(
+    main: Mapping[int, Any], learned: Mapping[str, Any], seed: Any, flow_name: str
+) -> Lines:
     """Where the one learned-flow model's test scores fall against the range of the main
     model's seeds (a single training beside a seed mean needs the spread to be read); nothing
     with fewer than two main seeds."""
@@ -237,7 +239,7 @@ def _against_seed_range(main: Mapping[int, Any], learned: Mapping[str, Any], see
     seed_text = f" at seed {seed}" if seed is not None else " at the main model's seed"
     return [
         f"The learned-flow model is one training{seed_text}; against the range of the main "
-        f"model's {n} seeds on DIS: " + "; ".join(parts) + ".",
+        f"model's {n} seeds on {flow_name}: " + "; ".join(parts) + ".",
         "",
     ]
 
