@@ -114,13 +114,7 @@ class FlowPairsDataset(RenderedDrivingDataset):
     def compute_pair(self, seq: str, src: int, tgt: int, a: Any, b: Any) -> dict:
         """The two frames (rendered, with their RGB as ``image``) and the exact flow
         ``src → tgt`` at the render size."""
-        from mfg_lightning.scene import render
-
-        exact = render.exact_flow(
-            self.world(seq), src, tgt, self.image_intrinsics, *self.image_hw, source=a.rendered
-        )
-        flow = exact["flow"].detach().cpu().numpy().transpose(1, 2, 0).astype(np.float32)
-        valid = exact["flow_valid"].detach().cpu().numpy().astype(bool) & np.isfinite(flow).all(2)
+        _, flow, valid = self.exact_pair(seq, src, tgt, a)
         return {
             "images": np.concatenate((a.image, b.image), axis=2),
             "flow": np.where(valid[..., None], flow, np.nan).astype(np.float16),

@@ -263,23 +263,32 @@ class RenderedDrivingDataset(TrajectoryDataset):
         rgb = np.ascontiguousarray(_numpy(rendered.rgb).transpose(1, 2, 0))
         return _Frame(rendered, self.estimator.prepare(rgb))
 
+    def exact_pair(
+        self, seq: str, src: int, tgt: int, a: _Frame
+    ) -> tuple[dict[str, Any], np.ndarray, np.ndarray]:
+        """The renderer's exact flow ``src → tgt`` at the image size, from the rendered source
+        frame ``a``: its fields (:func:`mfg_lightning.scene.render.exact_flow`), the flow
+        ``(H, W, 2)`` float32 in pixels (0 where unknown) and where it is known ``(H, W)`` bool
+        (valid and finite)."""
+        _, render = _renderer()
+        exact = render.exact_flow(
+            self.world(seq), src, tgt, self.image_intrinsics, *self.image_hw, source=a.rendered
+        )
+        flow = _hw2(exact["flow"])
+        valid = _numpy(exact["flow_valid"]).astype(bool) & np.isfinite(flow).all(2)
+        return exact, np.where(valid[..., None], flow, 0.0).astype(np.float32), valid
+
     def compute_pair(self, seq: str, src: int, tgt: int, a: _Frame, b: _Frame) -> dict:
         """Exact and estimated flow of ``src → tgt`` from the rendered frames ``a``, ``b``: the
         fields of a sample at the model input (``flow`` ``(h, w, 2)``, ``exact_flow``,
         ``object_flow``, ``depth`` ``(h, w)``, ``rgb`` ``(h, w, 3)``, ``object_mask``), the
         ``quality`` (:func:`flow_quality`) and ``nonfinite`` count at the image size, and the
         image-size fields under ``"full"`` (for pictures)."""
-        _, render = _renderer()
-        exact = render.exact_flow(
-            self.world(seq), src, tgt, self.image_intrinsics, *self.image_hw, source=a.rendered
-        )
+        exact, exact_flow, exact_valid = self.exact_pair(seq, src, tgt, a)
         est = np.asarray(self.estimator(a.image, b.image), dtype=np.float32)
         self.estimated_pairs += 1
         finite = np.isfinite(est).all(axis=2)
         est = np.where(finite[..., None], est, 0.0).astype(np.float32)
-        exact_flow = _hw2(exact["flow"])
-        exact_valid = _numpy(exact["flow_valid"]).astype(bool) & np.isfinite(exact_flow).all(2)
-        exact_flow = np.where(exact_valid[..., None], exact_flow, 0.0).astype(np.float32)
         region = _numpy(a.rendered.region)
         quality = flow_quality(est, exact_flow, exact_valid & finite, region)
         h, w = self.height, self.width

@@ -18,13 +18,16 @@ __all__ = ["export_best"]
 
 def export_best(cfg: DictConfig, metrics: dict[str, float], seconds: float) -> Path | None:
     """Export the run's best (else last) checkpoint's network to ``cfg.export`` with its
-    provenance; write ``metrics.json``. Returns the exported file."""
+    provenance; write ``metrics.json``. Returns the exported file. Under DDP only the first
+    process writes (every process ends here with the same reduced metrics)."""
     import torch
+    from lightning.pytorch.utilities import rank_zero_only
 
-    from mfg_lightning.core.atomic import atomic_write_text
     from mfg_lightning.flow.learned import load_weights, save_weights
-    from mfg_lightning.run.runs import run_info
+    from mfg_lightning.run.runs import run_info, write_metrics
 
+    if rank_zero_only.rank != 0:
+        return None
     output_dir = Path(cfg.paths.output_dir)
     checkpoints = sorted((output_dir / "checkpoints").glob("best-*.ckpt"))
     source = checkpoints[-1] if checkpoints else output_dir / "checkpoints" / "last.ckpt"
@@ -33,7 +36,6 @@ def export_best(cfg: DictConfig, metrics: dict[str, float], seconds: float) -> P
     if started.is_file():  # the commit the run trained with (a later one may be checked out)
         info["git_commit"] = json.loads(started.read_text()).get("git_commit")
     payload: dict[str, Any] = {
-        "metrics": dict(sorted(metrics.items())),
         "checkpoint": source.name,
         "train_seconds": seconds,
         **info,
@@ -58,7 +60,5 @@ def export_best(cfg: DictConfig, metrics: dict[str, float], seconds: float) -> P
                 provenance["data"][key] = f"<{key}>"
         payload["exported"] = str(save_weights(target, net, provenance))
         log.info("exported %s (step %s) to %s", source.name, provenance["global_step"], target)
-    atomic_write_text(
-        output_dir / "metrics.json", json.dumps(payload, indent=2, default=str) + "\n"
-    )
+    write_metrics(output_dir / "metrics.json", metrics, payload)
     return Path(target) if target and source.is_file() else None
