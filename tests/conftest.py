@@ -27,10 +27,6 @@ _VISIBLE_KEPT = "MFG_TESTS_CUDA_VISIBLE_DEVICES"
 _UNSET = "<unset>"
 os.environ.setdefault(_VISIBLE_KEPT, os.environ.get("CUDA_VISIBLE_DEVICES", _UNSET))
 os.environ["CUDA_VISIBLE_DEVICES"] = ""
-# model.net.conv_impl=auto times the convolutions at the start of a training run: every run of
-# the suite (and the processes it starts) computes them natively instead, so that no test times
-# anything unless it asks (tests/test_conv.py does).
-os.environ["MFG_CONV_IMPL"] = "native"
 
 
 def cuda_env(**extra: str) -> dict[str, str]:

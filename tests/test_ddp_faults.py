@@ -127,6 +127,10 @@ def test_sigterm_in_one_process_stops_both_after_one_step_and_the_run_resumes_ex
 ) -> None:
     reference = _train(workdir, "reference")
     assert reference.returncode == 0, reference.output[-5000:]
+    # The default settings (precision and kernels auto): the first process decides, the other
+    # is handed its choice, and one line says which kernels both ran.
+    assert reference.output.count("kernels of all 2 processes") == 1, reference.output[-5000:]
+    assert "takes the first process's kernels" not in reference.output
 
     stopped = _train(workdir, "stopped", faults={"sigterm": ("sigterm", [FAULT_STEP], 1)})
     assert stopped.returncode == 128 + signal.SIGTERM, stopped.output[-5000:]

@@ -468,24 +468,24 @@ def test_gpu_trainer_configs() -> None:
     assert det.trainer.benchmark is False
 
 
-def test_auto_precision_is_bf16_on_a_cpu_with_native_bf16_and_float32_elsewhere(
+def test_unmeasured_auto_precision_is_float32_and_native_bf16_is_read_from_the_cpu(
     monkeypatch,
 ) -> None:
+    """Outside a training run (nothing measured) ``auto`` is float32 on any device; whether the
+    CPU has native bfloat16, which decides whether a training run measures bf16-mixed at all,
+    follows torch's checks and oneDNN's instruction-set cap."""
     from mfg_lightning.run import precision as mfg_module
 
     for explicit in ("32-true", "bf16-mixed", "16-mixed", "bf16-true"):
         assert mfg_module.resolve_precision(explicit, "cpu") == explicit
     monkeypatch.setattr(mfg_module, "cpu_has_native_bf16", lambda: True)
-    assert mfg_module.resolve_precision("auto", "cpu") == "bf16-mixed"
-    assert mfg_module.resolve_precision("auto", "gpu") == "32-true"  # measured on CPUs only
-    monkeypatch.setattr(mfg_module, "cpu_has_native_bf16", lambda: False)
     assert mfg_module.resolve_precision("auto", "cpu") == "32-true"
+    assert mfg_module.resolve_precision("auto", "gpu") == "32-true"
     monkeypatch.undo()
     assert isinstance(mfg_module.cpu_has_native_bf16(), bool)
     # oneDNN capped below native bfloat16 (an AVX2 machine imitated): float32.
     monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "avx2")
     assert mfg_module.cpu_has_native_bf16() is False
-    assert mfg_module.resolve_precision("auto", "cpu") == "32-true"
     monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "AVX512_CORE_BF16")  # a cap that keeps it
     native = [mfg_module.torch.cpu._is_avx512_bf16_supported(),
               mfg_module.torch.cpu._is_amx_tile_supported()]  # fmt: skip
@@ -494,15 +494,18 @@ def test_auto_precision_is_bf16_on_a_cpu_with_native_bf16_and_float32_elsewhere(
 
 def test_auto_precision_is_recorded_in_the_run_config(tmp_path: Path) -> None:
     """The default ``trainer.precision=auto`` is made concrete before anything is written: the
-    run's config.yaml says what it trained in; evaluation defaults to float32."""
+    run's config.yaml says what it trained in, the machine's measurement's choice;
+    evaluation defaults to float32."""
+    import json
+
     from omegaconf import OmegaConf
 
     from conftest import tiny_training
     from mfg_lightning.core.config import compose
-    from mfg_lightning.run.precision import resolve_precision
 
     assert compose("train").trainer.precision == "auto"
     assert compose("evaluate", ["ckpt_path=x"]).trainer.precision == "32-true"
     run = tiny_training(tmp_path)
     recorded = OmegaConf.load(run / "config.yaml").trainer.precision
-    assert recorded == resolve_precision("auto", "auto") != "auto"
+    (profile,) = (tmp_path / "cache" / "machine").glob("*.json")
+    assert recorded == json.loads(profile.read_text())["precision"] != "auto"

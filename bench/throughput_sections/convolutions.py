@@ -48,39 +48,41 @@ def with_conv_impl(overrides: list[str], impl: str) -> list[str]:
 
 
 def conv_layer_rows(
-    overrides: list[str], shape: tuple[int, ...], dtype: torch.dtype, repeats: int
+    overrides: list[str], shape: tuple[int, ...], dtype: torch.dtype, rounds: int
 ) -> tuple[list[list[str]], dict[str, str]]:
-    """Every convolution timed alone under each implementation, as ``model.net.conv_impl=auto``
-    times it at the start of training (nothing cached): the table rows (a total row last) and
-    the choice, layer name → implementation."""
-    from mfg_lightning.models.conv import CONV_IMPLS, choose_conv_impls, switchable_layers
+    """Every convolution timed alone under each implementation, as a training run's first
+    measurement of the machine times it (:func:`mfg_lightning.run.machine_profile.
+    measure_convolutions`; nothing cached): the table rows (a total row last) and the choice,
+    layer name → implementation."""
+    from mfg_lightning.models.conv import CONV_IMPLS, layer_inputs, switchable_layers
+    from mfg_lightning.run.machine_profile import measure_convolutions
 
-    model, _ = build_model(with_conv_impl(overrides, "auto"))
+    model, _ = build_model(with_conv_impl(overrides, "native"))
     net = model.net.train()
     layers = dict(switchable_layers(net))
-    # min_cpu_share=0: the table shows what the times pick; the environment gives the load
-    choices = choose_conv_impls(net, shape, dtype, None, repeats, min_cpu_share=0.0)
+    inputs = layer_inputs(net, layers, shape, dtype)
+    measured = measure_convolutions(net, shape, dtype, rounds)
     rows, totals = [], dict.fromkeys([*CONV_IMPLS, "chosen"], 0.0)
-    for c in choices:
-        conv = layers[c.name]
+    for name, entry in measured.items():
+        conv, ms, choice = layers[name], entry["ms"], entry["choice"]
         (k, _), (s, _), (p, _) = conv.kernel_size, conv.stride, conv.padding
-        h, w = c.shape[-2:]
+        h, w = inputs[name].shape[-2:]
         out = f"{(h + 2 * p - k) // s + 1}×{(w + 2 * p - k) // s + 1}"
-        times = [fmt(c.ms[i], 2) if i in c.ms else "-" for i in CONV_IMPLS]
+        times = [fmt(ms[i], 2) if i in ms else "-" for i in CONV_IMPLS]
         for impl in CONV_IMPLS:
-            totals[impl] += c.ms.get(impl, float("nan"))
-        totals["chosen"] += c.ms[c.choice]
+            totals[impl] += ms.get(impl, float("nan"))
+        totals["chosen"] += ms[choice]
         rows.append(
-            [f"`{c.name}` {conv.in_channels}→{conv.out_channels}, {k}×{k} / {s}",
-             f"{h}×{w} → {out}", str(dtype).removeprefix("torch."), *times, c.choice,
-             fmt(c.ms["native"] / c.ms[c.choice], 2)]
+            [f"`{name}` {conv.in_channels}→{conv.out_channels}, {k}×{k} / {s}",
+             f"{h}×{w} → {out}", str(dtype).removeprefix("torch."), *times, choice,
+             fmt(ms["native"] / ms[choice], 2)]
         )  # fmt: skip
     rows.append(
         ["all convolutions", "", str(dtype).removeprefix("torch."),
          *(fmt(totals[i], 2) for i in CONV_IMPLS), "per layer",
          fmt(totals["native"] / totals["chosen"], 2)]
     )  # fmt: skip
-    return rows, {c.name: c.choice for c in choices}
+    return rows, {name: entry["choice"] for name, entry in measured.items()}
 
 
 def section(
@@ -90,7 +92,7 @@ def section(
     dtype training may compute in on this CPU, what ``model.net.conv_impl=auto`` picks, and the
     bare training step with that choice against all native. Written as its own section of
     throughput.md (the rest kept); returns its path."""
-    from mfg_lightning.run.convolutions import measured_dtype
+    from mfg_lightning.run.machine_profile import needs_bf16
 
     batch_size = 4 if args.tiny else int(cfg.dataset.batch_size)
     if samples is None:
@@ -98,7 +100,7 @@ def section(
     batches = make_batches(samples, batch_size)
     height, width = int(cfg.dataset.height), int(cfg.dataset.width)
     dtypes = [torch.float32]
-    if measured_dtype("bf16-mixed") == torch.bfloat16:
+    if needs_bf16("bf16-mixed"):
         dtypes.append(torch.bfloat16)
     report = throughput_report(args.out)
     report.add(
@@ -129,12 +131,14 @@ def section(
         markdown_table(LAYER_HEADER, rows)
         + f"\nEach convolution alone, forward + backward (the weight gradient, and the input "
         "gradient except for the first layer's, the flow), on a random input of the shape and "
-        "dtype it gets in the training step, timed as `model.net.conv_impl=auto` times it at "
-        f"the start of training: the best of {args.conv_repeats} after one warm-up, the three "
-        "interleaved; bfloat16: the forward under CPU autocast. The input is NCHW; an "
-        "implementation's own copies (channels-last: the input to NHWC; im2col: the padded "
-        "input and the gathered rows) are timed with it. *Chosen*: the fastest, native unless "
-        "another is at least 5 % faster; `native / chosen`: the layer's speed-up."
+        "dtype it gets in the training step, timed as a run's first measurement of the machine "
+        f"times it (`python -m mfg_lightning.measure`): {args.conv_repeats} rounds after one "
+        "warm-up, the three interleaved in an order rotated each round, the best of each (a "
+        "candidate over 2× native's first round is not timed again); bfloat16: the forward "
+        "under CPU autocast. The input is NCHW; an implementation's own copies (channels-last: "
+        "the input to NHWC; im2col: the padded input and the gathered rows) are timed with it. "
+        "*Chosen*: native unless another is over 5 % faster at its best and faster in every "
+        "round; `native / chosen`: the layer's speed-up."
     )
     report.add(
         "Training step with the chosen implementations against native:\n\n"

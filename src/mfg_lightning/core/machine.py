@@ -58,6 +58,11 @@ def cpu_model() -> str:
     return _cpuinfo()[0] or platform.processor() or platform.machine() or "unknown"
 
 
+def cpu_flags() -> frozenset[str]:
+    """Every flag ``/proc/cpuinfo`` gives the first processor (empty where it is unreadable)."""
+    return _cpuinfo()[1]
+
+
 def cpu_vector_features() -> dict[str, bool]:
     """Which of :data:`VECTOR_FEATURES` the CPU has, e.g. ``{"AVX2": True, "AVX-512": False,
     "AVX512-BF16": False, "AMX": False}`` (all False where ``/proc/cpuinfo`` is unreadable)."""

@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from mfg_lightning.core.geometry import float32_math, to_float32
-from mfg_lightning.models.conv import SwitchableConv2d, check_conv_impl
+from mfg_lightning.models.conv import SwitchableConv2d, per_layer_impls
 
 
 class MFGOutput(NamedTuple):
@@ -219,10 +219,12 @@ class MFG(nn.Module):
         input_scale: the input flow (pixels) is multiplied by this before the encoder. With the
             sparsity function's fixed B, the activations' scale sets the sparsity pressure; the
             released code feeds PWC-Net's raw output (about quarter-resolution pixels / 5).
-        conv_impl: how every convolution computes (:mod:`mfg_lightning.models.conv`, the same
+        conv_impl: how the convolutions compute (:mod:`mfg_lightning.models.conv`, the same
             weights and state_dict whichever): ``native`` (PyTorch's ``nn.Conv2d``), ``im2col``
-            (one gather and one GEMM), ``channels_last``, or ``auto``: each layer's fastest on
-            this machine, measured at the start of training (``native`` until then).
+            (one gather and one GEMM), ``channels_last``, a list with one of these per
+            convolution in module order (a training run's recorded choice), or ``auto``, which a
+            training run resolves into that list before it builds the network
+            (:mod:`mfg_lightning.run.machine_profile`); built elsewhere, ``auto`` runs ``native``.
     """
 
     def __init__(
@@ -239,7 +241,7 @@ class MFG(nn.Module):
         init: str = "xavier",
         align_corners: bool = True,
         input_scale: float = 1.0,
-        conv_impl: str = "native",
+        conv_impl: str | Sequence[str] = "native",
     ) -> None:
         super().__init__()
         channels, kernels, strides = list(channels), list(kernels), list(strides)
@@ -254,7 +256,9 @@ class MFG(nn.Module):
             raise ValueError(f"model.net.init must be one of {INITS}, got {init!r}")
         if not (math.isfinite(input_scale) and input_scale > 0):
             raise ValueError(f"model.net.input_scale must be a positive number, got {input_scale}")
-        check_conv_impl(conv_impl)
+        blocks = len(channels) + 1
+        convolutions = blocks + max(0, min(double_blocks, blocks))
+        impls = iter(per_layer_impls(conv_impl, convolutions))
         self.height, self.width = height, width
         self.hidden_units = hidden_units
         self.align_corners = bool(align_corners)
@@ -265,10 +269,10 @@ class MFG(nn.Module):
         for i, (c_out, k, s) in enumerate(
             zip([*channels, hidden_units], kernels, strides, strict=True)
         ):
-            conv = SwitchableConv2d(c_in, c_out, k, stride=s, padding=k // 2, impl=conv_impl)
+            conv = SwitchableConv2d(c_in, c_out, k, stride=s, padding=k // 2, impl=next(impls))
             layers += [conv, nn.ReLU(inplace=True)]
             if i < double_blocks:
-                conv = SwitchableConv2d(c_out, c_out, k, stride=1, padding=k // 2, impl=conv_impl)
+                conv = SwitchableConv2d(c_out, c_out, k, stride=1, padding=k // 2, impl=next(impls))
                 layers += [conv, nn.ReLU(inplace=True)]
             c_in = c_out
         self.encoder = nn.Sequential(*layers)

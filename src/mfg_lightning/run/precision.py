@@ -37,10 +37,11 @@ _PRECISION_ALIASES = {"32": "32-true", "bf16": "bf16-mixed", "16": "16-mixed"}
 FP16_INIT_SCALE = 16.0
 _TORCH_DEFAULT_INIT_SCALE = 2.0**16
 
-#: ``trainer.precision=auto`` (the default): the precision measured to be the faster one at
-#: float32's accuracy where the hardware runs it natively (bench/results/precision.md: the quick
-#: start under ``bf16-mixed``, 3 seeds, test ATE 0.0079 ± 0.0004 m against float32's
-#: 0.0084 ± 0.0004 m, 1.16× faster on a CPU with AVX512-BF16), float32 elsewhere.
+#: ``trainer.precision=auto`` (the default): ``bf16-mixed`` where this machine's measurement
+#: found it clearly faster (:mod:`mfg_lightning.run.machine_profile`) on a CPU that runs it
+#: natively, at float32's accuracy (bench/results/precision.md: the quick start under
+#: ``bf16-mixed``, 3 seeds, test ATE 0.0079 ± 0.0004 m against float32's 0.0084 ± 0.0004 m),
+#: float32 elsewhere.
 PRECISION_AUTO = "auto"
 
 
@@ -72,21 +73,22 @@ def cpu_has_native_bf16() -> bool:
 
 
 def resolve_precision(precision: Any, accelerator: Any = "auto") -> Any:
-    """``trainer.precision`` with ``auto`` made concrete; any other value as it is.
+    """``trainer.precision`` with ``auto`` made concrete without measuring: ``32-true``; any
+    other value as it is.
 
-    ``auto`` is ``bf16-mixed`` for a run on a CPU that computes bfloat16 natively
-    (:func:`cpu_has_native_bf16`) and ``32-true`` otherwise, GPUs included (bf16 has been
-    measured against float32 on a CPU only; ``trainer.precision=bf16-mixed`` chooses it there).
+    A training run resolves ``auto`` by measuring this machine instead
+    (:mod:`mfg_lightning.run.run_choices`: ``bf16-mixed`` only on a CPU with native bfloat16
+    where it measured clearly faster); where nothing is measured (evaluation, prediction, the
+    flow network's training) float32 is the safe answer.
 
     Args:
         precision: the configured ``trainer.precision``.
-        accelerator: the configured ``trainer.accelerator`` (``auto``: a GPU if CUDA has one).
+        accelerator: the configured ``trainer.accelerator`` (kept for callers; float32 on any).
     """
+    del accelerator  # the unmeasured answer is float32 on every device
     if str(precision) != PRECISION_AUTO:
         return precision
-    name = str(accelerator)
-    on_cpu = name == "cpu" or (name == "auto" and not torch.cuda.is_available())
-    return "bf16-mixed" if on_cpu and cpu_has_native_bf16() else "32-true"
+    return "32-true"
 
 
 def check_precision(precision: Any) -> str:

@@ -51,10 +51,13 @@ def set_baseline(model: L.LightningModule, datamodule: L.LightningDataModule) ->
 
 
 def resolve_configured_precision(cfg: DictConfig) -> Any:
-    """Make ``cfg.trainer.precision=auto`` concrete in ``cfg`` (logged); return the precision.
+    """Make a ``cfg.trainer.precision=auto`` that no training run resolved concrete in ``cfg``
+    (logged); return the precision.
 
-    :func:`mfg_lightning.run.precision.resolve_precision`: ``bf16-mixed`` on a CPU with
-    native bfloat16, ``32-true`` elsewhere.
+    A training run resolves ``auto`` by this machine's measurement before it builds the trainer
+    (:mod:`mfg_lightning.run.run_choices`); anywhere else (evaluation, prediction, the flow
+    network's training) nothing is measured and ``auto`` is :func:`resolve_precision`'s
+    ``32-true``.
     """
     from omegaconf import open_dict
 
@@ -62,7 +65,7 @@ def resolve_configured_precision(cfg: DictConfig) -> Any:
     if trainer is None or str(trainer.get("precision")) != PRECISION_AUTO:
         return None if trainer is None else trainer.get("precision")
     chosen = resolve_precision(PRECISION_AUTO, trainer.get("accelerator", "auto"))
-    log.info("trainer.precision=auto: %s on this machine", chosen)
+    log.info("trainer.precision=auto: %s (not measured outside a training run)", chosen)
     with open_dict(cfg):
         cfg.trainer.precision = chosen
     return chosen

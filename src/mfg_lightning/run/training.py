@@ -27,8 +27,8 @@ from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 from mfg_lightning.core.atomic import atomic_write_text
 from mfg_lightning.run.callbacks import LastCheckpoint
 from mfg_lightning.run.checkpoints import CheckpointError
-from mfg_lightning.run.convolutions import ConvolutionChoice
-from mfg_lightning.run.precision import check_precision
+from mfg_lightning.run.precision import PRECISION_AUTO, check_precision
+from mfg_lightning.run.run_choices import CHOICES_VARIABLE, RunChoicesRecord, resolve_run_choices
 from mfg_lightning.run.runs import (
     build_model,
     build_trainer,
@@ -37,7 +37,6 @@ from mfg_lightning.run.runs import (
     keep_csv_metrics,
     log_final_metrics,
     log_hyperparameters,
-    resolve_configured_precision,
     run_info,
     set_baseline,
     write_metrics,
@@ -98,9 +97,9 @@ def check_trainer_settings(cfg: DictConfig) -> None:
     """Refuse what the run cannot do before anything is built or written, and settle the
     trainer settings that contradict each other.
 
-    * ``trainer.precision``: ``auto`` made concrete (:func:`resolve_configured_precision`; the
-      run's ``config.yaml`` records what it ran in), then ``32-true``, ``bf16-mixed`` or
-      ``16-mixed``
+    * ``trainer.precision``: ``auto`` (made concrete once the dataset is built:
+      :func:`mfg_lightning.run.run_choices.resolve_run_choices`; the run's ``config.yaml``
+      records what it ran in), ``32-true``, ``bf16-mixed`` or ``16-mixed``
       (:func:`mfg_lightning.run.precision.check_precision`; a ``*-true`` low precision is one
       ``error:`` line naming the key).
     * ``trainer.deterministic=true`` with ``trainer.benchmark=true`` (``trainer=gpu``'s): cuDNN's
@@ -111,8 +110,9 @@ def check_trainer_settings(cfg: DictConfig) -> None:
         ValueError: naming the key.
     """
     trainer = cfg.get("trainer") or {}
-    resolve_configured_precision(cfg)
-    check_precision(trainer.get("precision", "32-true"))
+    precision = trainer.get("precision", "32-true")
+    if str(precision) != PRECISION_AUTO:
+        check_precision(precision)
     if trainer.get("deterministic") and trainer.get("benchmark"):
         log.info("trainer.deterministic=%s: trainer.benchmark turned off", trainer.deterministic)
         with open_dict(cfg):
@@ -182,6 +182,15 @@ def ddp_job_in_multirun(trainer: L.Trainer) -> Iterator[None]:
 
 def train(cfg: DictConfig) -> dict[str, Any]:
     """Fit and test as configured. Returns the final metrics (``val/*`` and ``test/*``)."""
+    try:
+        return _train(cfg)
+    finally:
+        # the choices handed to this run's own processes must not reach a later run of this
+        # process (a multirun's next job, a test)
+        os.environ.pop(CHOICES_VARIABLE, None)
+
+
+def _train(cfg: DictConfig) -> dict[str, Any]:
     check_trainer_settings(cfg)
     output_dir = Path(cfg.paths.output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
@@ -190,8 +199,16 @@ def train(cfg: DictConfig) -> dict[str, Any]:
 
     # The dataset checks its data when built: a refused data root writes nothing of the run's.
     datamodule: L.LightningDataModule = instantiate(cfg.dataset)
+    # trainer.precision=auto and model.net.conv_impl=auto made concrete (measured once per
+    # machine, or as the run began): config.yaml and the checkpoints record what ran
+    choices = resolve_run_choices(cfg, ckpt_path)
     atomic_write_text(output_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
-    info = {**run_info(), "seed": cfg.seed, "resumed_from": ckpt_path}
+    info = {
+        **run_info(),
+        "seed": cfg.seed,
+        "resumed_from": ckpt_path,
+        "precision_and_kernels_from": None if choices is None else choices["source"],
+    }
     atomic_write_text(output_dir / "run_info.json", json.dumps(info, indent=2) + "\n")
     model = build_model(cfg)
     if hasattr(model, "set_mean_motion"):  # (MFG's baseline; the flow network has none)
@@ -199,16 +216,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     callbacks = instantiate_list(cfg.get("callbacks"))
     # LastCheckpoint saves after ModelCheckpoint has recorded a validation's score (stable sort).
     callbacks.sort(key=lambda cb: isinstance(cb, LastCheckpoint))
-    # model.net.conv_impl=auto: each convolution's fastest implementation, measured at setup
-    # (recorded in the run directory: a resumed run computes as it began)
-    callbacks.insert(
-        0,
-        ConvolutionChoice(
-            cfg.dataset.batch_size,
-            cfg.paths.get("cache_dir"),
-            record=output_dir / "conv_impl.json",
-        ),
-    )
+    callbacks.insert(0, RunChoicesRecord())
     finish_stale_logger_runs()
     loggers = instantiate_list(cfg.get("logger"))
     if ckpt_path is not None:
