@@ -468,9 +468,24 @@ def test_last_checkpoint_is_saved_by_wall_time_as_well_as_by_step(
     assert (tmp_path / "last.ckpt").is_file()
 
 
-def test_last_checkpoint_period_settings() -> None:
-    cfg = compose("train", ["paths.output_dir=/tmp/unused"]).callbacks.last_checkpoint
-    assert cfg.every_minutes > 0 and cfg.every_n_train_steps == 0  # by time by default
+@pytest.mark.parametrize(
+    ("config", "overrides", "steps"),
+    [
+        ("train", [], 300),
+        ("train", ["trainer=gpu"], 0),
+        ("train", ["trainer=ddp_slurm"], 0),
+        ("train", ["trainer=gpu", "callbacks.last_checkpoint.every_n_train_steps=50"], 50),
+        ("train_flow", [], 80),
+    ],
+)
+def test_last_checkpoint_period_settings(config: str, overrides: list[str], steps: int) -> None:
+    """Every 5 minutes everywhere; also every N steps on a CPU (about a minute of training
+    there), by time only on a GPU; a step period given on the command line applies anywhere."""
+    from hydra.utils import instantiate
+
+    cfg = compose(config, ["paths.output_dir=/tmp/unused", *overrides])
+    last = instantiate(cfg.callbacks.last_checkpoint)
+    assert last.every_seconds == 300.0 and last.every_n_train_steps == steps
     with pytest.raises(ValueError, match="every_minutes must be positive"):
         LastCheckpoint("/tmp/unused", every_minutes=0)
 

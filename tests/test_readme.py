@@ -94,6 +94,14 @@ def test_documented_command_composes(argv: list[str]) -> None:
     assert cfg is not None and len(cfg) > 0
 
 
+def test_the_sbatch_example_ends_every_task_when_one_fails() -> None:
+    """docs/scaling.md's job script starts its tasks with ``srun --kill-on-bad-exit=1``: an NCCL
+    task does not notice a dead peer and would wait in its next collective for 30 minutes."""
+    lines = (REPO / "docs" / "scaling.md").read_text().splitlines()
+    sruns = [line for line in lines if line.startswith("srun ")]
+    assert sruns and all(line.split()[1] == "--kill-on-bad-exit=1" for line in sruns), sruns
+
+
 def test_the_readme_is_a_short_map_with_the_main_job_first() -> None:
     lines = (REPO / "README.md").read_text().splitlines()
     assert len(lines) <= README_MAX_LINES, f"README.md has {len(lines)} lines"

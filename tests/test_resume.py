@@ -55,10 +55,11 @@ PAUSE_AT = 11  # global_step during the paused optimiser step
 
 class PauseAt(L.Callback):
     """Test hook loaded by the training subprocess: in the middle of step ``step`` (gradients
-    computed, weights not yet updated) write ``marker`` and wait for a signal."""
+    computed, weights not yet updated) write ``marker`` and wait for a signal (``hold``: wait
+    on after it too, as a step stuck in a collective would)."""
 
-    def __init__(self, step: int, marker: str) -> None:
-        self.step, self.marker = step, Path(marker)
+    def __init__(self, step: int, marker: str, hold: bool = False) -> None:
+        self.step, self.marker, self.hold = step, Path(marker), hold
 
     def on_before_optimizer_step(self, trainer: L.Trainer, *args: Any) -> None:
         if trainer.global_step != self.step:
@@ -67,7 +68,7 @@ class PauseAt(L.Callback):
         deadline = time.monotonic() + 120
         # SIGKILL ends the process here; SIGTERM only sets Lightning's flag, then the step
         # goes on as Lightning would let it.
-        while not trainer.received_sigterm and time.monotonic() < deadline:
+        while (self.hold or not trainer.received_sigterm) and time.monotonic() < deadline:
             time.sleep(0.02)
 
 
@@ -210,8 +211,9 @@ def test_sigkill_mid_epoch_then_resume_gives_the_uninterrupted_run(
     saved = _ckpt(run / "checkpoints" / "last.ckpt")
     assert saved["global_step"] == 8
     assert saved["loops"]["fit_loop"]["state_dict"]["combined_loader"] == [
-        {"epoch": 1, "batches": 3, "samples": 18, "processes": 1}
-    ]
+        {"epoch": 1, "batches": 3, "samples": 18, "processes": 1, "length": 5, "batch_size": 4,
+         "dataset": "SyntheticDrivingDataset", "sampler": "EpochShuffleSampler(seed=3)"}
+    ]  # fmt: skip
 
     _train(*RUN, "ckpt_path=last", f"hydra.run.dir={run}", cwd=workdir)
     _assert_same_run(run, reference)
@@ -236,6 +238,36 @@ def test_sigterm_saves_a_checkpoint_of_the_current_step_and_resume_continues_exa
     # resume=true picks up last.ckpt by itself (a requeued job with the same run directory).
     _train(*RUN, "resume=true", f"hydra.run.dir={run}", cwd=workdir)
     _assert_same_run(run, reference)
+
+
+def test_ctrl_c_saves_a_checkpoint_of_the_current_step_and_resume_continues_exactly(
+    workdir: Path, reference: Path
+) -> None:
+    run = workdir / "ctrl-c"
+    returncode, out = _interrupt(run, workdir, signal.SIGINT, timeout=120)
+    assert returncode == 128 + signal.SIGINT, out[-3000:]
+    assert "stopped by SIGINT" in out and "KeyboardInterrupt" not in out
+    # As on SIGTERM: the step and its validation finished, then last.ckpt was saved.
+    assert _ckpt(run / "checkpoints" / "last.ckpt")["global_step"] == PAUSE_AT + 1
+    assert not list((run / "checkpoints").glob(".*.tmp"))
+
+    _train(*RUN, "resume=true", f"hydra.run.dir={run}", cwd=workdir)
+    _assert_same_run(run, reference)
+
+
+def test_a_second_ctrl_c_ends_the_run_at_once(workdir: Path) -> None:
+    # The step goes on waiting after the first Ctrl-C (a collective whose peer hangs, say).
+    run = workdir / "ctrl-c-twice"
+    proc, _ = _start_paused(run, workdir, "+callbacks.pause.hold=true")
+    proc.send_signal(signal.SIGINT)
+    time.sleep(1.0)
+    assert proc.poll() is None  # the first one only asked the run to stop after the step
+    sent = time.monotonic()
+    proc.send_signal(signal.SIGINT)
+    proc.communicate(timeout=60)
+    assert proc.returncode == -signal.SIGINT and time.monotonic() - sent < 10
+    # Nothing saved since the periodic checkpoint of step 8, which is intact.
+    assert _ckpt(run / "checkpoints" / "last.ckpt")["global_step"] == 8
 
 
 def _slurm_job(workdir: Path) -> dict[str, str]:
@@ -355,7 +387,9 @@ def test_epoch_order_depends_on_seed_and_epoch_only_and_resumes_mid_epoch() -> N
     it = iter(loader)
     seen = [next(it).tolist() for _ in range(3)]
     state = loader.state_dict()
-    assert state == {"epoch": 1, "batches": 3, "samples": 18, "processes": 1}
+    assert state == {"epoch": 1, "batches": 3, "samples": 18, "processes": 1, "length": 5,
+                     "batch_size": 4, "dataset": "Tensor",
+                     "sampler": "EpochShuffleSampler(seed=5)"}  # fmt: skip
     resumed = ResumableDataLoader(data, seed=5, batch_size=4)
     resumed.load_state_dict(state)
     assert resumed.state_dict() == state  # saved again before iterating: still the same place
@@ -398,7 +432,9 @@ def test_under_ddp_each_process_takes_its_share_of_the_order_and_resumes_it_mid_
         it = iter(loader)
         [next(it) for _ in range(2)]
         states.append(loader.state_dict())
-    assert states[0] == states[1] == {"epoch": 1, "batches": 2, "samples": 19, "processes": 2}
+    assert states[0] == states[1] == {"epoch": 1, "batches": 2, "samples": 19, "processes": 2,
+                                      "length": 4, "batch_size": 3, "dataset": "Tensor",
+                                      "sampler": "EpochShuffleSampler(seed=5)"}  # fmt: skip
     for rank, share in enumerate(shares):
         resumed = ResumableDataLoader(data, seed=5, batch_size=3, num_replicas=2, rank=rank)
         resumed.load_state_dict(states[0])

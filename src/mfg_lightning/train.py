@@ -8,7 +8,9 @@ holds ``checkpoints/`` (last and best), the TensorBoard event files, the resolve
 A run stopped at any point (SIGKILL, SIGTERM, a crash) continues exactly where its last
 checkpoint left it with ``ckpt_path=last`` or ``resume=true`` and the same ``hydra.run.dir``
 (:mod:`mfg_lightning.run.callbacks`: atomic checkpoints, a data order that resumes mid-epoch,
-a checkpoint on SIGTERM).
+a checkpoint on SIGTERM and Ctrl-C). A resume inside an epoch with another batch size, dataset
+or seed is refused unless ``resume_restart_epoch=true``
+(:mod:`mfg_lightning.data.resumable_loader`).
 """
 
 from __future__ import annotations

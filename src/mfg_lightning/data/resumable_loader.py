@@ -5,10 +5,19 @@ takes its strided share of that same order. The loader's place in the epoch is s
 checkpoint (Lightning saves the ``state_dict`` of any loader that has one), so a run resumed
 mid-epoch skips exactly the batches it had already trained on, without loading them, and then
 sees the same batches an uninterrupted run would have seen, on every process.
+
+That place is only meaningful for the batches it was counted in: a run resumed inside an epoch
+with another batch size, dataset or sampler (seed) than its checkpoint's is refused with one line
+naming the key and both values (:class:`ResumeMismatchError`), unless the run says
+``resume_restart_epoch=true`` (:func:`restarting_epochs`): then the interrupted epoch starts
+again from its beginning with the new settings. Another number of processes restarts the epoch
+too, with a warning (the order is the same, only its shares differ).
 """
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import hashlib
 import logging
 import math
@@ -19,7 +28,53 @@ import torch
 import torch.distributed as dist
 from torch.utils.data import DataLoader, Dataset, DistributedSampler, Sampler
 
+from mfg_lightning.core.errors import UserError
+
 log = logging.getLogger(__name__)
+
+# resume_restart_epoch: a resume whose batches differ from the checkpoint's restarts the epoch
+# instead of being refused (set around a run by restarting_epochs)
+_RESTART_ON_CHANGE: contextvars.ContextVar[bool] = contextvars.ContextVar(
+    "resume_restart_epoch", default=False
+)
+
+
+class ResumeMismatchError(UserError):
+    """A resume inside an epoch whose batch size, dataset or sampler is not the checkpoint's:
+    the saved place in the epoch counts other batches. One line naming the key and both
+    values."""
+
+
+@contextlib.contextmanager
+def restarting_epochs(enabled: bool) -> Iterator[None]:
+    """Within the block, a resume whose batches differ from the checkpoint's
+    (:class:`ResumeMismatchError`) restarts the interrupted epoch instead, with a warning
+    (``enabled``: the run's ``resume_restart_epoch``). The entry points wrap their run in it."""
+    token = _RESTART_ON_CHANGE.set(bool(enabled))
+    try:
+        yield
+    finally:
+        _RESTART_ON_CHANGE.reset(token)
+
+
+def refuse_other_batches(place: dict[str, Any], batch_size: int) -> None:
+    """Refuse, before anything of a resumed run is written, a resume inside an epoch whose
+    batch size differs from the one the checkpoint's saved ``place`` counts in (the loader's own
+    check, :meth:`ResumableDataLoader.load_state_dict`, sees the dataset and sampler too, later).
+
+    Raises:
+        ResumeMismatchError: one line naming ``dataset.batch_size`` and both values.
+    """
+    saved, batches = place.get("batch_size"), int(place.get("batches", 0))
+    inside = 0 < batches < int(place.get("length", batches + 1))
+    if saved is None or int(saved) == int(batch_size) or not inside:
+        return
+    raise ResumeMismatchError(
+        f"dataset.batch_size: the checkpoint was trained with {saved}, this run asks for "
+        f"{batch_size}; the checkpoint stopped {batches} batches into epoch {place.get('epoch')}: "
+        "resume with the checkpoint's settings, or with resume_restart_epoch=true to restart "
+        "that epoch from its beginning with this run's"
+    )
 
 
 def epoch_seed(seed: int, epoch: int, stream: str = "order") -> int:
@@ -111,14 +166,18 @@ def process_group(num_replicas: int | None = None, rank: int | None = None) -> t
 class ResumableDataLoader(DataLoader):
     """A shuffling training ``DataLoader`` whose position in the epoch is checkpointed.
 
-    ``state_dict()`` is ``{"epoch", "batches", "samples", "processes"}``: the epoch being
-    iterated, how many of its batches each process has been handed, the dataset length and the
-    number of processes. Lightning stores it in the fit loop's checkpoint state and calls
+    ``state_dict()`` is ``{"epoch", "batches", "samples", "processes", "length", "batch_size",
+    "dataset", "sampler"}``: the epoch being iterated, how many of its batches each process has
+    been handed, the dataset length, the number of processes, and what those batches are: the
+    epoch's batches per process, their size, the dataset's class and the sampler with its
+    seed. Lightning stores it in the fit loop's checkpoint state and calls
     :meth:`load_state_dict` before iterating again on resume; the next pass of that epoch then
     skips the batches already trained on at the index level (no sample is loaded for them), on
     every process (they all took as many; the checkpoint is rank 0's). A pass of any other epoch
-    starts from its beginning, and so does the saved epoch when the dataset length or the number
-    of processes changed (warned).
+    starts from its beginning, and so does the saved epoch when the number of processes changed
+    (warned). A saved place inside an epoch whose batch size, dataset or sampler differs is
+    refused (:class:`ResumeMismatchError`), or restarts its epoch under
+    :func:`restarting_epochs`.
 
     Iteration is lazy: the permutation, the worker seed and (with ``num_workers > 0``) the
     workers are set up when the first batch is requested, which is after Lightning has called
@@ -235,7 +294,7 @@ class ResumableDataLoader(DataLoader):
         :class:`~mfg_lightning.data.device_resident.DeviceResidentLoader`)."""
         return DataLoader.__iter__(self)
 
-    def state_dict(self) -> dict[str, int]:
+    def state_dict(self) -> dict[str, Any]:
         if self.order is None:
             return {}
         # restored but not iterated yet (_pending): still at the saved place
@@ -245,24 +304,65 @@ class ResumableDataLoader(DataLoader):
             "batches": batches,
             "samples": self.order.n,
             "processes": self.order.num_replicas,
+            # what the place is counted in (checked on resume): batches of an epoch, their size,
+            # the dataset they come from and the sampler (its seed) that orders them
+            "length": len(self),
+            "batch_size": int(self.batch_size or 1),
+            "dataset": type(self.dataset).__name__,
+            "sampler": f"{type(self.order).__name__}(seed={self.order.seed})",
         }
 
-    def load_state_dict(self, state: dict[str, int]) -> None:
+    def _differences(self, state: dict[str, Any]) -> list[str]:
+        """``key: the checkpoint was trained with A, this run asks for B`` for each setting of
+        the saved place that differs in this loader (those a checkpoint records: a checkpoint
+        from before these checks has only the number of samples)."""
+        now = self.state_dict()
+        keys = {
+            "batch_size": "dataset.batch_size",
+            "samples": "dataset (training samples)",
+            "dataset": "dataset",
+            "sampler": "sampler (dataset.seed)",
+        }
+        return [
+            f"{name}: the checkpoint was trained with {state[key]}, this run asks for {now[key]}"
+            for key, name in keys.items()
+            if key in state and state[key] != now[key]
+        ]
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Resume at the saved place (see the class's docstring).
+
+        Raises:
+            ResumeMismatchError: the place is inside an epoch and the batch size, the dataset
+                or the sampler differs from the checkpoint's (not under
+                :func:`restarting_epochs`).
+        """
         if self.order is None or not state:
             return
-        # what the checkpoint was written with (a checkpoint from before DDP support: 1 process)
-        saved = (int(state.get("samples", self.order.n)), int(state.get("processes", 1)))
-        now = (self.order.n, self.order.num_replicas)
-        if saved != now:
-            log.warning(
-                "the training set has %d samples on %d process(es), but the checkpoint was "
-                "written with %d on %d: resuming at the start of epoch %d",
-                *now,
-                *saved,
-                state["epoch"],
+        epoch, batches = int(state["epoch"]), int(state["batches"])
+        differences = self._differences(state)
+        # At an epoch's end (or start) nothing of the epoch is left to skip: the new settings
+        # simply apply from the next one.
+        inside = 0 < batches < int(state.get("length", batches + 1))
+        if differences and inside and not _RESTART_ON_CHANGE.get():
+            raise ResumeMismatchError(
+                "; ".join(differences)
+                + f"; the checkpoint stopped {batches} batches into epoch {epoch}: resume with "
+                "the checkpoint's settings, or with resume_restart_epoch=true to restart that "
+                "epoch from its beginning with this run's"
             )
+        processes = int(state.get("processes", 1))  # a checkpoint from before DDP: 1 process
+        if processes != self.order.num_replicas:
+            differences.append(
+                f"the checkpoint was written on {processes} process(es), this run has "
+                f"{self.order.num_replicas}"
+            )
+        if differences and inside:
+            log.warning("resuming at the start of epoch %d: %s", epoch, "; ".join(differences))
             self._pending = None
         else:
-            self._pending = (int(state["epoch"]), int(state["batches"]))
-        self.order.set_epoch(int(state["epoch"]))
-        self._epoch, self._position = int(state["epoch"]), 0
+            if differences:
+                log.info("resumed at an epoch's boundary: %s", "; ".join(differences))
+            self._pending = (epoch, batches)
+        self.order.set_epoch(epoch)
+        self._epoch, self._position = epoch, 0

@@ -3,17 +3,15 @@
 * The training data order that resumes mid-epoch lives with the data:
   :class:`mfg_lightning.data.resumable_loader.ResumableDataLoader`.
 * :class:`AtomicCheckpointIO`: writes checkpoints through :mod:`mfg_lightning.core.atomic`
-(temporary
-  file, fsync, ``os.replace``): a kill or a full disk during a save leaves the previous file
-  intact; a failed write is one :class:`StorageError` naming the file; an unreadable checkpoint
-  is a :class:`~mfg_lightning.run.checkpoints.CheckpointError`, and so is one that holds anything
-  but
-  tensors and plain data (it is never unpickled: :mod:`mfg_lightning.run.checkpoints`).
+  (temporary file, fsync, ``os.replace``): a kill or a full disk during a save leaves the
+  previous file intact; a failed write is one :class:`StorageError` naming the file; an
+  unreadable checkpoint is a :class:`~mfg_lightning.run.checkpoints.CheckpointError`, and so is
+  one that holds anything but tensors and plain data (it is never unpickled).
 * :class:`LastCheckpoint`: ``checkpoints/last.ckpt`` every N minutes and/or every N steps, at the
-  end, and on SIGTERM
-  (what SLURM sends at the time limit: the current step finishes, the checkpoint is saved, the
-  run stops); ``ckpt_path=last`` or ``resume=true`` continues from it. It is saved where
-  Lightning resumes it exactly: after a training step, or after the validation that follows it.
+  end, and on SIGTERM or Ctrl-C (SIGTERM is what SLURM sends at the time limit: the current step
+  finishes, the checkpoint is saved, the run stops); ``ckpt_path=last`` or ``resume=true``
+  continues from it. It is saved where Lightning resumes it exactly: after a training step, or
+  after the validation that follows it.
 * :class:`BatchChecks`: malformed batches (shapes, dtypes, non-finite poses, intrinsics or
   depth) are refused where they enter the model, naming the samples.
 * :func:`storage_error`: a full disk is one :class:`StorageError` line naming the file.
@@ -202,9 +200,10 @@ class LastCheckpoint(Checkpoint):
     validation finish first, so its metrics and the best-checkpoint choice see all of it.
 
     Why wall time as well as steps: the full state (weights and Adam's moments, ~150 MB for
-    the default network) is written with an fsync. A step period that suits a CPU (100 steps,
-    ~15 s) would have a GPU, which takes 100 steps in under a second, spend most of its time
-    saving; a period in minutes costs the same share of any device's time. The time is checked
+    the default network) is written with an fsync. A step period that suits a CPU (the config's
+    300 steps, about a minute there) would have a GPU, which takes 100 steps in under a second,
+    spend a large share of its time saving (the GPU trainer configs turn it off); a period in
+    minutes costs the same share of any device's time. The time is checked
     after each step, so a save still lands where a resumed run continues exactly. Under DDP
     every process must save together (``Trainer.save_checkpoint`` is collective) while their
     clocks disagree: rank 0's clock decides, broadcast at the logging steps
@@ -359,7 +358,7 @@ class LastCheckpoint(Checkpoint):
         if trainer.global_step != self._saved_step:
             self._save(trainer)
         log.warning(
-            "SIGTERM: stopped at step %d and saved %s; resume with ckpt_path=last "
+            "SIGTERM or Ctrl-C: stopped at step %d and saved %s; resume with ckpt_path=last "
             "(or resume=true) and the same hydra.run.dir",
             trainer.global_step,
             self.path,

@@ -152,6 +152,31 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     return ckpt
 
 
+def peek_checkpoint(path: str | Path) -> dict[str, Any]:
+    """A checkpoint memory-mapped (its tensors are read only when touched): what a resuming run
+    reads before Lightning loads it for real (the recorded precision and kernels, the loader's
+    saved place). Plain data only, as :func:`load_checkpoint`.
+
+    Raises:
+        CheckpointError: unreadable, or not a Lightning checkpoint.
+    """
+    try:
+        with safe_unpickling():
+            ckpt = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except Exception as err:  # truncated, not a torch file, or an unsafe pickle
+        raise CheckpointError(f"cannot read checkpoint {path}: {describe_load_error(err)}") from err
+    if not isinstance(ckpt, dict):
+        raise CheckpointError(f"{path} is not a Lightning checkpoint")
+    return ckpt
+
+
+def saved_loader_places(ckpt: dict[str, Any]) -> list[dict[str, Any]]:
+    """The training loaders' saved places in a checkpoint's fit loop (empty where none)."""
+    loop = ckpt.get("loops", {}).get("fit_loop", {}).get("state_dict", {})
+    places = loop.get("combined_loader") or []
+    return [p for p in places if isinstance(p, dict)]
+
+
 def describe_load_error(err: BaseException) -> str:
     """One line on why ``torch.load`` failed; an unsafe pickle says which global it named."""
     text = str(err)

@@ -79,16 +79,10 @@ def _on_cpu(trainer_cfg: DictConfig) -> bool:
     return accelerator == "cpu" or (accelerator == "auto" and not torch.cuda.is_available())
 
 
-def _recorded(ckpt_path: str | None) -> dict[str, Any] | None:
-    """The choices recorded in the checkpoint at ``ckpt_path`` (None: none, or no checkpoint)."""
-    if ckpt_path is None:
-        return None
-    from mfg_lightning.run.checkpoints import safe_unpickling
-
-    with safe_unpickling():
-        ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=True, mmap=True)
-    found = ckpt.get(CHECKPOINT_KEY) if isinstance(ckpt, dict) else None
-    return dict(found) if isinstance(found, dict) else None
+def _recorded(ckpt: dict[str, Any] | None) -> dict[str, Any] | None:
+    """The choices recorded in the checkpoint a run resumes from (None: none, or no resume)."""
+    found = None if ckpt is None else ckpt.get(CHECKPOINT_KEY)
+    return dict(found) if isinstance(found, dict) and found.get("conv_impl") is not None else None
 
 
 def _handed_down(output_dir: Path) -> dict[str, Any] | None:
@@ -102,11 +96,19 @@ def _handed_down(output_dir: Path) -> dict[str, Any] | None:
     return found if found.get("run") == str(output_dir) else None
 
 
-def resolve_run_choices(cfg: DictConfig, ckpt_path: str | None = None) -> dict[str, Any] | None:
+def resolve_run_choices(
+    cfg: DictConfig, ckpt: dict[str, Any] | None = None
+) -> dict[str, Any] | None:
     """Make ``trainer.precision`` and ``model.net.conv_impl`` concrete in ``cfg`` where they are
     ``auto`` (module docstring: from the first process, the checkpoint, or this machine's
     measurement) and return what was chosen, ``{"precision", "conv_impl", "source"}``; None when
-    neither is ``auto``. Hands the choices down to the processes this one starts."""
+    neither is ``auto``. Hands the choices down to the processes this one starts.
+
+    Args:
+        cfg: the run's config, changed in place.
+        ckpt: the checkpoint the run resumes from (:func:`~mfg_lightning.run.checkpoints.
+            peek_checkpoint`), None for a fresh start.
+    """
     trainer_cfg, net_cfg = cfg.trainer, cfg.model.get("net")
     conv_auto = net_cfg is not None and net_cfg.get("conv_impl") == AUTO
     precision_auto = str(trainer_cfg.get("precision")) == PRECISION_AUTO
@@ -116,7 +118,7 @@ def resolve_run_choices(cfg: DictConfig, ckpt_path: str | None = None) -> dict[s
     found = _handed_down(output_dir)
     source = "the first process"
     if found is None:
-        found, source = _recorded(ckpt_path), "the checkpoint resumed from"
+        found, source = _recorded(ckpt), "the checkpoint resumed from"
     if found is None:
         found, source = _measured(cfg, conv_auto, precision_auto), "this machine's measurement"
     with open_dict(cfg):

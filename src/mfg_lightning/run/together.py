@@ -1,4 +1,4 @@
-"""Every process of a data-parallel (DDP) run ends together: on SIGTERM and on an error.
+"""Every process of a data-parallel (DDP) run ends together: on SIGTERM, Ctrl-C and an error.
 
 * **SIGTERM.** Lightning's handler makes a collective call inside the signal handler (a broadcast
   that interleaves with whatever collective the process is in: the processes crash, or hang), and
@@ -10,6 +10,12 @@
   Lightning stops there, on every process alike. Without a process group the flag is set at once,
   as Lightning's handler does. Lightning's per-step broadcast of rank 0's flag (a collective and a
   host read before every DDP step) is then redundant and is turned off.
+* **Ctrl-C.** From the first training step, the first SIGINT is taken as a SIGTERM (the same
+  stop after the same step, ``last.ckpt`` saved; exit status 130), without handing it on: a
+  terminal's Ctrl-C reaches every process of the run, and the agreement carries a SIGINT sent to
+  one. The handler then gives SIGINT back to the operating system, so that a second Ctrl-C ends
+  the process at once, even inside a collective or a save (``last.ckpt`` is written atomically:
+  the previous one stays). Before the first step Lightning's own handling stays (nothing to save).
 * **An error.** The errors the processes agree on (a refused batch, too many non-finite losses)
   are raised by all at the same step. Any other error ends its own process, and
   :func:`ending_together` makes sure that the others end within seconds, not at the process
@@ -61,7 +67,8 @@ CHILDREN_GRACE = 30.0
 
 
 class StopTogether(L.Callback):
-    """SIGTERM under DDP: every process stops after the same step (see the module's docstring).
+    """SIGTERM and Ctrl-C under DDP: every process stops after the same step (see the module's
+    docstring); a second Ctrl-C ends the process at once.
 
     :func:`mfg_lightning.run.runs.build_trainer` adds it to every Trainer a run builds. It acts
     through the LightningModule's ``agreement`` (:class:`~mfg_lightning.models.agreement.Agreement`,
@@ -71,6 +78,9 @@ class StopTogether(L.Callback):
 
     def __init__(self) -> None:
         self._held = False  # Lightning's flag held back during a validation (DDP)
+        #: the signal that stopped this process when it was not SIGTERM (SIGINT): its exit status
+        self.stopped_by: signal.Signals | None = None
+        self._previous_sigint: Any = None
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
         agreement = getattr(pl_module, "agreement", None)
@@ -91,6 +101,49 @@ class StopTogether(L.Callback):
             # Lightning broadcasts rank 0's flag and reads it before every DDP step (a collective
             # and a host wait per step); the agreement carries the signal instead.
             epoch_loop._broadcast_sigterm_tensor = _no_sigterm_broadcast
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        agreement = getattr(pl_module, "agreement", None)
+        if not isinstance(agreement, Agreement):
+            if trainer.world_size > 1:
+                return  # no agreement to stop together on: Lightning's KeyboardInterrupt
+            agreement = None
+        if threading.current_thread() is not threading.main_thread():
+            return
+        if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+            return  # started with SIGINT ignored (nohup, a background job): left so
+        handler = functools.partial(self._on_sigint, trainer, agreement)
+        self._previous_sigint = signal.signal(signal.SIGINT, handler)
+
+    def _on_sigint(
+        self, trainer: L.Trainer, agreement: Agreement | None, signum: int, frame: FrameType | None
+    ) -> None:
+        """The first Ctrl-C: a stop like SIGTERM's (see the module's docstring); the next one is
+        the operating system's (the process ends at once)."""
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+        log.warning(
+            rank_prefixed_message(
+                "Ctrl-C: stopping after this step and saving last.ckpt (Ctrl-C again: at once, "
+                "without saving)",
+                trainer.local_rank,
+            )
+        )
+        self.stopped_by = signal.SIGINT
+        if agreement is not None:
+            agreement.sigterm = True
+        if trainer.world_size == 1:
+            trainer._signal_connector.received_sigterm = True
+
+    def _restore_sigint(self) -> None:
+        if (
+            self._previous_sigint is not None
+            and threading.current_thread() is threading.main_thread()
+        ):
+            signal.signal(signal.SIGINT, self._previous_sigint)
+            self._previous_sigint = None
+
+    def teardown(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        self._restore_sigint()
 
     def on_train_batch_end(
         self, trainer: L.Trainer, pl_module: L.LightningModule, *args: Any, **kwargs: Any
@@ -124,6 +177,7 @@ class StopTogether(L.Callback):
     def on_exception(
         self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException
     ) -> None:
+        self._restore_sigint()  # a fit ended by an exception (the stop's included) has no teardown
         _take_over_the_watch(trainer)
 
 
@@ -255,8 +309,9 @@ def ending_together(trainer: L.Trainer) -> Iterator[None]:
     """Around an entry point's ``trainer.fit`` and ``trainer.test``.
 
     Lightning ends a fit or test stopped by SIGTERM with ``SIGTERMException`` (a ``SystemExit``
-    of status 0): exit with 143 instead, the conventional status of a process ended by SIGTERM,
-    so that schedulers and scripts see an interrupted job. During a fit, ``LastCheckpoint`` has
+    of status 0): exit with 143 instead, the conventional status of a process ended by SIGTERM
+    (130 when this process was stopped by Ctrl-C), so that schedulers and scripts see an
+    interrupted job. During a fit, ``LastCheckpoint`` has
     saved ``last.ckpt`` by then; a stop on SLURM's requeue signal requeues the job now
     (:class:`~mfg_lightning.run.slurm.SlurmRequeue`). Any end by an exception tears the
     datamodule down (its threads stopped before the interpreter exits). Under DDP it also ends
@@ -274,9 +329,13 @@ def ending_together(trainer: L.Trainer) -> Iterator[None]:
                 _leave_process_group()
             _end_children(trainer, CHILDREN_GRACE)
         if stopped:
-            log.warning("stopped by SIGTERM at step %d", trainer.global_step)
+            by = next(
+                (cb.stopped_by for cb in trainer.callbacks if isinstance(cb, StopTogether)), None
+            )
+            by = by or signal.SIGTERM  # SIGTERM, SLURM's requeue signal, a peer's stop
+            log.warning("stopped by %s at step %d", by.name, trainer.global_step)
             for callback in trainer.callbacks:
                 if isinstance(callback, SlurmRequeue):  # stopped by SLURM's requeue signal
                     callback.requeue(trainer)
-            raise SystemExit(128 + signal.SIGTERM) from None
+            raise SystemExit(128 + by) from None
         raise

@@ -25,8 +25,9 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 
 from mfg_lightning.core.atomic import atomic_write_text
+from mfg_lightning.data.resumable_loader import refuse_other_batches, restarting_epochs
 from mfg_lightning.run.callbacks import LastCheckpoint
-from mfg_lightning.run.checkpoints import CheckpointError
+from mfg_lightning.run.checkpoints import CheckpointError, peek_checkpoint, saved_loader_places
 from mfg_lightning.run.precision import PRECISION_AUTO, check_precision
 from mfg_lightning.run.run_choices import CHOICES_VARIABLE, RunChoicesRecord, resolve_run_choices
 from mfg_lightning.run.runs import (
@@ -183,7 +184,10 @@ def ddp_job_in_multirun(trainer: L.Trainer) -> Iterator[None]:
 def train(cfg: DictConfig) -> dict[str, Any]:
     """Fit and test as configured. Returns the final metrics (``val/*`` and ``test/*``)."""
     try:
-        return _train(cfg)
+        # resume_restart_epoch: a resume inside an epoch with other batches restarts that epoch
+        # instead of being refused (mfg_lightning.data.resumable_loader)
+        with restarting_epochs(bool(cfg.get("resume_restart_epoch"))):
+            return _train(cfg)
     finally:
         # the choices handed to this run's own processes must not reach a later run of this
         # process (a multirun's next job, a test)
@@ -199,9 +203,14 @@ def _train(cfg: DictConfig) -> dict[str, Any]:
 
     # The dataset checks its data when built: a refused data root writes nothing of the run's.
     datamodule: L.LightningDataModule = instantiate(cfg.dataset)
+    resumed = None if ckpt_path is None else peek_checkpoint(ckpt_path)
+    if resumed is not None and not cfg.get("resume_restart_epoch"):
+        # before the run's files are rewritten: a refused resume leaves them as they were
+        for place in saved_loader_places(resumed):
+            refuse_other_batches(place, int(cfg.dataset.batch_size))
     # trainer.precision=auto and model.net.conv_impl=auto made concrete (measured once per
     # machine, or as the run began): config.yaml and the checkpoints record what ran
-    choices = resolve_run_choices(cfg, ckpt_path)
+    choices = resolve_run_choices(cfg, resumed)
     atomic_write_text(output_dir / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
     info = {
         **run_info(),
