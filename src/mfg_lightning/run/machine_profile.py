@@ -54,7 +54,7 @@ from mfg_lightning.run.precision import cpu_has_native_bf16
 log = logging.getLogger(__name__)
 
 #: Bumped when what is measured or how it is decided changes: older files are measured again.
-PROFILE_VERSION = 2
+PROFILE_VERSION = 3
 #: Timed rounds per candidate, after one warm-up round.
 ROUNDS = 5
 #: A convolution replaces ``native`` only this much faster (fraction of native's best time).
@@ -65,6 +65,9 @@ PRECISION_MARGIN = 0.10
 #: Below this share of its threads' CPU time while timing, the process was starved by other work
 #: (seen on 2 cores: a nice-19 run beside a 2-thread job got 4 %, a quiet benchmark 88 %).
 BUSY_CPU_SHARE = 0.3
+#: Rounds spread over more than this many times their best: the load changed while they were
+#: timed (quiet, 5 rounds of the quick start's layers spread by under 1.3×), and the default stays.
+MAX_SPREAD = 1.5
 #: A convolution this many times slower than native in the first timed round is not timed again.
 GIVE_UP = 2.0
 #: The dtypes a convolution is measured in, by name.
@@ -136,18 +139,30 @@ def time_interleaved(
     return times
 
 
-def clearly_faster(times: Mapping[str, Sequence[float]], default: str, margin: float) -> str:
+def clearly_faster(
+    times: Mapping[str, Sequence[float]],
+    default: str,
+    margin: float,
+    max_spread: float = MAX_SPREAD,
+) -> str:
     """The choice among timed candidates (:func:`time_interleaved`): the fastest by its best
     round among those whose best beats ``default``'s best by more than ``margin`` of it and that
     were faster than ``default`` in every round they ran, each against ``default``'s time of the
-    same round (a candidate given up after one round is slower); ``default`` where none is."""
+    same round (a candidate given up after one round is slower); ``default`` where none is, and
+    where the default's or the candidate's rounds spread over more than ``max_spread`` times
+    their best (the machine's load changed while it was timed: its times say little)."""
     base = times[default]
+
+    def steady(t: Sequence[float]) -> bool:
+        return max(t) <= max_spread * min(t)
+
     winners = [
         name for name, t in times.items()
         if name != default
         and len(t) == len(base)
         and min(t) < (1.0 - margin) * min(base)
         and all(a < b for a, b in zip(t, base, strict=True))
+        and steady(t) and steady(base)
     ]  # fmt: skip
     return min(winners, key=lambda name: min(times[name])) if winners else default
 
@@ -176,8 +191,9 @@ def measure_convolutions(
 ) -> dict[str, dict[str, Any]]:
     """Each convolution of ``net`` timed alone as each of its candidates, on the input it gets
     in a training step on ``flow_shape`` in ``dtype``: ``{layer name: {"ms": {impl: best
-    milliseconds}, "choice": impl}}`` in module order (:func:`clearly_faster`, default
-    ``native``). On copies of the layers: ``net`` is untouched."""
+    milliseconds}, "spread": {impl: slowest / best round}, "choice": impl}}`` in module order
+    (:func:`clearly_faster`, default ``native``). On copies of the layers: ``net`` is
+    untouched."""
     import copy
 
     layers = dict(switchable_layers(net))
@@ -197,6 +213,8 @@ def measure_convolutions(
         times = time_interleaved(steps, rounds, give_up=GIVE_UP)
         result[name] = {
             "ms": {impl: round(1e3 * min(t), 4) for impl, t in times.items()},
+            # the slowest round over the best: how steady the machine was while timing
+            "spread": {impl: round(max(t) / min(t), 3) for impl, t in times.items()},
             "choice": clearly_faster(times, "native", CONV_MARGIN),
         }
     return result
@@ -225,6 +243,7 @@ class Profile:
         key: :func:`profile_key`.
         conv: per dtype name, ``{layer name: {"ms": {impl: ms}, "choice": impl}}``.
         step_ms: the network's training step per precision, best milliseconds.
+        step_spread: its slowest round over its best, per precision.
         precision: ``auto``'s choice (``32-true`` or ``bf16-mixed``).
         disturbed: the process was starved while timing: every choice is the default.
         seconds: how long measuring took.
@@ -233,6 +252,7 @@ class Profile:
     key: dict[str, Any]
     conv: dict[str, dict[str, dict[str, Any]]] = field(default_factory=dict)
     step_ms: dict[str, float] = field(default_factory=dict)
+    step_spread: dict[str, float] = field(default_factory=dict)
     precision: str = "32-true"
     disturbed: bool = False
     seconds: float = 0.0
@@ -304,10 +324,21 @@ def measure(
                      for n in dtypes}  # fmt: skip
             times = time_interleaved(steps, rounds)
             profile.step_ms = {p: round(1e3 * min(t), 3) for p, t in times.items()}
+            profile.step_spread = {p: round(max(t) / min(t), 3) for p, t in times.items()}
             profile.precision = clearly_faster(times, "32-true", PRECISION_MARGIN)
         else:
             profile.precision = PRECISION_OF[dtypes[0]]
     profile.seconds = round(time.perf_counter() - start, 2)
+    spreads = [v for layers in profile.conv.values() for e in layers.values()
+               for v in e["spread"].values()] + list(profile.step_spread.values())  # fmt: skip
+    unsteady = sum(v > MAX_SPREAD for v in spreads)
+    if unsteady:
+        log.warning(
+            "the machine's load changed while it was measured (%d of %d timings spread over "
+            "%.1f× their best): where they decide, the defaults are kept; `python -m "
+            "mfg_lightning.measure` on a quiet machine measures again", unsteady, len(spreads),
+            MAX_SPREAD,
+        )  # fmt: skip
     share = (time.process_time() - cpu) / max(1e-9, profile.seconds * int(key["threads"]))
     if share < min_cpu_share:
         profile.disturbed = True
