@@ -10,7 +10,7 @@ from functools import partial
 from _common import NOISY, fmt, markdown_table, ratio_cell
 
 from .gemm_peak import Peaks
-from .measure import PRECISIONS, Run, interleaved, make_batches
+from .measure import PRECISIONS, Run, interleaved, make_batches, with_overrides
 from .training import bare_rate, lightning_rate
 
 #: (batch size, precision label) → the repeats' rates (samples/s): Lightning's, the bare loop's.
@@ -29,19 +29,38 @@ HEADER = [
 ]
 
 
+def default_kernels(run: Run, batch_size: int) -> dict[str, list[str]]:
+    """The convolutions a training run at ``batch_size`` computes with by default, per precision
+    label: this machine's measurement (read from the user's cache, or made once;
+    :func:`mfg_lightning.run.run_choices.measure_machine`)."""
+    from mfg_lightning.run.machine_profile import needs_bf16
+    from mfg_lightning.run.run_choices import measure_machine
+
+    from .measure import _config
+
+    cfg = _config(tuple(with_overrides(run.base, [f"dataset.batch_size={batch_size}",
+                                                  "model.net.conv_impl=auto",
+                                                  "trainer.precision=auto"])))  # fmt: skip
+    profile, _ = measure_machine(cfg)
+    bf16 = "bfloat16" if needs_bf16("bf16-mixed") and "bfloat16" in profile.conv else "float32"
+    return {"float32": profile.kernels("float32"), "bf16-mixed": profile.kernels(bf16)}
+
+
 def training_rates(run: Run) -> TrainingRates:
     """Every batch size's four rates (Lightning and bare, float32 and bf16-mixed), interleaved
-    ``--repeats`` times."""
+    ``--repeats`` times, each precision on the convolutions a training run chooses for it."""
     args, rates = run.args, {}
     for batch_size, steps in run.sizes:
         batches = make_batches(run.samples, batch_size)
+        kernels = default_kernels(run, batch_size)
         fns = {}
         for name, precision in PRECISIONS.items():
+            base = with_overrides(run.base, [f"model.net.conv_impl=[{','.join(kernels[name])}]"])
             fns[(name, "lightning")] = partial(
-                lightning_rate, run.base, batches, args.warmup, steps, precision
+                lightning_rate, base, batches, args.warmup, steps, precision
             )
             fns[(name, "bare")] = partial(
-                bare_rate, run.base, batches, args.warmup, steps, autocast=precision != "32-true"
+                bare_rate, base, batches, args.warmup, steps, autocast=precision != "32-true"
             )
         runs = interleaved(fns, args.repeats)
         for name in PRECISIONS:
@@ -67,7 +86,9 @@ def section(run: Run, peaks: Peaks) -> TrainingRates:
         "## Training: Lightning Trainer against a bare PyTorch loop (target ≥ 0.95×)\n\n"
         + markdown_table(HEADER, rows)
         + "\nLightning: `lightning.Trainer(precision=...)`, `32-true` or `bf16-mixed`, on the "
-        "module's `training_step`; the bare loop: the same network, loss and fused Adam, the "
+        "module's `training_step`; the bare loop: the same network, loss and fused Adam, each "
+        "precision on the convolutions a training run chooses for it at that batch (this "
+        "machine's measurement, `python -m mfg_lightning.measure`: the defaults' kernels), the "
         "encoder under `torch.autocast('cpu', dtype=torch.bfloat16)` for bf16-mixed (the "
         "decoders leave autocast and run in float32, as in the module). The Trainer runs without "
         "logger, checkpointing or progress bar. What Lightning adds is a fixed cost per step, "
