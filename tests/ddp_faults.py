@@ -13,7 +13,8 @@ rank ``rank`` only, at the training steps ``steps`` (global steps, before the st
 * ``error``: a ``RuntimeError`` that nothing agrees on (a bug in one process).
 
 It writes ``<marker>`` (the time and the step) each time it acts, so that the test can time the
-end of the run from the last fault.
+end of the run from the last fault. :func:`run_with_faults` runs an entry point with faults and
+times its end.
 
 Not a test module (no ``test_`` prefix): pytest does not collect it.
 """
@@ -22,7 +23,10 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -95,3 +99,49 @@ class Fault(L.Callback):
             batch["pose"][0, 0, 3] = float("nan")
         else:
             raise RuntimeError(f"injected error in process {trainer.global_rank}")
+
+
+@dataclass
+class FaultyRun:
+    """How a run ended: the first process's exit status, the output of every process, and the
+    seconds from the last fault to the end of the last process (None: no fault acted)."""
+
+    returncode: int
+    output: str
+    seconds_after_fault: float | None
+
+
+def run_with_faults(
+    module: str,
+    args: list[str],
+    workdir: Path,
+    run: str,
+    env: dict[str, str],
+    faults: dict[str, tuple] | None = None,
+    timeout: float = 600,
+) -> FaultyRun:
+    """``python -m <module> <args>`` into ``<workdir>/<run>`` with the faults ``{name: (kind,
+    steps, rank)}``, until every process it started has ended (their shared output is closed).
+    ``env`` must put this folder on ``PYTHONPATH``. A run still going after ``timeout`` seconds
+    is killed (its own session: its processes only) and fails the test."""
+    markers, args = [], [*args, f"hydra.run.dir={workdir / run}"]
+    for name, (kind, steps, rank) in (faults or {}).items():
+        marker = workdir / f"{run}.{name}.marker"
+        marker.unlink(missing_ok=True)
+        markers.append(marker)
+        key = f"+callbacks.{name}"
+        args += [f"{key}._target_=ddp_faults.Fault", f"{key}.kind={kind}", f"{key}.steps={steps}",
+                 f"{key}.rank={rank}", f"{key}.marker={marker}"]  # fmt: skip
+    proc = subprocess.Popen(
+        [sys.executable, "-m", module, *args], cwd=workdir, env=env, stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT, text=True, start_new_session=True,
+    )  # fmt: skip
+    try:
+        output, _ = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        output, _ = proc.communicate()
+        raise AssertionError(f"{run}: not ended after {timeout} s:\n{output[-5000:]}") from None
+    ended = time.time()
+    acted = [float(m.read_text().split()[0]) for m in markers if m.exists()]
+    return FaultyRun(proc.returncode, output, ended - max(acted) if acted else None)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -172,6 +173,59 @@ def _epe_with_second_frames_of_other_pairs(
     err = [(f - torch.nan_to_num(target)).norm(dim=1)[known].mean().item()
            for f in (true, other, zero)]  # fmt: skip
     return tuple(err)
+
+
+def _pairs_batch(n: int = 4, hw: tuple[int, int] = (64, 128)) -> dict:
+    gen = torch.Generator().manual_seed(0)
+    images = torch.randint(0, 256, (2, n, 3, *hw), generator=gen, dtype=torch.uint8)
+    flow = torch.randn(n, 2, *hw, generator=gen)
+    return {"image0": images[0], "image1": images[1], "flow": flow,
+            "sample_id": [f"flow_pairs/00/{i}->{i + 1}" for i in range(n)]}  # fmt: skip
+
+
+def test_the_augmentation_draws_from_its_step_and_rank_never_from_the_global_generator() -> None:
+    """What makes a resumed train_flow draw the crops and flips of the uninterrupted run
+    (tests/test_flow_faults.py): each batch's generator is derived from (seed, rank, step,
+    batch index), which the checkpoint restores, and torch's global generator is left alone."""
+    module = FlowLitModule(net=SMALL.to_dict(), level_weights=(1.0, 1.0, 1.0), crop=(32, 64))
+    batch = _pairs_batch()
+    torch.manual_seed(0)
+    before = torch.get_rng_state()
+    first = module._augmented(batch, module.augmentation_generator(3))
+    assert torch.equal(torch.get_rng_state(), before)
+    again = module._augmented(batch, module.augmentation_generator(3))
+    assert all(torch.equal(a, b) for a, b in zip(first, again, strict=True))
+    assert first[0].shape[-2:] == (32, 64)
+
+    def draws(m: FlowLitModule, batch_idx: int) -> torch.Tensor:
+        return torch.rand(8, generator=m.augmentation_generator(batch_idx))
+
+    other_seed = FlowLitModule(net=SMALL.to_dict(), level_weights=(1.0, 1.0, 1.0), seed=1)
+    rank_0 = draws(module, 3)
+    assert not torch.equal(rank_0, draws(module, 4))  # another batch
+    assert not torch.equal(rank_0, draws(other_seed, 3))  # another run's seed
+    module._trainer = SimpleNamespace(global_rank=1, global_step=0)  # the same step on rank 1
+    try:
+        assert not torch.equal(rank_0, draws(module, 3))
+    finally:
+        module._trainer = None
+
+
+def test_a_non_finite_flow_loss_skips_the_step_and_too_many_stop_the_run() -> None:
+    """The flow module handles faults as MFG's does (``AgreedSteps``): a non-finite loss skips
+    the step (one process: None, no backward, no optimiser step), and a run of them stops."""
+    from mfg_lightning.models.agreement import AgreedSteps
+    from mfg_lightning.models.nonfinite import NonFiniteLossError
+
+    module = FlowLitModule(net=SMALL.to_dict(), level_weights=(1.0, 1.0, 1.0),
+                           max_consecutive_nonfinite=2)  # fmt: skip
+    assert isinstance(module, AgreedSteps)
+    batch = _pairs_batch(2)
+    with torch.no_grad():
+        next(module.net.parameters()).fill_(float("nan"))  # the loss is not finite
+    assert module.training_step(batch, 0) is None
+    with pytest.raises(NonFiniteLossError, match="2 consecutive non-finite losses"):
+        module.training_step(batch, 1)
 
 
 @pytest.mark.slow

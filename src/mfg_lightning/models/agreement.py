@@ -25,6 +25,13 @@ up to that many steps late, at the same step on every process.
 
 One process (no process group): nothing is reduced; SIGTERM and a refused batch are acted on at
 once, as Lightning and the callbacks do by themselves.
+
+A LightningModule of the project gets all of this by deriving from :class:`AgreedSteps` (its
+training step asks it whether to take the step; it also skips non-finite losses,
+:class:`~mfg_lightning.models.nonfinite.NonFiniteLosses`), with ``max_consecutive_nonfinite`` in
+its config. The other half lives with the run: :class:`~mfg_lightning.run.together.StopTogether`,
+which every Trainer of a run has, records SIGTERM and Ctrl-C in the module's :attr:`agreement`
+and stops Lightning after the agreed step; ``BatchChecks`` hands it a refused batch.
 """
 
 from __future__ import annotations
@@ -37,10 +44,11 @@ import torch.distributed as dist
 from torch import Tensor
 
 from mfg_lightning.core.errors import UserError
+from mfg_lightning.models.nonfinite import NonFiniteLosses
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Agreement", "PeerFailedError", "logging_step"]
+__all__ = ["AgreedSteps", "Agreement", "PeerFailedError", "logging_step"]
 
 
 def logging_step(trainer: Any, done: bool = False) -> bool:
@@ -183,3 +191,140 @@ def _max_over_processes(flags: Tensor, strategy: Any | None) -> Tensor:
         dist.all_reduce(flags, op=dist.ReduceOp.MAX)
         return flags
     return flags if strategy is None else strategy.reduce(flags, reduce_op="max")
+
+
+class AgreedSteps:
+    """The fault handling of a LightningModule's training step: skip, stop and fail together.
+
+    A mixin placed before ``L.LightningModule`` (``class M(AgreedSteps, L.LightningModule)``);
+    ``__init__`` calls :meth:`init_agreed_steps` after ``super().__init__()``, and the training
+    step asks it what to do::
+
+        fused = self.skips_in_the_optimiser()
+        if self.without_samples(batch):  # {} under DDP, or a refused batch
+            return self.step_without_samples(fused)
+        loss = ...  # the step's total loss, 0-dim
+        if not self.agree_on_loss(loss, ids, fused):
+            return self.skipped()
+        return loss
+
+    Under DDP that is the step's one collective (:meth:`Agreement.reduce`), which also carries
+    SIGTERM, Ctrl-C and a refused batch to every process: the same step is skipped, and the run
+    stops or fails after the same step, on every process. On one process nothing is reduced. A
+    module that overrides a hook this mixin defines (``transfer_batch_to_device``,
+    ``on_before_optimizer_step``, ``on_train_batch_end``, ``on_train_end``) calls ``super()``.
+
+    Attributes:
+        agreement: what this process decides with the others (:class:`Agreement`); read by
+            :class:`~mfg_lightning.run.together.StopTogether` and ``BatchChecks``.
+        nonfinite: the non-finite losses skipped and counted (:class:`NonFiniteLosses`).
+    """
+
+    agreement: Agreement
+    nonfinite: NonFiniteLosses
+
+    def init_agreed_steps(self, max_consecutive_nonfinite: int = 20) -> None:
+        """Set the attributes up (after ``nn.Module.__init__``: ``nonfinite`` is a submodule
+        without parameters, buffers or persistent state, so checkpoints do not change)."""
+        self.nonfinite = NonFiniteLosses(max_consecutive_nonfinite)
+        self.agreement = Agreement()
+
+    def _world_size(self) -> int:
+        trainer = getattr(self, "_trainer", None)
+        return 1 if trainer is None else int(trainer.world_size)
+
+    def skips_in_the_optimiser(self) -> bool:
+        """Whether a skipped step is skipped inside a fused optimiser (nothing read on the host;
+        :meth:`NonFiniteLosses.skips_in_the_optimiser`); asked once per step."""
+        module: Any = self
+        return self.nonfinite.skips_in_the_optimiser(
+            getattr(self, "_trainer", None), module.automatic_optimization
+        )
+
+    def without_samples(self, batch: Any) -> bool:
+        """Whether this process takes the step without samples: its batch is empty (every sample
+        unreadable, under DDP: :meth:`transfer_batch_to_device`) or it holds a refused one."""
+        return not batch or self.agreement.failure is not None
+
+    def agreed(self, finite: Tensor) -> Tensor:
+        """The step's verdict, 0-dim bool: ``finite`` here, or under DDP on every process (the
+        step's one collective, which also agrees on stopping and failing, acted on when due)."""
+        trainer: Any = getattr(self, "_trainer", None)
+        if trainer is None or trainer.world_size == 1:
+            return finite
+        skip = self.agreement.reduce(~finite, trainer.strategy)
+        self.agreement.decide(trainer.global_step, due=logging_step(trainer))
+        return ~skip
+
+    def agree_on_loss(self, loss: Tensor, ids: str | None, fused: bool) -> bool:
+        """Account for a step with samples; False: return :meth:`skipped` from the step.
+
+        Args:
+            loss: the step's total loss (0-dim).
+            ids: the batch's samples, for the messages.
+            fused: :meth:`skips_in_the_optimiser`.
+
+        Raises:
+            NonFiniteLossError: too many non-finite losses in a row (the host route).
+            BaseException: a failure agreed on (:meth:`Agreement.decide`).
+        """
+        finite = self.agreed(torch.isfinite(loss.detach()))
+        return self.nonfinite.check(loss, finite, ids, fused)
+
+    def step_without_samples(self, fused: bool) -> Tensor | None:
+        """DDP only: this process has no usable sample (every one unreadable, or its batch
+        refused). It takes part in the step all the same, with a zero loss, and the agreed
+        verdict skips the step on every process."""
+        loss = self.zero_loss()
+        finite = self.agreed(torch.zeros((), dtype=torch.bool, device=loss.device))
+        if not self.nonfinite.check(loss, finite, "this process", fused, "no usable sample"):
+            return self.skipped()
+        trainer: Any = getattr(self, "_trainer", None)
+        if trainer is None or logging_step(trainer) or trainer.should_stop:
+            self.nonfinite.report("<no usable sample on this process>")
+        return loss
+
+    def skipped(self) -> Tensor | None:
+        """What a step skipped on the host route returns. One process: None (no backward, no
+        optimiser step). DDP: Lightning refuses None, and every process must run backward for
+        the gradient all-reduce: a zero loss, whose gradients are dropped before the optimiser
+        step (:meth:`NonFiniteLosses.drop_gradients`)."""
+        if self._world_size() == 1:
+            return None
+        self.nonfinite.drop_gradients()
+        return self.zero_loss()
+
+    def zero_loss(self) -> Tensor:
+        """0 × every trainable parameter (0-dim): a loss with a zero gradient for each of them,
+        so that DDP's gradient all-reduce hears from every parameter."""
+        module: Any = self
+        params = [p for p in module.parameters() if p.requires_grad]
+        return torch.stack([p.sum() for p in params]).sum() * 0.0
+
+    # -- Lightning's hooks -------------------------------------------------------------------
+
+    def transfer_batch_to_device(
+        self, batch: Any, device: torch.device, dataloader_idx: int
+    ) -> Any:
+        """Under DDP a training batch whose every sample was skipped as unreadable (None) goes
+        on as an empty one (``{}``, a step without samples): Lightning would skip the step of a
+        None batch on this process alone, and the others would wait for it in the step's
+        collectives. (This hook, not ``on_before_batch_transfer``: Lightning calls a
+        datamodule's ``on_before_batch_transfer`` instead of the module's where it has one.)"""
+        trainer: Any = getattr(self, "_trainer", None)
+        if batch is None and trainer is not None and trainer.training and trainer.world_size > 1:
+            return {}
+        return super().transfer_batch_to_device(batch, device, dataloader_idx)  # type: ignore[misc]
+
+    def on_before_optimizer_step(self, optimizer: torch.optim.Optimizer) -> None:
+        self.nonfinite.before_optimizer_step(optimizer)
+        super().on_before_optimizer_step(optimizer)  # type: ignore[misc]
+
+    def on_train_batch_end(self, outputs: Any, batch: Any, batch_idx: int) -> None:
+        module: Any = self
+        self.nonfinite.after_batch(module.trainer.optimizers)
+        super().on_train_batch_end(outputs, batch, batch_idx)  # type: ignore[misc]
+
+    def on_train_end(self) -> None:
+        self.nonfinite.report("<end of training>")
+        super().on_train_end()  # type: ignore[misc]

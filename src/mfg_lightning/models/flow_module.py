@@ -5,16 +5,25 @@ Loss: PWC-Net's multi-scale one, the mean end-point error of every decoder level
 the exact flow averaged down to that level (over the pixels where it is known), weighted per
 level (``level_weights``, coarsest first). Augmentation: a random crop of the batch (``crop``:
 the same window for every pair of a step, a new one each step) and a random left-right flip of
-a pair (its flow's ``u`` negated), per sample.
+a pair (its flow's ``u`` negated), per sample. Its draws come from a generator derived from the
+run's seed, the process's rank and the step (:meth:`FlowLitModule.augmentation_generator`), not
+from torch's global one: a run resumed from a checkpoint draws what the uninterrupted run drew
+(nothing to save: the step is in the checkpoint), and each DDP process draws its own.
+
+Faults (a non-finite loss, SIGTERM, Ctrl-C, a refused batch) are handled as in ``train``'s
+module, by every DDP process together (:class:`~mfg_lightning.models.agreement.AgreedSteps`).
 
 Validation: the flow at the input size (:meth:`PWCFlowNet.estimate`: the finest level upsampled)
 against the exact flow, pooled pixel by pixel over the split, by offset and by region:
 ``val/epe`` (px, all pixels, every offset), ``val/epe_+1`` …, ``val/epe/<region>``, ``val/fl``
-(KITTI's outlier rate, %).
+(KITTI's outlier rate, %): a :class:`~mfg_lightning.metrics.flow_quality.PooledFlowQuality`,
+whose sums torchmetrics adds up across DDP processes once per validation.
 """
 
 from __future__ import annotations
 
+import hashlib
+import warnings
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -23,6 +32,8 @@ import torch
 import torch.nn.functional as F
 
 from mfg_lightning.flow.pwc import PWCConfig, PWCFlowNet, config_from
+from mfg_lightning.metrics.flow_quality import PooledFlowQuality
+from mfg_lightning.models.agreement import AgreedSteps
 
 __all__ = ["MAX_OFFSET", "FlowLitModule", "downsample_flow", "endpoint_error"]
 
@@ -65,7 +76,7 @@ def endpoint_error(flow: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return torch.linalg.vector_norm(flow.float() - target.float(), dim=1)
 
 
-class FlowLitModule(L.LightningModule):
+class FlowLitModule(AgreedSteps, L.LightningModule):
     """Trains a :class:`PWCFlowNet`.
 
     Args:
@@ -79,6 +90,9 @@ class FlowLitModule(L.LightningModule):
         flip: probability of a left-right flip of a training pair.
         image_log_every_n_steps: how often a training step hands its pairs to the figures
             callback (0: never).
+        seed: the run's seed, from which the augmentation's draws are derived.
+        max_consecutive_nonfinite: stop after this many non-finite losses in a row
+            (:class:`~mfg_lightning.models.agreement.AgreedSteps`).
     """
 
     def __init__(
@@ -90,8 +104,12 @@ class FlowLitModule(L.LightningModule):
         crop: Sequence[int] | None = None,
         flip: float = 0.5,
         image_log_every_n_steps: int = 500,
+        seed: int = 0,
+        max_consecutive_nonfinite: int = 20,
     ) -> None:
         super().__init__()
+        self.init_agreed_steps(max_consecutive_nonfinite)  # skip, stop and fail together
+        self.seed = int(seed)
         self.config: PWCConfig = config_from(net)
         self.net = PWCFlowNet(self.config)
         levels = len(self.config.pyramid) - self.config.output_level + 1
@@ -118,7 +136,8 @@ class FlowLitModule(L.LightningModule):
         self.image_log_every_n_steps = int(image_log_every_n_steps)
         #: what the figures callback draws (set by the steps, consumed by the callback)
         self.figure_batch: dict[str, torch.Tensor] | None = None
-        self._val_sums: dict[str, torch.Tensor] = {}
+        #: the validation's pooled EPE and outliers (sums; reduced across processes by compute)
+        self.val_quality = PooledFlowQuality(quality_names())
 
     # -- steps --------------------------------------------------------------------------------
 
@@ -127,18 +146,35 @@ class FlowLitModule(L.LightningModule):
         """The batch's ``(B, 3, H, W)`` uint8 frames as float in [0, 1]."""
         return batch["image0"].float() / 255.0, batch["image1"].float() / 255.0
 
-    def _augmented(self, batch: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def augmentation_generator(self, batch_idx: int) -> torch.Generator:
+        """The generator of a training batch's crop and flips: seeded from the run's seed, the
+        process's rank, the global step and the batch's index in the epoch.
+
+        Derived, not kept: a run resumed mid-epoch restores the step and the batch index (both in
+        Lightning's checkpointed loop state), so it draws what the uninterrupted run drew with no
+        generator state in the checkpoint; under DDP each process has its own draws, and they
+        come back to the same rank however the processes are restarted. The batch index keeps
+        the batches of one optimiser step apart under ``accumulate_grad_batches``. A CPU
+        generator: the crop's corner is needed on the host, and the flips are 1 byte a pair."""
+        key = (self.seed, self.global_rank, self.global_step, int(batch_idx))
+        digest = hashlib.blake2b(repr(key).encode(), digest_size=8).digest()
+        return torch.Generator().manual_seed(int.from_bytes(digest, "little"))
+
+    def _augmented(
+        self, batch: dict[str, Any], generator: torch.Generator | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The batch's frames and exact flow, cropped and flipped with ``generator``'s draws."""
         image0, image1 = self.images(batch)
         flow = batch["flow"].float()
         if self.crop is not None:
             h, w = flow.shape[-2:]
             ch, cw = min(self.crop[0], h), min(self.crop[1], w)
-            y = int(torch.randint(0, h - ch + 1, ()))
-            x = int(torch.randint(0, w - cw + 1, ()))
+            y = int(torch.randint(0, h - ch + 1, (), generator=generator))
+            x = int(torch.randint(0, w - cw + 1, (), generator=generator))
             window = (..., slice(y, y + ch), slice(x, x + cw))
             image0, image1, flow = image0[window], image1[window], flow[window]
         if self.flip > 0:
-            flip = torch.rand(flow.shape[0], device=flow.device) < self.flip
+            flip = (torch.rand(flow.shape[0], generator=generator) < self.flip).to(flow.device)
             f = flip.view(-1, 1, 1, 1)
             image0 = torch.where(f, image0.flip(-1), image0)
             image1 = torch.where(f, image1.flip(-1), image1)
@@ -164,10 +200,19 @@ class FlowLitModule(L.LightningModule):
             total = total + weight * mean
         return total, per_level
 
-    def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor:
-        image0, image1, flow = self._augmented(batch)
+    def training_step(self, batch: dict[str, Any] | None, batch_idx: int) -> torch.Tensor | None:
+        if batch is None:  # one process: Lightning skips a None batch itself; a direct call
+            return None
+        fused = self.skips_in_the_optimiser()
+        if self.without_samples(batch):  # DDP: no usable sample here, the others' step goes on
+            return self.step_without_samples(fused)
+        image0, image1, flow = self._augmented(batch, self.augmentation_generator(batch_idx))
         flows = self.net(image0, image1)
         loss, per_level = self.multiscale_loss(flows, flow)
+        ids = ", ".join(str(i) for i in list(batch.get("sample_id", []))[:4])
+        if not self.agree_on_loss(loss, ids, fused):  # under DDP: the step's one collective
+            return self.skipped()
+        # this process's values, not reduced (a reduction would be a collective every step)
         self.log("train/loss", loss, prog_bar=False)
         self.log("train/epe", per_level[-1])
         every = self.image_log_every_n_steps
@@ -180,7 +225,7 @@ class FlowLitModule(L.LightningModule):
         return loss
 
     def on_validation_epoch_start(self) -> None:
-        self._val_sums = {}
+        self.val_quality.reset()
 
     def validation_step(self, batch: dict[str, Any] | None, batch_idx: int) -> None:
         from mfg_lightning.data.rendered import region_codes
@@ -201,34 +246,26 @@ class FlowLitModule(L.LightningModule):
                 masks[name] = known & (batch["region"] == code)
         for off in torch.unique(batch["offset"]).tolist():
             masks[f"{int(off):+d}"] = known & (offsets == off)
-        for name, m in masks.items():
-            sums = torch.stack((epe[m].sum(), outlier[m].sum().float(), m.sum().float()))
-            self._val_sums[name] = self._val_sums.get(name, 0) + sums.double()
+        self.val_quality.update(epe, outlier, masks)
         if batch_idx == 0:
             self.figure_batch = {"stage": "val", "image0": image0, "image1": image1,
                                  "flow": target, "pred": pred,
                                  "labels": pair_labels(batch)}  # fmt: skip
 
     def on_validation_epoch_end(self) -> None:
-        from mfg_lightning.data.rendered import QUALITY_REGIONS
-
-        # every process's sums added up (DDP shares the validation pairs out), under one list
-        # of names on every process: a process may have seen no pair of some offset
-        names = [*QUALITY_REGIONS, *(f"{o:+d}" for o in range(-MAX_OFFSET, MAX_OFFSET + 1) if o)]
-        zero = torch.zeros(3, dtype=torch.float64, device=self.device)
-        sums = torch.stack([torch.as_tensor(self._val_sums.get(n, zero)) for n in names])
-        if self.trainer.world_size > 1:
-            sums = self.trainer.strategy.reduce(sums, reduce_op="sum")
-        for name, (epe, outliers, n) in zip(names, sums.tolist(), strict=True):
-            if n <= 0:
-                continue
+        # every process's sums added up by the metric (DDP shares the validation pairs out)
+        with warnings.catch_warnings():
+            # a process given no validation pair (FlowPairsDataModule) still takes part
+            warnings.filterwarnings("ignore", message=".*was called before the ``update``")
+            quality = self.val_quality.compute()
+        for name, (epe, fl) in quality.items():
             if name == "all":
-                self.log("val/epe", epe / n, prog_bar=True)
-                self.log("val/fl", 100 * outliers / n)
+                self.log("val/epe", epe, prog_bar=True)
+                self.log("val/fl", fl)
             elif name[0] in "+-":
-                self.log(f"val/epe_{name}", epe / n)
+                self.log(f"val/epe_{name}", epe)
             else:
-                self.log(f"val/epe/{name}", epe / n)
+                self.log(f"val/epe/{name}", epe)
 
     # -- optimisation and checkpoints ---------------------------------------------------------
 
@@ -247,3 +284,12 @@ class FlowLitModule(L.LightningModule):
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         # what flow.weights=<this .ckpt> needs to rebuild the network
         checkpoint["flow_net_config"] = self.config.to_dict()
+
+
+def quality_names() -> list[str]:
+    """The sets of validation pixels scored: every region of
+    :data:`~mfg_lightning.data.rendered.QUALITY_REGIONS` (``all`` among them) and each offset up
+    to :data:`MAX_OFFSET` frames (``+1``, ``-1``, …)."""
+    from mfg_lightning.data.rendered import QUALITY_REGIONS
+
+    return [*QUALITY_REGIONS, *(f"{o:+d}" for o in range(-MAX_OFFSET, MAX_OFFSET + 1) if o)]

@@ -7,11 +7,11 @@ the predicted fields are turned into ``(t̃, ω̃)`` in closed form and scored b
 :class:`mfg_lightning.metrics.motion_eval.MotionEvaluation` per stage.
 
 Elsewhere: the precision rules (``trainer.precision``, the ``16-mixed`` GradScaler) are trainer
-settings (:mod:`mfg_lightning.run.precision`); a non-finite loss is handled by
-:class:`mfg_lightning.models.nonfinite.NonFiniteLosses`; under DDP what a step skips, and whether
-the run stops or fails, is decided by every process together
-(:class:`mfg_lightning.models.agreement.Agreement`); the pictures are drawn by the figure callback
-(:mod:`mfg_lightning.run.figures`) from the fields the steps hand out (:class:`StepFields`).
+settings (:mod:`mfg_lightning.run.precision`); what a step skips (a non-finite loss, no usable
+sample) and whether the run stops or fails is decided by every process together
+(:class:`mfg_lightning.models.agreement.AgreedSteps`); the pictures are drawn by the figure
+callback (:mod:`mfg_lightning.run.figures`) from the fields the steps hand out
+(:class:`StepFields`).
 
 No host synchronisation in a training step outside the logging steps: counts (masked flow pixels,
 skipped steps) stay tensors on the device and are read when they are logged (under DDP on an
@@ -36,15 +36,10 @@ from mfg_lightning.data import sample as keys
 from mfg_lightning.data.sample import INTRINSICS_HOST, model_inputs
 from mfg_lightning.metrics.evaluator import EvaluationResult
 from mfg_lightning.metrics.motion_eval import MotionEvaluation, ObjectInputs
-from mfg_lightning.models.agreement import Agreement, logging_step
+from mfg_lightning.models.agreement import AgreedSteps, logging_step
 from mfg_lightning.models.losses import LossTerms, MFGLoss
 from mfg_lightning.models.mfg import MFGOutput, MotionFieldNetwork, StepFields, validate_top_k
-from mfg_lightning.models.nonfinite import (
-    DeferredCounts,
-    NonFiniteLossError,
-    NonFiniteLosses,
-    StepCount,
-)
+from mfg_lightning.models.nonfinite import DeferredCounts, NonFiniteLossError, StepCount
 from mfg_lightning.models.optim import checked_scheduler, optimizers
 from mfg_lightning.motion.object_motion import ObjectMotionConfig
 
@@ -57,7 +52,7 @@ HOST_INTRINSICS = INTRINSICS_HOST
 STAGES = ("val", "test")
 
 
-class MFGLitModule(L.LightningModule):
+class MFGLitModule(AgreedSteps, L.LightningModule):
     """MFG with its loss, optimiser and evaluation.
 
     Args:
@@ -71,7 +66,7 @@ class MFGLitModule(L.LightningModule):
             the figure callback, which draws them; validation steps hand theirs at every
             validation. 0: never (no field or basis figures).
         max_consecutive_nonfinite: stop after this many non-finite losses in a row
-            (:class:`NonFiniteLosses`).
+            (:class:`~mfg_lightning.models.agreement.AgreedSteps`).
         object_motion: object-motion filter parameters; when set, validation and test on
             batches that carry depth and a ground-truth object mask also score the extracted
             object motion (``<stage>/object/*``) and the plain-threshold baseline
@@ -114,9 +109,7 @@ class MFGLitModule(L.LightningModule):
         self.image_log_every_n_steps = image_log_every_n_steps
         self.fp16_init_scale = fp16_init_scale
         self.object_motion = object_motion
-        self.nonfinite = NonFiniteLosses(max_consecutive_nonfinite)
-        #: what this process decides with the others under DDP (skip, stop, fail)
-        self.agreement = Agreement()
+        self.init_agreed_steps(max_consecutive_nonfinite)  # skip, stop and fail together
         #: non-finite input-flow pixels masked in training so far (summed across processes)
         self.masked_flow_pixels = StepCount("sum")
         self._flow_warnings = {s: DeferredCounts() for s in ("train", *STAGES)}
@@ -183,16 +176,9 @@ class MFGLitModule(L.LightningModule):
         """Lightning's batch transfer, skipped on a CPU (a no-op walk of the batch costing
         ~0.35 ms, ~1.5 % of a batch-1 step: bench/results/throughput.md). Elsewhere the CPU
         intrinsics stay beside the batch (``INTRINSICS_HOST``) for the closed-form recovery,
-        which groups samples by their values, without reading them back from the device.
-
-        Under DDP a training batch whose every sample was skipped as unreadable (None) goes on as
-        an empty one (``{}``, a step without samples): Lightning would skip the step of a None
-        batch on this process alone, and the others would wait for it in the step's
-        collectives."""
-        trainer = self._trainer
-        if batch is None and trainer is not None and trainer.training and trainer.world_size > 1:
-            return {}
-        if device.type == "cpu":
+        which groups samples by their values, without reading them back from the device. (Under
+        DDP an unreadable training batch goes on as ``{}``: ``AgreedSteps``.)"""
+        if device.type == "cpu" and batch is not None:
             return batch
         host = batch.get(keys.INTRINSICS) if isinstance(batch, dict) else None
         moved = super().transfer_batch_to_device(batch, device, dataloader_idx)
@@ -216,17 +202,16 @@ class MFGLitModule(L.LightningModule):
     ) -> Tensor | dict[str, Any] | None:
         if batch is None:  # one process: Lightning skips a None batch itself; a direct call
             return None
-        fused = self.nonfinite.skips_in_the_optimiser(self._trainer, self.automatic_optimization)
-        if not batch or self.agreement.failure is not None:
-            return self._step_without_samples(fused)
+        fused = self.skips_in_the_optimiser()
+        if self.without_samples(batch):
+            return self.step_without_samples(fused)
         v_t, v_w, _, inputs = self._prepare(batch)
         self.masked_flow_pixels.update(inputs.n_bad)
         full = self._flow_warnings["train"].add(inputs.n_bad, batch)
         out = self(inputs.flow)
         terms = self._loss(out, v_t, v_w)
-        finite = self._agreed(torch.isfinite(terms.total.detach()))
-        if not self.nonfinite.check(terms.total, finite, _ids(batch), fused):
-            return self._skipped()
+        if not self.agree_on_loss(terms.total, _ids(batch), fused):
+            return self.skipped()
         if full:
             self._warn_masked_flow("train")
         if self._writes_logs_this_step():
@@ -257,55 +242,9 @@ class MFGLitModule(L.LightningModule):
             }
         return terms.total
 
-    def _agreed(self, finite: Tensor) -> Tensor:
-        """The step's verdict, 0-dim bool: ``finite`` here, or under DDP on every process (the
-        step's one collective, which also agrees on stopping and failing, acted on when due:
-        :class:`~mfg_lightning.models.agreement.Agreement`)."""
-        trainer = self._trainer
-        if trainer is None or trainer.world_size == 1:
-            return finite
-        skip = self.agreement.reduce(~finite, trainer.strategy)
-        self.agreement.decide(trainer.global_step, due=logging_step(trainer))
-        return ~skip
-
-    def _step_without_samples(self, fused: bool) -> Tensor | None:
-        """DDP only: this process has no usable sample (every one unreadable, or its batch
-        refused). It takes part in the step all the same, with a zero loss, and the agreed
-        verdict skips the step on every process."""
-        loss = self._zero_loss()
-        finite = self._agreed(torch.zeros((), dtype=torch.bool, device=loss.device))
-        if not self.nonfinite.check(loss, finite, "this process", fused, "no usable sample"):
-            return self._skipped()
-        if self._writes_logs_this_step():
-            self.nonfinite.report("<no usable sample on this process>")
-        return loss
-
-    def _skipped(self) -> Tensor | None:
-        """What a step skipped on the host route returns. One process: None (no backward, no
-        optimiser step). DDP: Lightning refuses None, and every process must run backward for
-        the gradient all-reduce: a zero loss, whose gradients are dropped before the optimiser
-        step (:meth:`~mfg_lightning.models.nonfinite.NonFiniteLosses.drop_gradients`)."""
-        trainer = self._trainer
-        if trainer is None or trainer.world_size == 1:
-            return None
-        self.nonfinite.drop_gradients()
-        return self._zero_loss()
-
-    def _zero_loss(self) -> Tensor:
-        """0 × every trainable parameter (0-dim): a loss with a zero gradient for each of them,
-        so that DDP's gradient all-reduce hears from every parameter."""
-        params = [p for p in self.parameters() if p.requires_grad]
-        return torch.stack([p.sum() for p in params]).sum() * 0.0
-
-    def on_before_optimizer_step(self, optimizer: torch.optim.Optimizer) -> None:
-        self.nonfinite.before_optimizer_step(optimizer)
-
-    def on_train_batch_end(self, outputs: Any, batch: Any, batch_idx: int) -> None:
-        self.nonfinite.after_batch(self.trainer.optimizers)
-
     def on_train_end(self) -> None:
         self._warn_masked_flow("train")
-        self.nonfinite.report("<end of training>")
+        super().on_train_end()
 
     # -- evaluation --------------------------------------------------------------------------
 

@@ -5,10 +5,11 @@
   each process then stops on its own flag, its own step. :class:`StopTogether` replaces the
   handler: it only records the signal (and hands it on once to the processes Lightning started,
   as Lightning's does). The module's per-step agreement
-  (:class:`~mfg_lightning.models.agreement.Agreement`) turns it into a stop after the same step on
-  every process, where this callback sets Lightning's flag: ``LastCheckpoint`` saves there, and
-  Lightning stops there, on every process alike. Without a process group the flag is set at once,
-  as Lightning's handler does. Lightning's per-step broadcast of rank 0's flag (a collective and a
+  (:class:`~mfg_lightning.models.agreement.AgreedSteps`, which every LightningModule of the
+  project derives from) turns it into a stop after the same step on every process, where this
+  callback sets Lightning's flag: ``LastCheckpoint`` saves there, and Lightning stops there, on
+  every process alike. Without a process group the flag is set at once, as Lightning's handler
+  does. Lightning's per-step broadcast of rank 0's flag (a collective and a
   host read before every DDP step) is then redundant and is turned off.
 * **Ctrl-C.** From the first training step, the first SIGINT is taken as a SIGTERM (the same
   stop after the same step, ``last.ckpt`` saved; exit status 130), without handing it on: a
@@ -71,9 +72,9 @@ class StopTogether(L.Callback):
     docstring); a second Ctrl-C ends the process at once.
 
     :func:`mfg_lightning.run.runs.build_trainer` adds it to every Trainer a run builds. It acts
-    through the LightningModule's ``agreement`` (:class:`~mfg_lightning.models.agreement.Agreement`,
-    which :class:`~mfg_lightning.models.mfg_module.MFGLitModule` has); with another module it
-    leaves Lightning's handler in place.
+    through the LightningModule's ``agreement``, which a module gets from
+    :class:`~mfg_lightning.models.agreement.AgreedSteps` (``MFGLitModule`` and ``FlowLitModule``
+    both derive from it); with a module without one it leaves Lightning's handler in place.
     """
 
     def __init__(self) -> None:
