@@ -22,7 +22,7 @@ LINT = "import sys; from importlinter.cli import lint_imports_command; lint_impo
 #: The modules allowed at the package's top level besides ``__init__``: its entry points.
 ENTRY_POINTS = {
     "train", "train_flow", "evaluate", "evaluate_poses", "predict", "report", "analyze_basis",
-    "reproduce",
+    "reproduce", "measure",
 }  # fmt: skip
 
 

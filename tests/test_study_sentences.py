@@ -65,7 +65,9 @@ def test_sentences_on_hand_made_seeds() -> None:
     # inconclusive; ×1.2 against 1.31 on 10 is below it: holds
     assert [p.verdict for p in judged["S2"].parts] == ["inconclusive", "holds"]
     assert judged["S2"].verdict == "partly"
-    assert judged["S3"].verdict == "holds"  # 5 % within 5 % on validation
+    # 5 % within 5 % on validation at every seed, but three seeds' sign test cannot place the
+    # median k at 95 % (test_study_intervals.test_s3_needs_six_seeds_to_decide)
+    assert judged["S3"].verdict == "inconclusive" and judged["S3"].parts[0].value == 0.05
     for key in ("S4", "S5", "S6", "S8", "S9", "S10"):
         assert judged[key].verdict == "not run yet", key
     worse = {s: _view(0.0112 + 0.0001 * (s == 1)) for s in range(3)}

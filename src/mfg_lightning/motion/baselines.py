@@ -50,11 +50,19 @@ from torch import Tensor
 from mfg_lightning.core import geometry
 
 __all__ = [
+    "VERSION",
     "continuous_least_squares",
     "essential_matrix_motion",
     "fibonacci_hemisphere",
     "oracle_motion",
 ]
+
+#: The version of these methods, recorded in every stage result of the reproduction study
+#: (``baselines_version``), so that a result computed before a fix is known from the result
+#: itself, in a checkout without git history too. 1: before the essential-matrix cheirality fix
+#: (commit 63f9c3b: :func:`_cheirality_pose` counts every inlier); 2: with it. Raise it with
+#: every change that moves a method's numbers.
+VERSION = 2
 
 
 def _check_flow(flow: Tensor, valid: Tensor | None, intrinsics: Tensor) -> tuple[Tensor, Tensor]:

@@ -11,7 +11,9 @@ Every part of a sentence's verdict (:mod:`mfg_lightning.study.sentences`) is a v
 The interval (:func:`interval`) is built from what varies:
 
 * **over seeds**, where several models were trained: Student's t at ``n − 1`` degrees of freedom
-  on the seeds' mean, ``t · sd / √n``;
+  on the seeds' mean, ``t · sd / √n`` (SciPy's quantiles);
+* **a grid value over seeds** (a chosen k, which a t interval would take off the grid): the
+  seeds' median and the exact sign test's interval (:func:`median_interval`);
 * **over test pairs**, where the stage kept per-pair values: the paired moving-block
   bootstrap's standard error of the value (:func:`bootstrap_se`: runs of :data:`BLOCK_PAIRS`
   consecutive pairs, whose errors are correlated; the same resampled pairs for both sides of a
@@ -39,6 +41,14 @@ is judged at ``1 − 0.05 / m``, the next at ``1 − 0.05 / (m − 1)``…, and 
 decided at its level leaves itself and every later part inconclusive. An interval keeps its
 ingredients (:attr:`Interval.terms`) so that it can be rebuilt at any level
 (:meth:`Interval.at`).
+
+Holm's procedure and the bootstrap are this module's own: Holm's reads intervals (a bound's
+print precision, a domain, a strict bound), which a p-value does not carry, and the bootstrap
+draws every resample at once. ``tests/test_study_intervals.py`` checks both against maintained
+implementations: statsmodels' ``multipletests(method="holm")`` on the p-values dual to the
+intervals (the same decisions on every family of the committed report), arch's
+``MovingBlockBootstrap`` (the same resampled indices from the same generator, so the same
+standard errors).
 """
 
 from __future__ import annotations
@@ -50,6 +60,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
+from scipy import stats
 
 __all__ = [
     "BLOCK_PAIRS",
@@ -63,6 +74,7 @@ __all__ = [
     "PARTLY",
     "Claim",
     "Interval",
+    "bootstrap_method",
     "bootstrap_se",
     "combine",
     "construction",
@@ -70,6 +82,7 @@ __all__ = [
     "holm",
     "interval",
     "interval_verdict",
+    "median_interval",
     "quantile",
     "t_quantile",
 ]
@@ -82,9 +95,12 @@ NO_SPREAD = "one value, no spread measured"
 BOOTSTRAP_DRAWS = 2000
 #: Test pairs per block of the moving-block bootstrap: consecutive frames' errors are strongly
 #: correlated (lag-1 rank autocorrelation 0.5–0.9 on exact flow, 0.25–0.75 on DIS, measured on
-#: the 2 × 2's per-pair errors), so pairs are resampled in runs of 40 (4 s of driving at 10 Hz):
-#: the standard error of log(MFG / IRLS) grew with the block up to 40 pairs (0.063 for single
-#: pairs, 0.107, 0.135, 0.167, 0.218 for blocks of 5, 10, 20, 40).
+#: the 2 × 2's per-pair errors), so pairs are resampled in runs of 40 (4 s of driving at 10 Hz).
+#: The length was chosen after the 2 × 2's test errors had been seen (the plain paired bootstrap,
+#: blocks of one pair, came before it): the standard error of log(MFG / IRLS) grew with the block
+#: (0.063 for single pairs, 0.107, 0.135, 0.167, 0.218 for blocks of 5, 10, 20, 40, on the exact
+#: seeds run then). The report prints the same standard errors from the current stage results
+#: (:func:`mfg_lightning.study.settle_report.block_errors`) and ``changes.json`` the change.
 BLOCK_PAIRS = 40
 
 #: The smallest denominator a judged ratio may have, per quantity: below it the ratio says more
@@ -95,40 +111,24 @@ BLOCK_PAIRS = 40
 FLOORS: dict[str, float] = {"rotation": 1e-5, "translation": 1e-4, "pairs": 10}
 
 
+# cached: Holm's procedure rebuilds intervals at a few levels many times
 @lru_cache(maxsize=512)
 def t_quantile(df: int, level: float = 0.95) -> float:
-    """The two-sided Student's t quantile at ``level`` for ``df`` ≥ 1 degrees of freedom.
-
-    With ``t = √df · tan θ`` the density becomes ``c · √df · cos^(df−1) θ`` on ``[0, π/2)``,
-    smooth and bounded for every ``df`` ≥ 1, so Simpson's rule in θ and a bisection invert it
-    exactly (to 1e-9, out to the levels Holm's procedure reads): no SciPy needed
-    (t(2) = 4.303, t(4) = 2.776)."""
+    """The two-sided Student's t quantile at ``level`` for ``df`` ≥ 1 degrees of freedom
+    (SciPy's ``t.ppf``; t(2) = 4.303, t(4) = 2.776)."""
     if df < 1:
         raise ValueError(f"t_quantile needs at least one degree of freedom, got {df}")
     if not 0.0 < level < 1.0:
         raise ValueError(f"t_quantile needs a level in (0, 1), got {level}")
-    half = level / 2  # P(0 ≤ T ≤ t)
-    k = math.gamma((df + 1) / 2) / (math.sqrt(math.pi) * math.gamma(df / 2))
-    n = 2000
-    w = np.ones(n + 1)
-    w[1:-1:2], w[2:-1:2] = 4.0, 2.0
-
-    def mass(theta: float) -> float:
-        x = np.linspace(0.0, theta, n + 1)
-        return k * float(w @ np.cos(x) ** (df - 1)) * (theta / n) / 3
-
-    lo, hi = 0.0, math.pi / 2
-    for _ in range(60):
-        mid = (lo + hi) / 2
-        lo, hi = (mid, hi) if mass(mid) < half else (lo, mid)
-    return math.sqrt(df) * math.tan((lo + hi) / 2)
+    return float(stats.t.ppf(1 - (1 - level) / 2, df))
 
 
+@lru_cache(maxsize=512)
 def quantile(df: int, level: float = 0.95) -> float:
     """The two-sided quantile of an interval's term: Student's t at ``df`` ≥ 1 degrees of
     freedom, the normal distribution's at ``df = 0``."""
     if df == 0:
-        return statistics.NormalDist().inv_cdf(1 - (1 - level) / 2)
+        return float(stats.norm.ppf(1 - (1 - level) / 2))
     return t_quantile(df, level)
 
 
@@ -216,7 +216,7 @@ def construction(n_seeds: int, boot: bool, proxy: tuple[int, str] | None = None)
     if proxy is not None:
         parts.append(f"the sd of {proxy[1]} over {proxy[0]} seeds")
     if boot:
-        parts.append("paired bootstrap over the test pairs")
+        parts.append(f"paired bootstrap over the test pairs in blocks of {BLOCK_PAIRS}")
     return " + ".join(parts) if parts else NO_SPREAD
 
 
@@ -267,6 +267,51 @@ def difference(a: Sequence[float], b: Sequence[float]) -> Interval | None:
     d = ia.value - ib.value
     how = f"t over {len(a)} and {len(b)} seeds, in quadrature"
     return Interval(d, d - half, d + half, how, ia.terms + ib.terms)
+
+
+def median_interval(
+    values: Sequence[float], domain: tuple[float, float], level: float = 0.95
+) -> Interval | None:
+    """The median of ``values`` (one per seed) and its distribution-free interval, for values on
+    a grid (a chosen k), where a t interval leaves the grid (a negative k).
+
+    The interval is the order statistics ``[x_(r), x_(n+1−r)]`` of the largest ``r`` whose
+    coverage of the median, ``1 − 2 · P(B ≤ r − 1)`` with ``B ~ Binomial(n, ½)``, is at least
+    ``level``: the values the exact sign test does not reject. Where no ``r`` reaches it (fewer
+    than 6 seeds at 95 %: ``[min, max]`` of 5 covers 93.75 %) it is the whole ``domain``: the
+    seeds cannot place the median at that level. Known at ``level`` only (no
+    :attr:`Interval.terms`): for a sentence of one part.
+    """
+    xs = sorted(float(v) for v in values if v is not None and math.isfinite(v))
+    if not xs:
+        return None
+    n = len(xs)
+    r = max((c for c in range(1, n // 2 + 1) if 1 - 2 * stats.binom.cdf(c - 1, n, 0.5) >= level),
+            default=0)  # fmt: skip
+    if r:
+        lo, hi = xs[r - 1], xs[n - r]
+        how = f"sign test over {n} seeds: order statistics {r} and {n + 1 - r}"
+    else:
+        lo, hi = domain
+        how = (f"sign test over {n} seed{'s' * (n != 1)}: their range covers the median with "
+               f"{100 * (1 - 2 * 0.5**n):.1f} % at most, below {100 * level:g} %, so the "
+               "interval is the whole grid")  # fmt: skip
+    return Interval(float(np.median(xs)), float(lo), float(hi), how)
+
+
+def bootstrap_method() -> str:
+    """The test pairs' part of an interval in the report's words: the moving-block bootstrap as
+    run, its block length and where that length came from."""
+    return (
+        f"The bootstrap draws {BOOTSTRAP_DRAWS} resamples of the test pairs in their temporal "
+        f"order, each ⌈n / {BLOCK_PAIRS}⌉ runs of {BLOCK_PAIRS} consecutive pairs from uniform "
+        "starts, cut to the n pairs, because consecutive frames' errors are correlated; every "
+        "seed is tested on the same pairs, and both sides of a comparison "
+        f"read the same resampled pairs. The block length of {BLOCK_PAIRS} pairs was chosen "
+        "after the 2 × 2's per-pair test errors had been seen, in place of the plain paired "
+        "bootstrap of single pairs used before; the standard errors by block length are printed "
+        "with the 2 × 2 below, and `changes.json` records the change."
+    )
 
 
 def interval_verdict(

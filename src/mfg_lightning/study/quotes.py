@@ -49,7 +49,7 @@ SENTENCES: dict[str, Sentence] = {
             "requires only 5% of the hidden layer neurons to maintain the best trajectory "
             "prediction accuracy on KITTI dataset.",
             "chosen on validation: the smallest k whose validation ATE † is within the tolerance "
-            "of all units' is ≤ 5 % (the seeds' mean k, t over the seeds)",
+            "of all units' is ≤ 5 % (the seeds' median k, the sign test's interval)",
             "5 % of the units keep the best accuracy (chosen on validation)",
         ),
         Sentence(

@@ -22,7 +22,7 @@ from mfg_lightning.study import claims as C
 from mfg_lightning.study import prose as P
 from mfg_lightning.study import settle as T
 from mfg_lightning.study import stages as S
-from mfg_lightning.study.intervals import BOOTSTRAP_DRAWS, FLOORS
+from mfg_lightning.study.intervals import FLOORS, bootstrap_method
 from mfg_lightning.study.noise import spread_of
 from mfg_lightning.study.sentences import Judged, Settled, judge_all, seed_views, test_at
 from mfg_lightning.study.settle_report import settle_section
@@ -400,11 +400,11 @@ def _verdicts_section(judged: list[Judged], figure: str, flow_name: str = "DIS")
         "",
         "Each sentence is quoted and measured in the direction it claims, in parts. Each part is "
         "a value with a 95 % interval: Student's t over the seeds' values (t · sd / √n) where "
-        "several models were trained, plus, where the stage kept per-pair values, 1.96 standard "
-        "errors of the paired bootstrap over the test pairs (every seed is tested on the same "
-        f"pairs; {BOOTSTRAP_DRAWS} resamples, the same resampled pairs for both sides of a "
-        "comparison), added in quadrature. A bound read off the paper's printed numbers is known "
-        "only to their print precision (a printed 0.012 stands for [0.0115, 0.0125)), so the "
+        "several models were trained (for S3's k, a grid value, the exact sign test's interval "
+        "of the seeds' median), plus, where the stage kept per-pair values, 1.96 standard errors "
+        "of a paired moving-block bootstrap over the test pairs, added in quadrature. "
+        f"{bootstrap_method()} A bound read off the paper's printed numbers is known only to "
+        "their print precision (a printed 0.012 stands for [0.0115, 0.0125)), so the "
         "interval is widened by that fraction of the bound on each side. A part **holds** when "
         "its whole interval lies on the claimed side of the bound, **does not hold** when it "
         "lies wholly on the other side, and is **inconclusive** when it straddles the bound or "
@@ -620,23 +620,17 @@ def _remove_stale(figdir: Path, made: list[str]) -> None:
             png.unlink()
 
 
-#: The commit of the essential-matrix baselines' cheirality fix
-#: (``motion.baselines._cheirality_pose``): classical rows computed at a commit that does not
-#: contain it count a slow pair's wrong decomposition (a rotation off by π) as the method's error.
-ESSENTIAL_FIX = "63f9c3b"
+#: The classical baselines' version with the essential-matrix cheirality fix
+#: (:data:`mfg_lightning.motion.baselines.VERSION`): a stage result that records an earlier one,
+#: or none (it predates the record), counts a slow pair's wrong decomposition (a rotation off by
+#: π) as the method's error. Read from the result, so a checkout without git history agrees.
+ESSENTIAL_FIX = 2
 
 
 def stale_essential(results: dict[str, dict | None]) -> list[str]:
     """A note naming the stages (by name) whose essential-matrix rows predate the fix, or
     nothing."""
-    from mfg_lightning.run.runs import git_is_ancestor
-
-    stale = [
-        name
-        for name, r in results.items()
-        # flagged unless the fix is known to be in the stage's commit
-        if r and not (r.get("commit") and git_is_ancestor(ESSENTIAL_FIX, r["commit"]))
-    ]
+    stale = [n for n, r in results.items() if r and r.get("baselines_version", 1) < ESSENTIAL_FIX]
     if not stale:
         return []
     return [

@@ -28,6 +28,7 @@ from omegaconf import DictConfig, OmegaConf
 from torch.utils.data import DataLoader, Subset
 
 from mfg_lightning.core.atomic import atomic_write_text
+from mfg_lightning.motion.baselines import VERSION as BASELINES_VERSION
 
 log = logging.getLogger("mfg_lightning.study")
 
@@ -79,6 +80,9 @@ class Study:
             return None
         result["seconds"] = time.perf_counter() - start
         result["commit"] = _commit()
+        # the classical methods' version: a later report tells a result that predates a fix of
+        # theirs from the result itself, with or without git history
+        result["baselines_version"] = BASELINES_VERSION
         atomic_write_text(self.path(name), json.dumps(result, indent=1) + "\n")
         self.ran.append(name)
         print(f"ran: {name} ({result['seconds']:.0f} s)", flush=True)
