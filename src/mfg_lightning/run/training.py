@@ -25,6 +25,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 
 from mfg_lightning.core.atomic import atomic_write_text
+from mfg_lightning.core.host_memory import keep_freed_memory
 from mfg_lightning.data.resumable_loader import refuse_other_batches, restarting_epochs
 from mfg_lightning.run.callbacks import LastCheckpoint
 from mfg_lightning.run.checkpoints import CheckpointError, peek_checkpoint, saved_loader_places
@@ -183,6 +184,9 @@ def ddp_job_in_multirun(trainer: L.Trainer) -> Iterator[None]:
 
 def train(cfg: DictConfig) -> dict[str, Any]:
     """Fit and test as configured. Returns the final metrics (``val/*`` and ``test/*``)."""
+    if cfg.get("keep_freed_memory", True):
+        # every step's freed tensors reused, not page-faulted back (mfg_lightning.core.host_memory)
+        keep_freed_memory()
     try:
         # resume_restart_epoch: a resume inside an epoch with other batches restarts that epoch
         # instead of being refused (mfg_lightning.data.resumable_loader)
