@@ -1,5 +1,5 @@
 """The reproduction's verdicts per sentence of the paper: print precision, the seed spread's
-tolerance, bounded verdicts on hand-made results, the input-scale decision, and the generated
+tolerance, bounded verdicts on hand-made results, the input-scale finding, and the generated
 prose following a changed stage result (in the report written from the committed results)."""
 
 from __future__ import annotations
@@ -10,8 +10,9 @@ from pathlib import Path
 
 import pytest
 
+from mfg_lightning.study.config_findings import input_scale_finding
 from mfg_lightning.study.noise import Spread, print_precision, tolerance
-from mfg_lightning.study.prose import input_scale_decision, para_run, reading
+from mfg_lightning.study.prose import para_run, reading
 from mfg_lightning.study.sentences import judge_all
 
 REPO = Path(__file__).resolve().parents[1]
@@ -80,16 +81,27 @@ def test_sentences_on_hand_made_seeds() -> None:
     assert judged["S1"].verdict == "partly"  # the other parts hold
 
 
-def test_input_scale_is_adopted_only_beyond_the_seed_spread() -> None:
+def test_the_input_scale_is_a_finding_and_never_a_config_change() -> None:
+    """The words follow where the scaled model falls against the seeds' band (mean ± 2 %
+    here), the default named is the one passed (the config's), and no reading claims that the
+    config changed."""
     views = {s: _view(0.01) for s in range(3)}
     for s, v in zip(range(3), (0.0200, 0.0202, 0.0198), strict=True):
         views[s]["table1"]["val"]["1"]["ate"] = v
-    text, adopt = input_scale_decision(views, {"val": {"1": {"ate": 0.0190}}}, 0.2)
-    assert adopt is True and "becomes the default" in text  # 5 % lower, tolerance 2 %
-    text, adopt = input_scale_decision(views, {"val": {"1": {"ate": 0.0199}}}, 0.2)
-    assert adopt is False and "stays 1.0" in text
-    text, adopt = input_scale_decision({0: views[0]}, {"val": {"1": {"ate": 0.0190}}}, 0.2)
-    assert adopt is None and "not measured yet" in text
+
+    def finding(ate: float, seeds: dict = views, default: float = 1.0) -> str:
+        return input_scale_finding(seeds, {"val": {"1": {"ate": ate}}}, 0.2, default)
+
+    below, inside, above = finding(0.0190), finding(0.0199), finding(0.0210)
+    assert "5.0 % lower, beyond the tolerance" in below
+    assert "would support making 0.2 the default; the config was not changed" in below
+    assert "within the tolerance" in inside and "no reason to change the default from 1.0" in inside
+    assert "5.0 % higher, beyond the tolerance" in above and "supports the default 1.0" in above
+    assert "not measured yet" in finding(0.0190, {0: views[0]})
+    assert "is 0.5, which the study does not change" in finding(0.0199, default=0.5)
+    for text in (below, inside, above):
+        assert "becomes the default" not in text and "stays" not in text
+        assert "is 1.0, which the study does not change" in text
 
 
 def test_prose_numbers_come_from_the_stage_results() -> None:
@@ -98,12 +110,15 @@ def test_prose_numbers_come_from_the_stage_results() -> None:
         "central_test": {"test_pairs": 11156},
         "seconds": 2042.8,
     }
-    main = {"convergence": {"decay_start": 7000}, "steps": 8000, "samples_seen": 128000,
-            "train_seconds": 1157.7, "checkpoint": "models/main/checkpoints/best-005000.ckpt",
+    main = {"convergence": {"converged": True, "decay_start": 7000}, "steps": 8000,
+            "samples_seen": 128000, "train_seconds": 1157.7,
+            "checkpoint": "models/main/checkpoints/best-005000.ckpt",
             "selected_on": "val/ate"}  # fmt: skip
     results = {"data": data, "main": main}
     text = para_run(results.get, {})
-    assert "25\u202f838 training pairs" in text and "step 7\u202f000" in text
+    assert "25\u202f838 training pairs" in text and "rule at step 7\u202f000" in text
+    main["convergence"] = {"converged": False, "reason": "time cap", "decay_start": 7000}
+    assert "did not meet the convergence rule (time cap)" in para_run(results.get, {})
     data["main"]["train_pairs"] = 12345
     assert "12\u202f345 training pairs" in para_run(results.get, {})
     assert reading(results.get, {}, [], 0.1, 1.5, "")[0].startswith("**What this run is.**")
@@ -161,7 +176,8 @@ def test_report_text_follows_a_changed_stage_result(tmp_path: Path) -> None:
 def test_the_size_paragraph_reads_its_trend_from_the_points() -> None:
     """MFG's rotation from the smallest set to the largest, in the smallest set's seed spread,
     and where its seed mean is below IRLS's: all from the stage results."""
-    from mfg_lightning.study.prose import _n, para_size
+    from mfg_lightning.study.prose import para_size
+    from mfg_lightning.study.wording import count as _n
 
     def point(stride: int, pairs: int, rot: float) -> dict:
         return {"stride": stride, "train_pairs": pairs, "test": {"rpe_rot": rot}}

@@ -14,6 +14,7 @@ from mfg_lightning.core.tables import Column, Table, fmt
 from mfg_lightning.study.claims import PAPER_CENTRAL_OVER_FRAME
 from mfg_lightning.study.noise import ratio, spread_of
 from mfg_lightning.study.sentences import PRINTED_TABLE2_ROT
+from mfg_lightning.study.wording import position
 
 SEQS = ("09", "10")
 #: The paper's robust continuous baseline's name stem among the classical rows.
@@ -228,7 +229,7 @@ def _against_seed_range(
         if spread.n < 2 or value is None:
             continue
         lo, hi = min(spread.values), max(spread.values)
-        where = "below" if value < lo else "above" if value > hi else "inside"
+        where = position(value, lo, hi)
         seq, _, metric = key.rpartition("/")
         label = f"{names[metric]} {seq}" if seq else "RPE rotation"
         digits = 5 if metric == "rpe_rot" else 4

@@ -11,7 +11,7 @@ built from it by :mod:`mfg_lightning.study.intervals`.
   (0.012 / 0.012 is known to ±8.3 %).
 * :func:`tolerance` (:class:`Tolerance`): the larger of a print precision and two sample
   standard deviations of a spread, relative to its mean: the margin a configuration choice (the
-  input scale) must beat on validation to be adopted.
+  input scale) must beat on validation before the report says the evidence supports it.
 
 Nothing here reads files: the views of each seed's results are built by
 :func:`mfg_lightning.study.sentences.seed_views`.

@@ -9,14 +9,15 @@ have not run. :func:`reading` assembles them in the report's order.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 from mfg_lightning.core.tables import fmt
 from mfg_lightning.study.causes import classical_metrics, size_points
 from mfg_lightning.study.claims import PAPER_CENTRAL_OVER_FRAME
+from mfg_lightning.study.config_findings import para_recipe, para_rule, rule_met
 from mfg_lightning.study.intervals import t_quantile
-from mfg_lightning.study.noise import ratio, spread_of, tolerance
+from mfg_lightning.study.noise import ratio, spread_of
 from mfg_lightning.study.sentences import (
     PRINTED_TABLE2_ROT,
     SEQS,
@@ -27,24 +28,13 @@ from mfg_lightning.study.sentences import (
     test_at,
 )
 from mfg_lightning.study.settle_report import para_settle
+from mfg_lightning.study.wording import MUCH, SAME, change, compare, position
+from mfg_lightning.study.wording import count as _n
+from mfg_lightning.study.wording import percent as _pct
 
-__all__ = ["input_scale_decision", "reading"]
+__all__ = ["reading"]
 
 Cached = Callable[[str], Any]
-
-
-def _n(x: int | float) -> str:
-    """A count with thin-space thousands, as the report writes them (25 838)."""
-    return f"{int(x):,}".replace(",", "\u202f")
-
-
-def _pct(x: float | None, digits: int = 1) -> str:
-    return "–" if x is None or not math.isfinite(x) else f"{100 * x:.{digits}f} %"
-
-
-def _best_before(curve: list[dict], step: float) -> float | None:
-    vals = [p["val/ate"] for p in curve if p["step"] <= step and math.isfinite(p["val/ate"])]
-    return min(vals) if vals else None
 
 
 def para_run(cached: Cached, views: Mapping[int, View]) -> str | None:
@@ -53,18 +43,18 @@ def para_run(cached: Cached, views: Mapping[int, View]) -> str | None:
     if data is None or main is None:
         return None
     d = data["main"]
-    c = main.get("convergence") or {}
+    c, s0 = main.get("convergence") or {}, min(views, default=0)  # s0: the main model's seed
     text = (
         f"**What this run is.** Data: {_n(d['train_pairs'])} training pairs, "
         f"{_n(d['val_pairs'])} validation pairs and {_n(data['central_test']['test_pairs'])} "
         f"test pairs (every centre frame of 09 and 10 to ±1, ±2), rendered and estimated in "
-        f"{_n(data['seconds'])} s. The main model (seed 0) met the convergence rule at step "
-        f"{_n(c.get('decay_start') or 0)} and decayed to step {_n(main['steps'])} "
+        f"{_n(data['seconds'])} s. The main model (seed {s0}) "
+        f"{rule_met(c, 'the convergence rule')} and decayed to step {_n(main['steps'])} "
         f"({_n(main['samples_seen'])} samples, {_n(main['train_seconds'])} s of training); the "
         f"checkpoint evaluated is {main['checkpoint'].rsplit('/', 1)[-1]}, chosen on "
         f"{main['selected_on']}."
     )
-    seeds = [s for s in sorted(views) if s != min(views)]
+    seeds = [s for s in sorted(views) if s != s0]
     if seeds:
         text += " " + " ".join(
             f"Seed {s}: {_n(views[s]['trained']['steps'])} steps, "
@@ -76,9 +66,9 @@ def para_run(cached: Cached, views: Mapping[int, View]) -> str | None:
         )
         prec = main.get("precision")
         text += (
-            f" Seed 0's precision is {prec}."
+            f" Seed {s0}'s precision is {prec}."
             if prec
-            else " Seed 0's stage result predates the precision record (it trained under "
+            else f" Seed {s0}'s stage result predates the precision record (it trained under "
             "precision=auto on a CPU with native bfloat16, i.e. bf16-mixed), so the seeds' spread "
             "includes that change of precision as well as the seed's."
         )
@@ -117,7 +107,17 @@ def para_central(cached: Cached, views: Mapping[int, View]) -> str | None:
                                              test_at(v, 1.0, f"{s}/ate")))
         for s in SEQS
     ]  # fmt: skip
-    ranges = _star_ranges(mt["rows"])
+    ranges, bounds = _star_ranges(mt["rows"]), _star_bounds(mt["rows"])
+    where: dict[str, list[str]] = {}  # MFG's ratio against the classical range: the sequences
+    for s, o in zip(SEQS, ours, strict=True):
+        if o.mean is not None and s in bounds:
+            where.setdefault(position(o.mean, *bounds[s]), []).append(s)
+    placed = ", and MFG's ratio lies " + ", ".join(
+        f"{w} that range on {' and '.join(seqs)}" for w, seqs in where.items()
+    ) + (": the ratio measures the flow at offsets ±2 at least as much as the method"
+         if set(where) == {"inside"} else ": outside that range it differs from what the flow "
+         "gives a method that sees one pair, so the ratio mixes the flow with the method"
+    ) if where else ""  # fmt: skip
     flow = cached("flow_error")
     dis = (
         " DIS's mean end-point error on the test pairs, by offset: " + "; ".join(
@@ -125,8 +125,8 @@ def para_central(cached: Cached, views: Mapping[int, View]) -> str | None:
             f"(Fl {fmt(e['regions']['all']['fl'], 1)} %)"
             for o, e in sorted(flow["test"].items(), key=lambda kv: int(kv[0]))
         ) + f". At ±2 the error is ×{fmt(_offset_ratio(flow, 2), 1)} that at ±1 (all pixels, "
-        "pooled over both directions): the * protocol feeds the model flows several times "
-        "worse than the † one."
+        "pooled over both directions): the * protocol feeds the model flows "
+        f"{compare(_offset_ratio(flow, 2))} the † one."
         if flow else " DIS's error by offset has not been measured yet."
     )  # fmt: skip
     return (
@@ -134,20 +134,26 @@ def para_central(cached: Cached, views: Mapping[int, View]) -> str | None:
         f"×{fmt(ours[1].mean, 2)} on 10 (seed mean) against the paper's "
         f"×{PAPER_CENTRAL_OVER_FRAME['09']:.2f} / ×{PAPER_CENTRAL_OVER_FRAME['10']:.2f}. The "
         f"classical methods, which see one pair each and are given the true translation "
-        f"length, show {', '.join(ranges)} on the same DIS flow: the ratio measures the flow at "
-        f"offsets ±2 at least as much as the method, which is why it is not a verdict.{dis}"
+        f"length, show {', '.join(ranges)} on the same DIS flow{placed}, which is why it is "
+        f"not a verdict.{dis}"
     )
+
+
+def _star_bounds(rows: list[dict]) -> dict[str, tuple[float, float]]:
+    """The classical methods' lowest and highest ATE * / ATE † per test sequence."""
+    out = {}
+    for s in SEQS:
+        rs = [ratio(m.get(f"{s}/ate_central"), m.get(f"{s}/ate")) for m in
+              classical_metrics(rows).values()]  # fmt: skip
+        if rs := [r for r in rs if r is not None]:
+            out[s] = (min(rs), max(rs))
+    return out
 
 
 def _star_ranges(rows: list[dict]) -> list[str]:
     """The classical methods' ATE * / ATE † range per test sequence ("09 ×a–×b")."""
-    classical = classical_metrics(rows).values()
-    ranges = []
-    for s in SEQS:
-        rs = [ratio(m.get(f"{s}/ate_central"), m.get(f"{s}/ate")) for m in classical]
-        rs = [r for r in rs if r is not None]
-        ranges.append(f"{s} ×{fmt(min(rs), 2)}–×{fmt(max(rs), 2)}" if rs else f"{s} –")
-    return ranges
+    b = _star_bounds(rows)
+    return [f"{s} ×{fmt(b[s][0], 2)}–×{fmt(b[s][1], 2)}" if s in b else f"{s} –" for s in SEQS]
 
 
 def para_twin(cached: Cached, views: Mapping[int, View]) -> str | None:
@@ -208,12 +214,17 @@ def para_size(size: Mapping[str, dict]) -> str | None:
             f" The robust continuous method (IRLS), which does not train, has {fmt(irls, 5)} rad "
             "on the same test pairs."
         )
+    low = min((sp.mean for _, sp in spreads if sp.mean is not None), default=None)
+    fit = (
+        ", where the least-squares fit of the rigid motion (IRLS) is left with an error "
+        f"{compare(ratio(irls, low), 'larger', 'smaller', 'about as large as')} MFG's lowest"
+        if irls is not None and low
+        else ""
+    )
     return (
-        text
-        + _size_trend(spreads, irls)
-        + " The curve is on exact flow (Table 2's protocol), where a least-squares fit of the "
-        "rigid motion is left with little error: it measures how MFG's own error moves with its "
-        "training data, not the DIS-flow contrast between the Table-2-sized and the main model."
+        f"{text}{_size_trend(spreads, irls)} The curve is on exact flow (Table 2's protocol){fit}"
+        ": it measures how MFG's own error moves with its training data, not the DIS-flow "
+        "contrast between the Table-2-sized and the main model."
     )
 
 
@@ -284,12 +295,20 @@ def _exact_against_dis(exact: dict, dis: dict) -> str:
     ground-truth flow against baselines published on their own inputs)."""
     mfg_x, mfg_d = exact["mfg"]["1"].get("rpe_rot"), dis["mfg"]["1"].get("rpe_rot")
     irls_x, irls_d = _irls_rotation(exact), _irls_rotation(dis)
+    # how much more the exact flow lowers IRLS's error than MFG's (the two falls' ratio)
+    gain = ratio(ratio(irls_d, irls_x), ratio(mfg_d, mfg_x))
     return (
-        f"From DIS to exact flow the robust continuous method's rotation error falls "
-        f"×{fmt(ratio(irls_d, irls_x), 1)} and MFG's ×{fmt(ratio(mfg_d, mfg_x), 2)}: on flow "
-        "without estimation noise a least-squares fit of the rigid motion is left with the "
-        "moving objects and the rendering's discretisation, while a regressor keeps its "
-        "learned error. The paper's baselines are numbers published by other papers (§5.3 "
+        f"From DIS to exact flow the robust continuous method's rotation error "
+        f"{change(irls_d, irls_x, 1)} and MFG's {change(mfg_d, mfg_x)}, the exact flow helping "
+        f"IRLS {compare(gain, 'more', 'less', 'about as much as')} MFG"
+        + (
+            ": on flow without estimation noise a least-squares fit of the rigid motion is left "
+            "with the moving objects and the rendering's discretisation, while a regressor keeps "
+            "its learned error."
+            if gain is not None and gain >= MUCH
+            else "."
+        )
+        + " The paper's baselines are numbers published by other papers (§5.3 "
         "does not say they read the ground-truth flow); read as MFG on exact flow against the "
         f"robust continuous method on estimated (DIS) flow, the ratio is "
         f"{fmt(ratio(mfg_x, irls_d), 2)}, a diagnostic, not the verdict."
@@ -325,16 +344,18 @@ def para_table2(cached: Cached, views: Mapping[int, View]) -> str | None:
             f"classical method's {fmt(best, 5)}"
         )
         # the same flow on both sides (DIS): the contrast is then one of size alone
-        contrast = False
+        contrast, small = False, None
         if t2 is not None:
-            small = t2["mfg"]["1"].get("rpe_rot")
-            small_irls = next((c["metrics"].get("rpe_rot") for c in t2["classical"]
-                               if "IRLS" in c["name"]), None)  # fmt: skip
-            beats_full = full.mean is not None and best is not None and full.mean < best
-            contrast = beats_full and (ratio(small, small_irls) or 0.0) > 1.0
+            small = ratio(t2["mfg"]["1"].get("rpe_rot"), _irls_rotation(t2))
+            # the seeds' 95 % interval, not their mean, must lie below the best classical method
+            top = full.mean + t_quantile(full.n - 1) * full.std / math.sqrt(full.n) \
+                if full.std is not None else full.mean  # fmt: skip
+            beats_full = top is not None and best is not None and top < best
+            contrast = beats_full and (small or 0.0) >= SAME
         text += (
             ": on the same DIS flow the same model design beats every classical method on the "
-            "large set and loses to the robust continuous one on the small set."
+            "large set (its seeds' 95 % interval lies below the best one's) and, at one seed, is "
+            f"{compare(small)} the robust continuous one on the small set."
             if contrast
             else "."
         )
@@ -360,16 +381,20 @@ def para_robustness(cached: Cached, views: Mapping[int, View]) -> str | None:
         for n, b in mt["bins"].items()
         if not n.startswith("MFG") and "oracle" not in n
     ]
+    # the failures explain a fall only: say so only where every essential-matrix method's falls
+    em = [b["growth"] for n, b in mt["bins"].items() if n.startswith("essential")]
+    fall = bool(em) and all(g is not None and g * SAME < 1 for g in em)
     return (
         f"**Robustness to moving objects.** From the least to the most covered bin (edges "
         f"{', '.join(_pct(e, 0) for e in mt['edges'])}; {', '.join(_n(c) for c in mt['counts'])} "
         f"+1 pairs) MFG's rotation error changes ×{fmt(rot.mean, 2)} and its translation error "
         f"×{fmt(trans.mean, 2)} (seed means). The classical methods' rotation errors change "
-        f"{'; '.join(others)}: the essential-matrix methods' fall because their least covered "
-        "bin holds their failures (slow pairs in far scenes; the note under the method "
-        "comparison says whether these rows predate the cheirality fix), not because moving "
-        "objects help them."
-    )
+        f"{'; '.join(others)}"
+        + (": the essential-matrix methods' fall because their least covered bin holds their "
+           "failures (slow pairs in far scenes; the note under the method comparison says "
+           "whether these rows predate the cheirality fix), not because moving objects help "
+           "them." if fall else ".")
+    )  # fmt: skip
 
 
 def _first_seed(views: Mapping[int, View], key: str) -> Any:
@@ -388,11 +413,12 @@ def para_basis(views: Mapping[int, View], residual: float) -> str | None:
     ok = sum(r <= residual for r in fired)
     med = sorted(silent)[len(silent) // 2] if silent else None
     return (
-        f"**The basis (seed 0).** Of the rotational decoder's top {len(d['residual'])} units, "
-        f"{len(silent)} never fire on validation (median relative residual {fmt(med, 2)}: "
-        f"untrained columns); of the {len(fired)} that fire one motion fits {ok}. S8's verdict "
-        "reads every top unit, the firing ones beside (changes.json). The data's own |ω| / |t| is "
-        f"{fmt(bs['data']['omega_over_t_median'], 4)} rad/m; the units' typical |ω| / |t| is "
+        f"**The basis (seed {min(views)}).** Of the rotational decoder's top "
+        f"{len(d['residual'])} units, {len(silent)} never fire on validation (median relative "
+        f"residual {fmt(med, 2)}: untrained columns); of the {len(fired)} that fire one motion "
+        f"fits {ok}. S8's verdict reads every top unit, the firing ones beside (changes.json). "
+        f"The data's own |ω| / |t| is {fmt(bs['data']['omega_over_t_median'], 4)} rad/m; the "
+        f"units' typical |ω| / |t| is "
         f"{fmt(bs.get('ratio_typical'), 3)} in radians. The supplement's ≈ 5 is not judged: "
         "its Euler-coordinate axes state no unit. Read in degrees our typical rotational unit "
         f"is {fmt(math.degrees(bs['summary']['omega']['motion_typical']), 3)}°, which is what "
@@ -434,74 +460,6 @@ def para_object_motion(
     )
 
 
-def para_rule(cached: Cached) -> str | None:
-    """The convergence rule's weakness on a noisy curve, measured on the w_s = 0 model."""
-    ws0 = cached("sparsity/ws0")
-    if ws0 is None or not ws0.get("curve"):
-        return None
-    c = ws0["convergence"]
-    before = _best_before(ws0["curve"], float(c["decay_start"]))
-    after = min(p["val/ate"] for p in ws0["curve"])
-    return (
-        f"**The rule's weakness, measured.** The sweep's w_s = 0 model met the rule at step "
-        f"{_n(c['decay_start'])} (best validation ATE † {fmt(before)} by then) and its decay to "
-        f"step {_n(c['decay_end'])} took it to {fmt(after)} "
-        f"({_pct(1 - after / before) if before else '–'} lower): at a constant rate the curve "
-        'is noisy enough that "no new best over a quarter of the steps" fires while the model '
-        "still improves. The rule was left as stated before training."
-    )
-
-
-def para_recipe(cached: Cached) -> str | None:
-    """Row R in words."""
-    rc = cached("recipe")
-    if rc is None:
-        return None
-    a, b = rc["cpu"], rc["paper"]
-    cb = b.get("convergence") or {}
-    return (
-        f"**Row R, the two recipes (a diagnostic).** The paper's recipe (batch 1, Adam lr 1e-5, "
-        f"betas 0.99 / 0.999) met the rule at step {_n(cb.get('decay_start') or 0)} and "
-        f"decayed to {_n(b['steps'])} ({fmt(b['epochs'], 2)} epochs, {_n(b['train_seconds'])} s):"
-        f" validation ATE † {fmt(b['val_ate'])} against the CPU recipe's {fmt(a['val_ate'])} "
-        f"({fmt(a['epochs'], 2)} epochs), test {fmt(b['test_ate'])} against "
-        f"{fmt(a['test_ate'])}."
-    )
-
-
-def input_scale_decision(
-    views: Mapping[int, View], scaled: dict | None, scale: float
-) -> tuple[str, bool | None]:
-    """Whether the released code's input scale becomes the default: its model's validation ATE
-    † against the default-scale seeds' mean, beyond the seeds' tolerance. Returns the paragraph
-    and the decision (None: not decidable yet)."""
-    if scaled is None or not views:
-        return "", None
-    val = spread_of(views, lambda v: v["table1"]["val"]["1"].get("ate"))
-    other = scaled["val"]["1"].get("ate")
-    tol = tolerance(val)
-    head = (
-        f"**The input scale.** The released code feeds its network flow in quarter-resolution "
-        f"pixels × 0.2; the paper is silent; our default is 1.0. At input_scale={scale:g} "
-        f"(w_s = 100, the sweep's model) the validation ATE † is {fmt(other)} against the "
-        f"default's {val.text(4)}"
-    )
-    if val.n < 2:
-        return head + ": the seed spread needed to judge the difference is not measured yet, " \
-            "so the default stays 1.0 for now.", None  # fmt: skip
-    better = other is not None and other < val.mean * (1 - tol.value)
-    if better:
-        return head + (
-            f", better by more than the tolerance ({tol.text()}): validation confirms the "
-            "released code's reading, which becomes the default."
-        ), True
-    return head + (
-        f", {_pct(abs(1 - other / val.mean))} {'lower' if other < val.mean else 'higher'}, within "
-        f"the tolerance ({tol.text()}): validation does not confirm the released code's reading, "
-        "so the default stays 1.0 and both are reported."
-    ), False
-
-
 def para_changes(cached: Cached) -> str | None:
     """The changes made after a test number was seen (``changes.json``)."""
     ch = cached("changes")
@@ -522,10 +480,12 @@ def reading(
     scale_text: str,
     size: Mapping[str, dict] | None = None,
     settled: Settled | None = None,
+    data: Sequence[str] = (),
 ) -> list[str]:
     """The generated reading, as Markdown lines (a blank line between paragraphs); ``size``:
     the size curve's results by name (:func:`mfg_lightning.study.causes.size_section`);
-    ``settled``: the 2 × 2's results (:mod:`mfg_lightning.study.settle_report`)."""
+    ``settled``: the 2 × 2's results (:mod:`mfg_lightning.study.settle_report`); ``data``: the
+    study's data overrides (the training sequences a run without its own has)."""
     size = size or {}
     paras = [
         para_run(cached, views),
@@ -534,7 +494,7 @@ def reading(
         para_central(cached, views),
         para_twin(cached, views),
         para_table2(cached, views),
-        para_settle(settled) if settled is not None else None,
+        para_settle(settled, data) if settled is not None else None,
         para_size(size),
         para_robustness(cached, views),
         para_basis(views, residual),

@@ -19,6 +19,7 @@ from mfg_lightning.core.tables import Column, Table, fmt
 from mfg_lightning.flow.cache import default_cache_dir
 from mfg_lightning.pictures.plots import figure_png
 from mfg_lightning.study import claims as C
+from mfg_lightning.study import config_findings as F
 from mfg_lightning.study import prose as P
 from mfg_lightning.study import settle as T
 from mfg_lightning.study import stages as S
@@ -174,7 +175,8 @@ def write_report(study: S.Study, report: Path) -> Path:
     made += ["verdicts.png"] if verdict_fig is not None else []
     _remove_stale(figdir, made)
     scale_model = next((m for k, m in sparsity.items() if "input_scale" in k), None)
-    scale_text, _ = P.input_scale_decision(views, scale_model, float(cfg.sparsity.input_scale))
+    default_scale = float(F.config_default("model.net.input_scale"))
+    scale_text = F.input_scale_finding(views, scale_model, cfg.sparsity.input_scale, default_scale)
     stage_rows, total = _stage_rows(study)
     text = [
         *_header(study, views, total),
@@ -206,7 +208,8 @@ def write_report(study: S.Study, report: Path) -> Path:
         "Generated from the stage results (`mfg_lightning.study.prose`).",
         "",
         *P.reading(study.cached, views, judged, float(cfg.basis.residual),
-                   float(_object_motion_theta_d()), scale_text, size, settled),
+                   float(F.config_default("object_motion.theta_d")), scale_text, size, settled,
+                   list(cfg.data)),
         *_notes(report),
         "## Stages",
         "",
@@ -367,13 +370,6 @@ def _deviations(study: S.Study) -> list[str]:
         f"{t2.get('dataset.train_sequences', '?')} in place of Virtual KITTI's egomotion split "
         "(1,679 training frames).",
     ]
-
-
-def _object_motion_theta_d() -> float:
-    """The filters' θ_d as the object-motion config sets it."""
-    from mfg_lightning.core.config import compose
-
-    return float(compose("train", []).object_motion.theta_d)
 
 
 def _floors_text() -> str:

@@ -9,11 +9,13 @@ from __future__ import annotations
 
 import math
 import statistics
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
 from mfg_lightning.core.tables import Column, Table, fmt
+from mfg_lightning.study import wording
 from mfg_lightning.study.intervals import BLOCK_PAIRS, Interval, bootstrap_se, difference
 from mfg_lightning.study.sentences import (
     IRLS,
@@ -183,6 +185,14 @@ def _figure(settled: Settled) -> Any:
     return fig
 
 
+def _sequences(runs: dict[int, dict], data: Sequence[str]) -> list[str] | None:
+    """The training sequences of a set of runs: their own override, else the study's ``data``
+    overrides' (None where neither names them)."""
+    ov = [*data, *next(iter(runs.values()))["overrides"]]
+    seqs = dict(str(o).split("=", 1) for o in ov if "=" in str(o)).get("dataset.train_sequences")
+    return None if seqs is None else [x.strip() for x in seqs.strip("[]").split(",") if x.strip()]
+
+
 def _training_frames(runs: dict[int, dict]) -> str:
     """Which source frames a set of runs trained on, from their overrides."""
     ov = dict(o.split("=", 1) for o in next(iter(runs.values()))["overrides"] if "=" in o)
@@ -276,8 +286,10 @@ def settle_section(settled: Settled) -> tuple[list[str], Any]:
     return lines, _figure(settled)
 
 
-def para_settle(settled: Settled) -> str | None:
-    """The reading of the 2 × 2 and of contiguous against strided pairs, from the results."""
+def para_settle(settled: Settled, data: Sequence[str] = ()) -> str | None:
+    """The reading of the 2 × 2 and of contiguous against strided pairs, from the results
+    (``data``: the study's data overrides, whose training sequences a run without its own
+    has)."""
     flows = settled.flows()
     if not flows:
         return None
@@ -290,8 +302,7 @@ def para_settle(settled: Settled) -> str | None:
             continue
         p = log_ratio_part("", errs, rot[irls])
         mean = statistics.fmean(float(e.mean()) for e in errs)
-        side = ("below" if p.iv.hi < 0 else "above" if p.iv.lo > 0 else "not distinguishable "
-                "from") if p.iv else "not yet judged against"  # fmt: skip
+        side = wording.side(p.iv.lo, p.iv.hi) if p.iv else "not yet judged against"
         on = "on" if bits else "On"
         bits.append(
             f"{on} {_FLOW[flow]} MFG's mean rotation error is {fmt(mean, 5)} rad over "
@@ -301,14 +312,19 @@ def para_settle(settled: Settled) -> str | None:
     text = "**Table 2's setting at every seed.** " + "; ".join(bits) + "."
     if (cs := contiguous_against_strided(settled)) is not None:
         iv, sides = cs
-        reading = (
-            "the strided set is better: at the same size, frames spread over the whole split "
-            "lower the error (the strided set also holds one more sequence)"
-            if iv.hi < 0
-            else "the strided set is worse"
-            if iv.lo > 0
-            else "the two cannot be told apart at these seeds: diversity is not shown to matter"
-        )
+        seqs = [_sequences(settled.seeds["exact"], data), _sequences(settled.strided, data)]
+        # a caveat to the reading where the sets also differ in how many sequences they draw on
+        more = len(seqs[1]) - len(seqs[0]) if None not in seqs else 0  # type: ignore[arg-type]
+        also = f" (the strided set also holds {wording.spelled(abs(more))} "
+        also += f"{'more' if more > 0 else 'fewer'} sequence{'s' * (abs(more) > 1)})"
+        also = also if more else ""
+        reading = {
+            "below": "the strided set is better: at the same size, frames spread over the whole "
+            f"split lower the error{also}",
+            "above": f"the strided set is worse{also}",
+            "not distinguishable from": "the two cannot be told apart at these seeds: diversity "
+            "is not shown to matter",
+        }[wording.side(iv.lo, iv.hi)]
         text += (
             f" At a matched size ({sides['contiguous']['train_pairs'][0]} contiguous against "
             f"{sides['strided']['train_pairs'][0]} strided training pairs, "
