@@ -15,13 +15,20 @@ file on its own, bypassing ``last.ckpt`` and ``resume=true``. Here instead:
   :func:`~mfg_lightning.run.together.ending_together` calls :meth:`SlurmRequeue.requeue`), and
   every process exits with 143;
 * the requeued job runs the same script: with the same ``hydra.run.dir`` and ``resume=true`` it
-  continues from ``last.ckpt``, exactly where it stopped (docs/scaling.md has the script).
+  continues from ``last.ckpt``, exactly where it stopped (docs/scaling.md has the script);
+* the signal during the test phase does not stop it: it is recorded, the test runs to its end,
+  ``metrics.json`` is written, and the first process requeues the job as it exits (the requeued
+  job finds the training done and tests again). Before, the signal's default action ended every
+  task, without ``metrics.json`` and without a requeue;
+* the signal may reach one process only: the processes agree on it (one all-reduce when the run
+  stops, or at the end of the test), so that the first process requeues the job, once.
 
 Outside a SLURM job (no ``SLURM_JOB_ID``) none of this does anything.
 """
 
 from __future__ import annotations
 
+import atexit
 import logging
 import os
 import re
@@ -33,6 +40,8 @@ from types import FrameType
 from typing import Any
 
 import lightning as L
+import torch
+import torch.distributed as dist
 from lightning.fabric.plugins.environments import SLURMEnvironment
 
 log = logging.getLogger(__name__)
@@ -80,24 +89,44 @@ class SlurmRequeue(L.Callback):
         self.command = list(command)
         #: the requeue signal reached this process
         self.requested = False
+        #: the job was requeued (by this process)
+        self.requeued = False
         self._previous: Any = None
+        self._installed = False
+        self._stage: str | None = None
+        self._at_exit = False
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
-        if stage != "fit" or job_id() is None:
+        if stage not in ("fit", "test") or job_id() is None:
             return
         if threading.current_thread() is not threading.main_thread():
             log.warning("not in the main thread: SLURM's requeue signal is not handled")
             return
-        self._previous = signal.signal(self.signum, self._on_signal)
+        self._stage = stage
+        if not self._installed:
+            self._previous = signal.signal(self.signum, self._on_signal)
+            self._installed = True
 
     def _restore(self) -> None:
-        if self._previous is not None and threading.current_thread() is threading.main_thread():
-            signal.signal(self.signum, self._previous)
-            self._previous = None
+        if self._installed and threading.current_thread() is threading.main_thread():
+            # (None: a handler not installed from Python, which signal.signal cannot put back)
+            signal.signal(self.signum, signal.SIG_DFL if self._previous is None else self._previous)
+            self._previous, self._installed = None, False
 
     def teardown(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
-        if stage == "fit":
+        if stage in ("fit", "test"):
             self._restore()
+            self._stage = None
+
+    def on_test_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        # Every process ends its test here: the one collective that makes a signal seen by any
+        # of them the first process's. The requeue waits for metrics.json, written after the test.
+        if self._stage != "test" or not self._agreed(trainer) or not trainer.is_global_zero:
+            return
+        if not self._at_exit:
+            self._at_exit = True
+            atexit.register(self._requeue_once)
+            log.warning("SLURM's requeue signal during the test: requeuing the job as it exits")
 
     def on_exception(
         self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException
@@ -106,19 +135,56 @@ class SlurmRequeue(L.Callback):
         self._restore()
 
     def _on_signal(self, signum: int, frame: FrameType | None) -> None:
-        """The requeue signal: remembered, then handled as SIGTERM (whatever handles SIGTERM
-        now: the stop that every process agrees on)."""
-        log.warning("SLURM's requeue signal (%s): stopping to requeue", signal.Signals(signum).name)
+        """The requeue signal: remembered; during a fit, then handled as SIGTERM (whatever
+        handles SIGTERM now: the stop that every process agrees on); during the test, only
+        remembered (the test ends, then the job is requeued)."""
+        name = signal.Signals(signum).name
         self.requested = True
+        if self._stage != "fit":
+            log.warning("SLURM's requeue signal (%s) during the test: requeuing after it", name)
+            return
+        log.warning("SLURM's requeue signal (%s): stopping to requeue", name)
         handler = signal.getsignal(signal.SIGTERM)
         if callable(handler):
             handler(signal.SIGTERM, frame)
 
+    def _agreed(self, trainer: L.Trainer) -> bool:
+        """Whether the requeue signal reached any process of the run: one all-reduce (max),
+        called by every process at the same point; this process's own flag without a process
+        group, or where the collective fails (a peer gone)."""
+        if trainer.world_size == 1 or not (dist.is_available() and dist.is_initialized()):
+            return self.requested
+        flag = torch.tensor(float(self.requested), device=trainer.strategy.root_device)
+        try:
+            agreed = bool(trainer.strategy.reduce(flag, reduce_op="max").item())
+        except Exception as err:  # (RuntimeError, DistBackendError): never hide the stop
+            log.warning("the processes could not agree on SLURM's requeue signal: %s", err)
+            return self.requested
+        if agreed and not self.requested:
+            log.info("SLURM's requeue signal reached another process")
+        return agreed
+
     def requeue(self, trainer: L.Trainer) -> bool:
-        """After the run stopped on the requeue signal (``last.ckpt`` saved): the first process
-        asks SLURM to requeue the job. Returns whether it was asked and accepted."""
-        if not self.requested or not trainer.is_global_zero:
+        """After the run stopped on SIGTERM or the requeue signal (``last.ckpt`` saved), called
+        by every process at the same point: the first process asks SLURM to requeue the job when
+        the signal reached any of them during the fit. Returns whether it was asked and
+        accepted."""
+        from lightning.pytorch.trainer.states import TrainerFn
+
+        if self._stage is None and not self.requested:
+            return False  # outside SLURM, or not a stage this callback handles
+        # Only a fit stops together (every process here, after the same step): a collective
+        # anywhere else could wait for a process that is not coming.
+        fitting = trainer.state.fn == TrainerFn.FITTING
+        requested = self._agreed(trainer) if fitting else self.requested
+        if not requested or not trainer.is_global_zero:
             return False
+        return self._requeue_once()
+
+    def _requeue_once(self) -> bool:
+        """``scontrol requeue <job id>``, once per callback. Returns whether it was accepted."""
+        if self.requeued:
+            return True
         job = job_id()
         if job is None or not re.fullmatch(r"[0-9_]+", job):
             log.warning("not requeued: SLURM job id %r", job)
@@ -136,6 +202,7 @@ class SlurmRequeue(L.Callback):
             )  # fmt: skip
             return False
         log.warning("requeued SLURM job %s: it resumes from last.ckpt (resume=true)", job)
+        self.requeued = True
         return True
 
 

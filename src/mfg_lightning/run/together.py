@@ -57,6 +57,7 @@ from lightning.pytorch.utilities.rank_zero import rank_prefixed_message
 
 from mfg_lightning.models.agreement import Agreement
 from mfg_lightning.run.slurm import SlurmRequeue
+from mfg_lightning.run.startup import launching
 
 log = logging.getLogger(__name__)
 
@@ -253,6 +254,12 @@ def _children(trainer: L.Trainer) -> list[subprocess.Popen]:
     return list(getattr(trainer.strategy.launcher, "procs", None) or [])
 
 
+def _starts_processes(trainer: L.Trainer) -> bool:
+    """Whether this process starts the others (the first process of ``trainer=ddp``)."""
+    environment = getattr(trainer.strategy, "cluster_environment", None)
+    return trainer.world_size > 1 and not getattr(environment, "creates_processes_externally", True)
+
+
 def _take_over_the_watch(trainer: L.Trainer) -> None:
     """Stop Lightning's watch on the processes this one started (it kills this process as soon
     as one of them exits with an error status): :func:`ending_together` waits for them."""
@@ -313,18 +320,26 @@ def ending_together(trainer: L.Trainer) -> Iterator[None]:
     of status 0): exit with 143 instead, the conventional status of a process ended by SIGTERM
     (130 when this process was stopped by Ctrl-C), so that schedulers and scripts see an
     interrupted job. During a fit, ``LastCheckpoint`` has
-    saved ``last.ckpt`` by then; a stop on SLURM's requeue signal requeues the job now
-    (:class:`~mfg_lightning.run.slurm.SlurmRequeue`). Any end by an exception tears the
+    saved ``last.ckpt`` by then; a stop on SLURM's requeue signal, seen by any process, requeues
+    the job now (:class:`~mfg_lightning.run.slurm.SlurmRequeue`). Any end by an exception tears the
     datamodule down (its threads stopped before the interpreter exits). Under DDP it also ends
     the other processes (the module's docstring): this one leaves a gloo process group unless
     every process stopped together on SIGTERM, and the first process of ``trainer=ddp`` waits
-    for the others.
+    for the others. The processes Lightning starts here end with this one from their first second
+    (:func:`mfg_lightning.run.startup.launching`).
     """
     try:
-        yield
+        with launching(_starts_processes(trainer)):
+            yield
     except BaseException as err:
         stopped = isinstance(err, SIGTERMException)
         _tear_down_data(trainer)
+        if stopped:
+            # Before the first process waits for the others: every process takes part in the
+            # requeue's agreement (SLURM's requeue signal may have reached any one of them).
+            for callback in trainer.callbacks:
+                if isinstance(callback, SlurmRequeue):
+                    callback.requeue(trainer)
         if trainer.world_size > 1:
             if not stopped:
                 _leave_process_group()
@@ -335,8 +350,5 @@ def ending_together(trainer: L.Trainer) -> Iterator[None]:
             )
             by = by or signal.SIGTERM  # SIGTERM, SLURM's requeue signal, a peer's stop
             log.warning("stopped by %s at step %d", by.name, trainer.global_step)
-            for callback in trainer.callbacks:
-                if isinstance(callback, SlurmRequeue):  # stopped by SLURM's requeue signal
-                    callback.requeue(trainer)
             raise SystemExit(128 + by) from None
         raise
