@@ -16,7 +16,9 @@ Adam), the same samples already in memory (pre-collated batches, cycled) and bat
 3. loader-only samples per second (the exact-flow generator in the training process and in one
    DataLoader worker; cached rendered DIS flow) and training on the real loader at each
    precision: how much of the step waits on data.
-4. the peak resident memory of a real training run (``python -m mfg_lightning.train``).
+4. the peak resident memory of a real training run (``python -m mfg_lightning.train``), and the
+   page faults a training step takes with the C library's default against freed memory kept
+   (what every training run does, :mod:`mfg_lightning.core.host_memory`).
 5. where the step's time goes: ``torch.profiler`` per operator under both precisions, every
    convolution and decoder alone (GFLOP/s, fraction of peak), and what caps bf16-mixed.
 6. the candidate speed-ups in the bare loop: fused Adam (adopted), channels-last, the first
@@ -124,6 +126,11 @@ def main(argv: list[str] | None = None) -> Path:
     if len(args.steps_per_batch_size) != len(args.batch_sizes):
         raise SystemExit("error: give one --steps-per-batch-size per --batch-sizes")
     torch.set_num_threads(args.threads or os.cpu_count() or 1)
+    # as every training run does (mfg_lightning.core.host_memory): freed tensors' memory reused
+    # in this process, by the Lightning and the bare loops alike
+    from mfg_lightning.core.host_memory import keep_freed_memory
+
+    keep_freed_memory()
     if args.quick_start:  # (subprocesses: no model built here)
         return quick_start.section(args)
     base = base_overrides(args.tiny)
@@ -148,6 +155,7 @@ def main(argv: list[str] | None = None) -> Path:
     inference.section(run)
     loader.section(run)
     memory.section(run)
+    memory.host_memory_section(run)
     profiles.section(run, peaks, rates)
     candidates.section(run)
     run.report.write()

@@ -122,6 +122,12 @@ def test_throughput_benchmark(tmp_path: Path) -> None:
     on_data = _table_rows(text, "Training on the real loader:")
     assert [r[0] for r in on_data] == ["float32", "bf16-mixed"]
     assert _number(_table_rows(text, "## Peak resident memory")[0][1]) > 50
+    faults = _table_rows(text, "## Host memory kept")
+    assert [(r[0], r[1]) for r in faults] == [
+        ("float32", "default"), ("float32", "kept"), ("bf16-mixed", "default"),
+        ("bf16-mixed", "kept"),
+    ]  # fmt: skip
+    assert all(_number(r[4]) > 0 for r in faults)
     assert "aten::" in text  # the profiles
     assert "## Profile of the bare training step, batch 4, bf16-mixed" in text
     kernels = _table_rows(text, "## Per-layer kernels")
