@@ -112,23 +112,39 @@ def quick_start_wall(tiny: bool, threads: int) -> tuple[list[list[str]], float, 
     return rows, measured, actions
 
 
+def action_name(name: str) -> str:
+    """A profiled action without the callback's state key (``LastCheckpoint{'path': ...}``),
+    which names the run's temporary directory."""
+    import re
+
+    return re.sub(r"\{.*\}", "", name)
+
+
 def profile_rows(run_dir: Path, wall: float, top: int = 14) -> list[list[str]]:
     """The ``top`` actions of the profiled run's fit and test by total time (Lightning's
     ``SimpleProfiler`` reports, ``fit-profile.txt`` and ``test-profile.txt``; they nest: a
     training batch holds its step, its backward and its optimiser step), each with its share of
     the run's wall time."""
-    totals: dict[str, float] = {}
+    # The profiler keeps its records across stages: the test's report repeats the fit's
+    # actions, so the test's own time is its report's total less the fit's.
+    reports: dict[str, dict[str, float]] = {}
     for stage in ("fit", "test"):
         path = run_dir / f"{stage}-profile.txt"
+        actions = reports.setdefault(stage, {})
         for line in path.read_text().splitlines() if path.is_file() else []:
             cells = [c.strip() for c in line.strip().strip("|").split("|")]
             if len(cells) == 5 and cells[0] not in ("Action", "Total"):
                 try:
-                    totals[f"{stage}: {cells[0]}"] = float(cells[3])
+                    actions[cells[0]] = float(cells[3])
                 except ValueError:
                     continue
+    fit, test = reports["fit"], reports["test"]
+    totals = {f"fit: {k}": v for k, v in fit.items()}
+    for name, seconds in test.items():
+        if seconds - fit.get(name, 0.0) > 1e-3:
+            totals[f"test: {name}"] = seconds - fit.get(name, 0.0)
     ranked = sorted(totals.items(), key=lambda kv: -kv[1])[:top]
-    rows = [[f"`{name}`", fmt(seconds, 1), f"{100 * seconds / wall:.0f} %"]
+    rows = [[f"`{action_name(name)}`", fmt(seconds, 1), f"{100 * seconds / wall:.0f} %"]
             for name, seconds in ranked]  # fmt: skip
     return rows
 
