@@ -283,22 +283,6 @@ def git_commit() -> str | None:
     return (_git("rev-parse", "HEAD") or "").strip() or None
 
 
-def git_is_ancestor(commit: str, of: str) -> bool | None:
-    """Whether ``commit`` is ``of`` or comes before it in this checkout's history (None where
-    that cannot be told: no git checkout, or a commit it does not have)."""
-    try:
-        out = subprocess.run(
-            ["git", "merge-base", "--is-ancestor", commit, of],
-            cwd=Path(__file__).resolve().parent,
-            capture_output=True,
-            timeout=5,
-            check=False,
-        )
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return {0: True, 1: False}.get(out.returncode)
-
-
 def git_dirty() -> bool:
     """Whether that checkout has uncommitted changes to tracked files (a result measured on it
     names its commit with ``+dirty``: that commit alone does not rebuild the code measured)."""
