@@ -29,16 +29,13 @@ import json
 import math
 import os
 import signal
-import subprocess
-import sys
-import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
 import torch
 
 from conftest import entry_point_env
+from ddp_faults import FaultyRun, run_with_faults
 
 pytestmark = pytest.mark.slow
 
@@ -62,49 +59,17 @@ RUN = [
 FAULT_STEP = 3
 
 
-@dataclass
-class Run:
-    """How a training ended: the first process's exit status, the output of every process, and
-    the seconds from the last fault to the end of the last process (None: no fault acted)."""
-
-    returncode: int
-    output: str
-    seconds_after_fault: float | None
-
-
-def _train(workdir: Path, run: str, *overrides: str, faults: dict[str, tuple] | None = None) -> Run:
-    """``python -m mfg_lightning.train`` of :data:`RUN` into ``<workdir>/<run>``, with the faults
-    ``{name: (kind, steps, rank)}`` (tests/ddp_faults.py), until every process it started has
-    ended (their shared output is closed)."""
-    markers, args = [], [*RUN, *overrides, f"hydra.run.dir={workdir / run}"]
-    for name, (kind, steps, rank) in (faults or {}).items():
-        marker = workdir / f"{run}.{name}.marker"
-        marker.unlink(missing_ok=True)
-        markers.append(marker)
-        key = f"+callbacks.{name}"
-        args += [f"{key}._target_=ddp_faults.Fault", f"{key}.kind={kind}", f"{key}.steps={steps}",
-                 f"{key}.rank={rank}", f"{key}.marker={marker}"]  # fmt: skip
+def _train(workdir: Path, run: str, *overrides: str, faults: dict[str, tuple] | None = None):
+    """``python -m mfg_lightning.train`` of :data:`RUN` into ``<workdir>/<run>`` with the faults
+    ``{name: (kind, steps, rank)}`` (tests/ddp_faults.py), until every process has ended."""
     env = entry_point_env(
         workdir, PYTHONPATH=os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")])
     )
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "mfg_lightning.train", *args], cwd=workdir, env=env,
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
-    )  # fmt: skip
-    try:
-        # Returns when the output is closed: by every process of the run (the second inherits
-        # it from the first).
-        output, _ = proc.communicate(timeout=RUN_TIMEOUT)
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)  # the run's own session: its processes only
-        output, _ = proc.communicate()
-        raise AssertionError(f"{run}: not ended after {RUN_TIMEOUT} s:\n{output[-5000:]}") from None
-    ended = time.time()
-    acted = [float(m.read_text().split()[0]) for m in markers if m.exists()]
-    return Run(proc.returncode, output, ended - max(acted) if acted else None)
+    return run_with_faults("mfg_lightning.train", [*RUN, *overrides], workdir, run, env,
+                           faults, RUN_TIMEOUT)  # fmt: skip
 
 
-def _ended_in_time(run: Run) -> None:
+def _ended_in_time(run: FaultyRun) -> None:
     assert run.seconds_after_fault is not None, "the fault never acted:\n" + run.output[-5000:]
     print(f"ended {run.seconds_after_fault:.1f} s after the fault")  # shown by pytest -s
     assert run.seconds_after_fault <= END_BOUND, (
