@@ -7,9 +7,10 @@ trajectories of ``--frames`` frames each, rendered at ``--render-size`` with DIS
 into an empty cache, once for each process count of ``--processes``
 (``dataset.prepare_workers``; 1: in this process, on one thread; more: a pool of
 single-threaded spawned processes sharing chunks of at least ``--chunk-pairs`` pairs from every
-sequence of both splits, :func:`mfg_lightning.data.rendered.prepare_pairs`). Where the largest
-count exceeds the number of sequences, it is measured once more with every sequence one chunk:
-the work shared out by whole sequences, as it was before chunks (with the thread caps).
+sequence of both splits, :func:`mfg_lightning.data.rendered_preparation.prepare_pairs`). Where
+the largest count exceeds the number of sequences, it is measured once more with every sequence
+one chunk: the work shared out by whole sequences, as it was before chunks (with the thread
+caps).
 
 Reported per row: pairs/s = pairs / wall time of the whole call (process start-up, rendering,
 estimation, writes, the quality and the pictures), the speed-up over 1 process, the scaling
@@ -66,7 +67,8 @@ def default_processes(cores: int) -> list[int]:
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     from mfg_lightning.core.machine import usable_cores
-    from mfg_lightning.data.rendered import MIN_CHUNK_PAIRS, RENDER_SIZE
+    from mfg_lightning.data.rendered import RENDER_SIZE
+    from mfg_lightning.data.rendered_preparation import MIN_CHUNK_PAIRS
     from mfg_lightning.flow.cache import default_cache_dir
 
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])

@@ -9,7 +9,7 @@ evenly spaced, each paired with its frames at offsets −2, −1, +1 and +2 (the
 Per estimator and offset: EPE (mean end-point error, px at the render size) and Fl (KITTI's
 outlier rate: EPE > 3 px and > 5 % of the exact flow's magnitude) by region of the renderer
 (road, structure, moving objects, far field) and over all pixels, pooled pixel by pixel over the
-pairs (:func:`mfg_lightning.data.rendered.flow_quality`, what ``flow_quality.md``'s DIS rows
+pairs (:func:`mfg_lightning.metrics.flow_quality.flow_quality`, what ``flow_quality.md``'s DIS rows
 use); and the estimator's time per pair in ms (the call alone, on one thread, wall time: the
 machine may be shared; the CPU kind is in the environment table).
 
@@ -142,8 +142,8 @@ def measure(scenes: Scenes, flow_cfg: dict) -> dict:
     import cv2
     import torch
 
-    from mfg_lightning.data.rendered import QUALITY_REGIONS, flow_quality, summarize_quality
     from mfg_lightning.flow.estimators import parse_flow
+    from mfg_lightning.metrics.flow_quality import QUALITY_REGIONS, flow_quality, summarize_quality
 
     cv2.setNumThreads(1)
     torch.set_num_threads(1)  # the learned network, on one core as OpenCV's
@@ -186,7 +186,7 @@ def whole_test(poses_dir: Path, sequences: list[str], flow_cfg: dict) -> dict:
     ``flow_quality.md``'s first table gives): its quality pooled by region, computed through
     the data module's own preparation (rendered, estimated and cached on every core; a cached
     pair is read back)."""
-    from mfg_lightning.data.rendered import prepare_pairs
+    from mfg_lightning.data.rendered_preparation import prepare_pairs
     from mfg_lightning.data.synthetic import SyntheticDataModule
 
     dm = SyntheticDataModule(trajectory="kitti", poses_dir=str(poses_dir),
@@ -204,7 +204,7 @@ def _cell(q: dict | None, key: str, digits: int) -> str:
 
 def tables(results: dict[str, dict]) -> str:
     """The section's tables: by region over every offset, then EPE / Fl by offset."""
-    from mfg_lightning.data.rendered import QUALITY_REGIONS
+    from mfg_lightning.metrics.flow_quality import QUALITY_REGIONS
 
     head = ["estimator", "ms / pair"] + [f"{x} {r}" for r in QUALITY_REGIONS
                                           for x in ("EPE", "Fl %")]  # fmt: skip
@@ -281,8 +281,8 @@ def whole_test_path(args: argparse.Namespace) -> Path:
 def whole_test_section(args: argparse.Namespace) -> str:
     """The whole-test stage (cached as ``--work/whole_test.json``; ``--whole-test`` measures
     what is missing), as a paragraph and a table."""
-    from mfg_lightning.data.rendered import QUALITY_REGIONS
     from mfg_lightning.flow.estimators import parse_flow
+    from mfg_lightning.metrics.flow_quality import QUALITY_REGIONS
 
     path = whole_test_path(args)
     cached = json.loads(path.read_text()) if path.is_file() else {}

@@ -17,7 +17,7 @@ from fake_datasets import synthetic_drive, tree_snapshot
 from mfg_lightning.core import geometry
 from mfg_lightning.core.config import compose
 from mfg_lightning.data import export as export_module
-from mfg_lightning.data import kitti, vkitti
+from mfg_lightning.data import kitti, vkitti, vkitti_files
 from mfg_lightning.data.check import check_dataset, check_split
 from mfg_lightning.data.transforms import resize_intrinsics
 from mfg_lightning.flow import io as flow_io
@@ -219,7 +219,7 @@ def test_vkitti_tree_round_trips_flow_depth_poses_and_masks(
         jpg = flow_io.read_rgb(ds.layout.file("rgb", "0001", "clone", 0)).astype(int)
         rgb = render_frame(world, 0, K, *hw).rgb.permute(1, 2, 0).numpy().astype(int)
         assert np.abs(jpg - rgb).mean() < 4.0
-        intrinsics = vkitti.read_vkitti_intrinsics(ds.layout.intrinsics_file("0001", "clone"))
+        intrinsics = vkitti_files.read_vkitti_intrinsics(ds.layout.intrinsics_file("0001", "clone"))
         assert sorted(intrinsics) == list(range(FRAMES))
         np.testing.assert_array_equal(intrinsics[0], K.numpy())
 

@@ -32,7 +32,7 @@ from mfg_lightning.data.kitti import read_kitti_calib
 from mfg_lightning.data.kitti import read_kitti_poses_as_data_file as kitti_dataset_poses
 from mfg_lightning.data.sample import SampleError
 from mfg_lightning.data.synthetic import SyntheticDataModule
-from mfg_lightning.data.vkitti import read_vkitti_extrinsics, read_vkitti_intrinsics
+from mfg_lightning.data.vkitti_files import read_vkitti_extrinsics, read_vkitti_intrinsics
 from mfg_lightning.flow import io as flow_io
 from mfg_lightning.models.losses import MFGLoss
 from mfg_lightning.models.mfg import MFG

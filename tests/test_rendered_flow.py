@@ -11,13 +11,8 @@ import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from conftest import run_module
-from mfg_lightning.data.rendered import (
-    QUALITY_REGIONS,
-    RenderedDrivingDataset,
-    flow_quality,
-    plan_chunks,
-    prepare_pairs,
-)
+from mfg_lightning.data.rendered import RenderedDrivingDataset
+from mfg_lightning.data.rendered_preparation import plan_chunks, prepare_pairs
 from mfg_lightning.data.sample import check_sample
 from mfg_lightning.data.synthetic import SyntheticDataModule
 from mfg_lightning.flow.estimators import (
@@ -26,6 +21,7 @@ from mfg_lightning.flow.estimators import (
     EstimatedFlow,
     parse_flow,
 )
+from mfg_lightning.metrics.flow_quality import QUALITY_REGIONS, flow_quality
 from mfg_lightning.scene import render
 
 H, W = 32, 64  # model input

@@ -15,7 +15,7 @@ from fake_datasets import FakeVkitti, make_vkitti, tree_snapshot
 from mfg_lightning.core import geometry
 from mfg_lightning.core.config import compose
 from mfg_lightning.core.data_errors import DataFileError, DataRootError
-from mfg_lightning.data import transforms, vkitti
+from mfg_lightning.data import transforms, vkitti_files
 from mfg_lightning.data.base import collate_samples
 from mfg_lightning.data.sample import check_sample
 from mfg_lightning.data.vkitti import VirtualKittiDataModule, VirtualKittiDataset
@@ -42,19 +42,19 @@ def _dataset(fake: FakeVkitti, worlds=("0001",), **kw) -> VirtualKittiDataset:
 def test_extrinsics_and_intrinsics_writers_round_trip_exactly(tmp_path: Path, version: int) -> None:
     rng = np.random.default_rng(version)
     mats = rng.normal(size=(5, 4, 4))
-    vkitti.write_vkitti_extrinsics(tmp_path / "extrinsic.txt", mats, version)
+    vkitti_files.write_vkitti_extrinsics(tmp_path / "extrinsic.txt", mats, version)
     header = (tmp_path / "extrinsic.txt").read_text().splitlines()[0].split()
     ids = ["frame"] if version == 1 else ["frame", "cameraID"]  # then the 16 matrix entries
     assert header[: len(ids)] == ids and len(header) == len(ids) + 16
-    back = vkitti.read_vkitti_extrinsics(tmp_path / "extrinsic.txt", version)
+    back = vkitti_files.read_vkitti_extrinsics(tmp_path / "extrinsic.txt", version)
     assert sorted(back) == list(range(5))
     np.testing.assert_array_equal(np.stack([back[f] for f in range(5)]), mats)
     K = rng.uniform(100, 800, size=(5, 4))
-    vkitti.write_vkitti_intrinsics(tmp_path / "intrinsic.txt", K)
-    back_k = vkitti.read_vkitti_intrinsics(tmp_path / "intrinsic.txt")
+    vkitti_files.write_vkitti_intrinsics(tmp_path / "intrinsic.txt", K)
+    back_k = vkitti_files.read_vkitti_intrinsics(tmp_path / "intrinsic.txt")
     np.testing.assert_array_equal(np.stack([back_k[f] for f in range(5)]), K)
     with pytest.raises(ValueError, match=r"\(N, 4, 4\)"):
-        vkitti.write_vkitti_extrinsics(tmp_path / "bad.txt", mats[:, :3], version)
+        vkitti_files.write_vkitti_extrinsics(tmp_path / "bad.txt", mats[:, :3], version)
 
 
 @pytest.mark.parametrize("version", [1, 2])

@@ -202,7 +202,8 @@ class VkittiTree:
     layout = "vkitti"
 
     def __init__(self, root: Path, height: int, width: int, version: int) -> None:
-        from mfg_lightning.data.vkitti import VKITTI1_INTRINSICS, VkittiLayout
+        from mfg_lightning.data.vkitti import VKITTI1_INTRINSICS
+        from mfg_lightning.data.vkitti_files import VkittiLayout
 
         self.root, self.height, self.width = Path(root), int(height), int(width)
         self.version = int(version)
@@ -241,7 +242,7 @@ class VkittiTree:
         flow_io.write_vkitti_flow_png(P.file("flow", seq.name, VARIATION, k), flow, valid)
 
     def write_sequence(self, seq: Sequence) -> None:
-        from mfg_lightning.data.vkitti import write_vkitti_extrinsics, write_vkitti_intrinsics
+        from mfg_lightning.data.vkitti_files import write_vkitti_extrinsics, write_vkitti_intrinsics
 
         T_cam_world = geometry.invert_pose(torch.from_numpy(seq.relative_to_first)).numpy()
         write_vkitti_extrinsics(
@@ -336,7 +337,7 @@ def export(cfg: DictConfig, progress: bool = True) -> dict[str, Any]:
 
     from mfg_lightning.data.rendered import world_config
     from mfg_lightning.data.synthetic import SyntheticDataModule
-    from mfg_lightning.data.vkitti import normalize_version
+    from mfg_lightning.data.vkitti_files import normalize_version
     from mfg_lightning.scene.render import render_frame
     from mfg_lightning.scene.worlds import World
 

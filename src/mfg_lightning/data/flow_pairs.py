@@ -12,7 +12,7 @@ Cache: ``<cache_dir>/flow_pairs/<key>/<seq>/<src:06d>_<tgt:06d>.npz`` holding ``
 ``(H, W, 6)`` uint8 (both RGB frames), ``flow`` ``(H, W, 2)`` float16 (input pixels, NaN where
 the exact flow is unknown: occluded, outside the target frame) and ``region`` ``(H, W)`` uint8
 (the renderer's region map of the source frame), filled on every core by :meth:`prepare_data`
-(:func:`~mfg_lightning.data.rendered.prepare_pairs`).
+(:func:`~mfg_lightning.data.rendered_preparation.prepare_pairs`).
 """
 
 from __future__ import annotations
@@ -29,13 +29,10 @@ import torch.distributed as dist
 from torch.utils.data import DataLoader, Dataset
 
 from mfg_lightning.data.base import EvaluationShard, UnpaddedDistributedSampler, collate_samples
-from mfg_lightning.data.rendered import (
-    MIN_CHUNK_PAIRS,
-    QUALITY_REGIONS,
-    RenderedDrivingDataset,
-    prepare_pairs,
-)
+from mfg_lightning.data.rendered import RenderedDrivingDataset
+from mfg_lightning.data.rendered_preparation import MIN_CHUNK_PAIRS, prepare_pairs
 from mfg_lightning.flow.estimators import EstimatedFlow
+from mfg_lightning.metrics.flow_quality import QUALITY_REGIONS
 
 log = logging.getLogger(__name__)
 

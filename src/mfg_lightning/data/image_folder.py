@@ -30,7 +30,8 @@ import numpy as np
 from torch.utils.data import DataLoader
 
 from mfg_lightning.core.data_errors import DataFileError
-from mfg_lightning.data.base import MFGDataModule, check_data_root, normalize_sequence
+from mfg_lightning.data.base import MFGDataModule, normalize_sequence
+from mfg_lightning.data.file_datasets import check_data_root
 from mfg_lightning.data.sequences import ImageSequence, ImageSequenceDataset, image_flow_source
 from mfg_lightning.flow import io as flow_io
 from mfg_lightning.trajectory import pose_io

@@ -69,13 +69,15 @@ import torch
 from mfg_lightning.core.data_errors import DataFileError, DataRootError
 from mfg_lightning.data.base import (
     MFGDataModule,
-    check_data_root,
     check_split,
-    list_numbered,
     normalize_sequence,
+    split_sequences,
+)
+from mfg_lightning.data.file_datasets import (
+    check_data_root,
+    list_numbered,
     read_text_lines,
     some_of,
-    split_sequences,
 )
 from mfg_lightning.data.sequences import ImageSequence, ImageSequenceDataset, image_flow_source
 from mfg_lightning.flow import io as flow_io

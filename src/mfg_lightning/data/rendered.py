@@ -1,14 +1,15 @@
 """Samples of ``flow=dis`` on the synthetic worlds: frames rendered from one persistent world per
 trajectory (:mod:`mfg_lightning.scene`), flow estimated on them and cached, the exact flow and
-the ground truth kept beside the estimate, and the estimate's quality per image region."""
+the ground truth kept beside the estimate, and the estimate's quality per image region
+(computed by :mod:`mfg_lightning.metrics.flow_quality`). Every missing pair of several datasets
+is prepared on every core by :mod:`mfg_lightning.data.rendered_preparation`; the picture of a
+pair is :func:`mfg_lightning.pictures.rendered_frames.flow_picture`."""
 
 from __future__ import annotations
 
 import hashlib
-import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
-from itertools import pairwise
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -17,21 +18,25 @@ import torch
 
 from mfg_lightning.data import transforms
 from mfg_lightning.data.driving import TrajectoryDataset
+from mfg_lightning.data.rendered_preparation import prepare_pairs
 from mfg_lightning.data.sample import sanitize_flow
 from mfg_lightning.data.sample_cache import MemoryBudget, SampleStore, source_digest
 from mfg_lightning.flow.estimators import (
     EstimatedFlow,
     FlowCache,
 )
+from mfg_lightning.metrics.flow_quality import (
+    flow_quality,
+    pair_stats,
+    pooled_quality,
+    pooled_quality_by_offset,
+)
+from mfg_lightning.pictures.rendered_frames import flow_picture
 from mfg_lightning.scene.camera import kitti_like_intrinsics
 
 #: The render size of ``flow=dis`` when ``flow.height``/``flow.width`` are unset: the released
 #: code's image size (its flow, the model input, is a quarter of it).
 RENDER_SIZE = (192, 512)
-
-
-#: The regions flow quality is reported for (the renderer's region map), then all pixels.
-QUALITY_REGIONS = ("road", "structure", "moving", "far", "all")
 
 
 # Bump when the arrays cached per pair change, so old caches are not misread.
@@ -50,6 +55,9 @@ _FLOAT_FIELDS = (
 
 
 _BYTE_FIELDS = (("rgb", 3), ("object_mask", 1))  # source frame; moving-object mask (0 / 1)
+# plus "stats": (len(QUALITY_REGIONS) * 3 + 1,) float64, the quality (EPE sum, Fl outliers,
+# pixels per region, at the image size) and the number of non-finite estimated pixels
+# (mfg_lightning.metrics.flow_quality.pair_stats).
 
 
 def _renderer():
@@ -70,60 +78,6 @@ def _hw2(field: Any) -> np.ndarray:
     if a.ndim == 3 and a.shape[0] == 2 and a.shape[2] != 2:
         a = np.moveaxis(a, 0, 2)
     return np.ascontiguousarray(a, dtype=np.float32)
-
-
-def region_codes() -> list[tuple[str, int | None]]:
-    """``(name, code)`` of every :data:`QUALITY_REGIONS` entry in the renderer's region map
-    (``None``: all pixels)."""
-    _, render = _renderer()
-    codes = {
-        "road": render.REGION_ROAD,
-        "structure": render.REGION_STRUCTURE,
-        "moving": render.REGION_MOVING,
-        "far": render.REGION_FAR,
-    }
-    return [(name, codes.get(name)) for name in QUALITY_REGIONS]
-
-
-def flow_quality(
-    estimated: np.ndarray, exact: np.ndarray, valid: np.ndarray, region: np.ndarray
-) -> np.ndarray:
-    """End-point error and KITTI's Fl outliers of an estimated flow against the exact one.
-
-    A pixel is an Fl outlier when its end-point error exceeds 3 px *and* 5 % of the exact flow's
-    magnitude (the KITTI 2015 flow benchmark's definition).
-
-    Args:
-        estimated, exact: ``(H, W, 2)`` pixels (at the image size the flow was estimated at).
-        valid: ``(H, W)`` bool, the pixels that count (exact flow known, estimate finite).
-        region: ``(H, W)`` the renderer's region code of every pixel.
-
-    Returns:
-        ``(len(QUALITY_REGIONS), 3)`` float64: per region, the sum of the end-point errors
-        (pixels), the number of outliers and the number of pixels counted; sums, so that pairs
-        pool by addition.
-    """
-    epe = np.linalg.norm(estimated.astype(np.float64) - exact, axis=2)
-    outlier = (epe > 3.0) & (epe > 0.05 * np.linalg.norm(exact.astype(np.float64), axis=2))
-    out = np.zeros((len(QUALITY_REGIONS), 3))
-    for r, (_, code) in enumerate(region_codes()):
-        m = valid if code is None else valid & (region == code)
-        out[r] = (epe[m].sum(), outlier[m].sum(), m.sum())
-    return out
-
-
-def summarize_quality(stats: np.ndarray) -> dict[str, dict[str, float | None]]:
-    """Pooled ``{region: {"epe": px, "fl": %, "pixels": n}}`` from summed per-pair stats
-    (``(..., R, 3)``: pairs pooled pixel by pixel; None where a region had no pixel)."""
-    total = stats.reshape(-1, len(QUALITY_REGIONS), 3).sum(axis=0)
-    out: dict[str, dict[str, float | None]] = {}
-    for name, (epe, outliers, n) in zip(QUALITY_REGIONS, total, strict=True):
-        out[name] = {
-            "epe": float(epe / n) if n else None,
-            "fl": float(100.0 * outliers / n) if n else None,
-            "pixels": float(n),
-        }
-    return out
 
 
 @dataclass
@@ -150,8 +104,9 @@ class RenderedDrivingDataset(TrajectoryDataset):
     Cache: ``<cache_dir>/synthetic_flow/<key>/<seq>/<src:06d>_<tgt:06d>.npz``, ``<key>`` a hash
     of everything that changes a pair (estimator and its settings, image and input size, seed,
     world config, the trajectory's poses, the renderer's source, library versions).
-    :func:`prepare_pairs` (:meth:`precompute_flow` for this dataset alone) fills it, on every
-    core; ``__getitem__`` computes a missing pair on its own.
+    :func:`~mfg_lightning.data.rendered_preparation.prepare_pairs` (:meth:`precompute_flow` for
+    this dataset alone) fills it, on every core; ``__getitem__`` computes a missing pair on its
+    own.
 
     Args:
         flow: the estimator and the image size (``flow.height × flow.width``, default
@@ -282,8 +237,8 @@ class RenderedDrivingDataset(TrajectoryDataset):
         """Exact and estimated flow of ``src → tgt`` from the rendered frames ``a``, ``b``: the
         fields of a sample at the model input (``flow`` ``(h, w, 2)``, ``exact_flow``,
         ``object_flow``, ``depth`` ``(h, w)``, ``rgb`` ``(h, w, 3)``, ``object_mask``), the
-        ``quality`` (:func:`flow_quality`) and ``nonfinite`` count at the image size, and the
-        image-size fields under ``"full"`` (for pictures)."""
+        ``quality`` (:func:`~mfg_lightning.metrics.flow_quality.flow_quality`) and ``nonfinite``
+        count at the image size, and the image-size fields under ``"full"`` (for pictures)."""
         exact, exact_flow, exact_valid = self.exact_pair(seq, src, tgt, a)
         est = np.asarray(self.estimator(a.image, b.image), dtype=np.float32)
         self.estimated_pairs += 1
@@ -328,7 +283,7 @@ class RenderedDrivingDataset(TrajectoryDataset):
             "bytes": np.concatenate(
                 [pair[k].reshape(self.height, self.width, n) for k, n in _BYTE_FIELDS], axis=2
             ).astype(np.uint8),
-            "stats": _stats_of(pair),
+            "stats": pair_stats(pair["quality"], pair["nonfinite"]),
         }
         self.cache.store_arrays(self.pair_path(i), packed)
         return _unpack(packed)
@@ -341,8 +296,8 @@ class RenderedDrivingDataset(TrajectoryDataset):
         """Render, estimate and cache the pairs ``indices`` in sequence and frame order, each
         frame rendered once and kept while a later pair (up to the largest offset ahead) can
         use it; the middle pair of each sequence also leaves its picture grid
-        (:meth:`picture_path`). Returns each pair's quality sums (:func:`_stats_of`), by
-        index."""
+        (:meth:`picture_path`). Returns each pair's quality sums
+        (:func:`~mfg_lightning.metrics.flow_quality.pair_stats`), by index."""
         frames: dict[tuple[str, int], _Frame] = {}
         stats: dict[int, np.ndarray] = {}
         middle = {ix[len(ix) // 2]: seq for seq, ix in self.sequences().items()}
@@ -355,7 +310,7 @@ class RenderedDrivingDataset(TrajectoryDataset):
                     frames[(seq, f)] = self.render(seq, f)
             pair = self.compute_pair(seq, src, tgt, frames[(seq, src)], frames[(seq, tgt)])
             self._store(i, pair)
-            stats[i] = _stats_of(pair)
+            stats[i] = pair_stats(pair["quality"], pair["nonfinite"])
             if self.pictures and i in middle:
                 self.cache.store(self.picture_path(seq), flow_picture(pair["full"]))
             if bar is not None:
@@ -365,9 +320,10 @@ class RenderedDrivingDataset(TrajectoryDataset):
     def precompute_flow(self, progress: bool = True, workers: int | None = 0) -> int:
         """Render, estimate and cache every pair not cached yet; return how many.
 
-        :func:`prepare_pairs` on this dataset alone: with ``workers > 1`` (None: every usable
-        core) the pairs are cut into contiguous chunks of frames shared among that many
-        single-threaded processes; 0 or 1 computes them in this process.
+        :func:`~mfg_lightning.data.rendered_preparation.prepare_pairs` on this dataset alone:
+        with ``workers > 1`` (None: every usable core) the pairs are cut into contiguous chunks
+        of frames shared among that many single-threaded processes; 0 or 1 computes them in this
+        process.
         """
         return prepare_pairs([self], workers=workers, progress=progress)[0].pairs
 
@@ -376,8 +332,8 @@ class RenderedDrivingDataset(TrajectoryDataset):
         return self.cache.root / f"picture-{seq}.npy"
 
     def picture(self, seq: str) -> np.ndarray:
-        """The picture grid (:func:`flow_picture`) of the middle pair of ``seq``, at the image
-        size (renders its two frames)."""
+        """The picture grid (:func:`~mfg_lightning.pictures.rendered_frames.flow_picture`) of
+        the middle pair of ``seq``, at the image size (renders its two frames)."""
         indices = self.sequences()[seq]
         _, src, tgt = self.samples[indices[len(indices) // 2]]
         pair = self.compute_pair(seq, src, tgt, self.render(seq, src), self.render(seq, tgt))
@@ -386,9 +342,10 @@ class RenderedDrivingDataset(TrajectoryDataset):
     def _pair_stats(
         self, i: int, known: Mapping[tuple[str, int, int], np.ndarray] | None = None
     ) -> np.ndarray:
-        """Pair ``i``'s quality sums (:func:`flow_quality`, then its non-finite pixels): from
-        ``known`` (what :func:`prepare_pairs` returned, keyed by sample), else from its cached
-        file."""
+        """Pair ``i``'s quality sums (:func:`~mfg_lightning.metrics.flow_quality.pair_stats`:
+        :func:`~mfg_lightning.metrics.flow_quality.flow_quality`, then its non-finite pixels):
+        from ``known`` (what :func:`~mfg_lightning.data.rendered_preparation.prepare_pairs`
+        returned, keyed by sample), else from its cached file."""
         found = None if known is None else known.get(self.samples[i])
         if found is not None:
             return found
@@ -403,17 +360,15 @@ class RenderedDrivingDataset(TrajectoryDataset):
         """The flow quality of this split (pooled over its pairs) and its non-finite pixels.
 
         Args:
-            known: the quality sums of pairs just computed (:attr:`PreparedPairs.stats`, keyed
-                by ``(sequence, source, target)``); every other pair's are read from the cache
-                (it must be cached).
+            known: the quality sums of pairs just computed
+                (:attr:`~mfg_lightning.data.rendered_preparation.PreparedPairs.stats`, keyed by
+                ``(sequence, source, target)``); every other pair's are read from the cache (it
+                must be cached).
+
+        Returns:
+            :func:`~mfg_lightning.metrics.flow_quality.pooled_quality` of its pairs.
         """
-        stats = np.zeros((len(QUALITY_REGIONS), 3))
-        nonfinite = 0
-        for i in range(len(self.samples)):
-            pair = self._pair_stats(i, known)
-            stats += pair[:-1].reshape(stats.shape)
-            nonfinite += int(pair[-1])
-        return {"regions": summarize_quality(stats), "nonfinite_pixels": nonfinite}
+        return pooled_quality(self._pair_stats(i, known) for i in range(len(self.samples)))
 
     def quality_by_offset(
         self, known: Mapping[tuple[str, int, int], np.ndarray] | None = None
@@ -421,18 +376,11 @@ class RenderedDrivingDataset(TrajectoryDataset):
         """The flow quality pooled per frame offset (target − source):
         ``{"-2": {"regions": ..., "pairs": n}, "-1": ..., "1": ..., "2": ...}`` (the estimate's
         error grows with the motion it has to find, which the offset scales); ``known`` as in
-        :meth:`quality`."""
-        stats: dict[int, np.ndarray] = {}
-        pairs: dict[int, int] = {}
-        for i, (_, src, tgt) in enumerate(self.samples):
-            off = int(tgt) - int(src)
-            pooled = stats.setdefault(off, np.zeros((len(QUALITY_REGIONS), 3)))
-            pooled += self._pair_stats(i, known)[:-1].reshape(pooled.shape)
-            pairs[off] = pairs.get(off, 0) + 1
-        return {
-            str(o): {"regions": summarize_quality(stats[o]), "pairs": pairs[o]}
-            for o in sorted(stats)
-        }
+        :meth:`quality` (:func:`~mfg_lightning.metrics.flow_quality.pooled_quality_by_offset`)."""
+        return pooled_quality_by_offset(
+            (int(tgt) - int(src), self._pair_stats(i, known))
+            for i, (_, src, tgt) in enumerate(self.samples)
+        )
 
     # -- samples -----------------------------------------------------------------------------
 
@@ -472,207 +420,6 @@ class RenderedDrivingDataset(TrajectoryDataset):
         }
         sample.update(self._identity(seq, src, tgt, self._pose(seq, src, tgt)))
         return sample
-
-
-def _stats_of(pair: dict) -> np.ndarray:
-    """A pair's quality sums as cached (``stats``): :func:`flow_quality`'s ``(R, 3)`` flattened,
-    then its non-finite pixel count; ``(3 R + 1,)`` float64."""
-    return np.append(pair["quality"].ravel(), float(pair["nonfinite"]))
-
-
-# -- preparation: every missing pair of several datasets, in chunks, on every core ------------
-
-#: Chunks per process, at least, that :func:`prepare_pairs` cuts the pairs into: equal chunks
-#: handed out one at a time leave a process idle at the end for at most about one chunk, a
-#: quarter of its share.
-CHUNKS_PER_PROCESS = 4
-
-#: The least pairs of a chunk (:func:`prepare_pairs`' default). A chunk renders the frames at its
-#: border that its neighbour renders too (up to the largest offset), and a spawned process
-#: imports torch and OpenCV before its first pair (a few seconds, some 20 pairs at 192 × 512):
-#: work below two chunks stays in the calling process.
-MIN_CHUNK_PAIRS = 32
-
-
-@dataclass
-class PreparedPairs:
-    """What :func:`prepare_pairs` computed for one dataset.
-
-    Attributes:
-        pairs: pairs rendered, estimated and cached (0: all were cached).
-        frames: frames rendered; a frame at the border of two chunks is rendered by both.
-        worlds: worlds generated: once per sequence in this process, or once per sequence and
-            worker process that computed a chunk of it.
-        processes: the worker processes the call used (0: the calling process alone).
-        stats: each computed pair's quality sums (:func:`_stats_of`), by ``(sequence, source,
-            target)``: what :meth:`RenderedDrivingDataset.quality` reads from the cache
-            otherwise.
-    """
-
-    pairs: int = 0
-    frames: int = 0
-    worlds: int = 0
-    processes: int = 0
-    stats: dict[tuple[str, int, int], np.ndarray] = field(default_factory=dict)
-
-
-def plan_chunks(
-    datasets: Sequence[RenderedDrivingDataset],
-    todo: Sequence[Sequence[int]],
-    processes: int,
-    min_pairs: int = MIN_CHUNK_PAIRS,
-) -> list[tuple[int, list[int]]]:
-    """Cut the pairs ``todo[d]`` of every ``datasets[d]`` into contiguous chunks of frames.
-
-    Every sequence is cut apart from the others into ``len // size`` near-equal runs of
-    consecutive source frames (one run if it has fewer than ``size`` pairs), ``size`` being
-    ``max(min_pairs, total / (CHUNKS_PER_PROCESS × processes))``. A cut never splits the pairs
-    of one source frame (its offsets), which share that frame's rendering.
-
-    Returns:
-        ``(d, indices)`` per chunk, in dataset, sequence and frame order: the order in which
-        :func:`prepare_pairs` hands them out, so that a worker meets each sequence once.
-    """
-    total = sum(len(ix) for ix in todo)
-    size = max(1, min_pairs, math.ceil(total / (CHUNKS_PER_PROCESS * max(1, processes))))
-    chunks: list[tuple[int, list[int]]] = []
-    for d, (ds, indices) in enumerate(zip(datasets, todo, strict=True)):
-        by_seq: dict[str, list[int]] = {}
-        for i in sorted(indices, key=lambda k: ds.samples[k][:2]):
-            by_seq.setdefault(ds.samples[i][0], []).append(i)
-        for ix in by_seq.values():
-            n = max(1, len(ix) // size)
-            cuts = [0]
-            for c in range(1, n):
-                at = max(round(c * len(ix) / n), cuts[-1] + 1)
-                while at < len(ix) and ds.samples[ix[at]][1] == ds.samples[ix[at - 1]][1]:
-                    at += 1
-                if at < len(ix):
-                    cuts.append(at)
-            cuts.append(len(ix))
-            chunks.extend((d, ix[a:b]) for a, b in pairwise(cuts))
-    return chunks
-
-
-def _compute_chunk(
-    dataset: RenderedDrivingDataset, indices: Sequence[int], bar: Any = None
-) -> tuple[dict[int, np.ndarray], int, int]:
-    """:meth:`RenderedDrivingDataset._compute` on ``indices``: the pairs' quality sums, the
-    frames rendered and the worlds generated (whichever process it runs in)."""
-    frames, worlds = dataset.rendered_frames, set(dataset._worlds)
-    stats = dataset._compute(indices, bar)
-    return stats, dataset.rendered_frames - frames, len(set(dataset._worlds) - worlds)
-
-
-#: A preparation worker's datasets (:func:`_start_worker`), indexed as the caller's list.
-_WORKER_DATASETS: list[RenderedDrivingDataset] = []
-
-
-def _start_worker(datasets: list[RenderedDrivingDataset]) -> None:
-    """A preparation worker's initializer: keep the datasets, received once per process."""
-    _WORKER_DATASETS[:] = datasets
-
-
-def _prepare_chunk(d: int, indices: list[int]) -> tuple[np.ndarray, int, int]:
-    """One chunk of dataset ``d`` in a preparation worker: its pairs' quality sums
-    (``(len(indices), 3 R + 1)``, in the order of ``indices``), frames rendered, worlds
-    generated. The worker's dataset keeps the world of the chunk's sequence for its next chunk
-    and drops the others': chunks come in sequence order (:func:`plan_chunks`), so a dropped
-    world is not needed again in this process."""
-    dataset = _WORKER_DATASETS[d]
-    seq = dataset.samples[indices[0]][0]
-    for other in [s for s in dataset._worlds if s != seq]:
-        del dataset._worlds[other]
-    stats, frames, worlds = _compute_chunk(dataset, indices)
-    return np.stack([stats[i] for i in indices]), frames, worlds
-
-
-def prepare_pairs(
-    datasets: Sequence[RenderedDrivingDataset],
-    workers: int | None = None,
-    min_chunk_pairs: int = MIN_CHUNK_PAIRS,
-    progress: bool = True,
-) -> list[PreparedPairs]:
-    """Render, estimate and cache every missing pair of every dataset, on every core.
-
-    The missing pairs of all the datasets (e.g. a data module's train + validation pairs and
-    its test pairs) are cut into contiguous chunks of frames (:func:`plan_chunks`) that go into
-    one pool of single-threaded spawned processes (:func:`~mfg_lightning.core.processes.
-    single_thread_pool`): a split of two long sequences keeps every core busy, and no process
-    runs more threads than its core. Each worker receives the datasets once and generates a
-    sequence's world once. Where there are fewer than ``2 × min_chunk_pairs`` pairs or two
-    chunks, or ``workers`` is 0 or 1, the pairs are computed in this process, each frame
-    rendered once.
-
-    The cached files are the same whichever way (the renderer and the estimator are
-    deterministic, per frame and per pair; ``tests/test_rendered_flow.py`` compares them).
-
-    Args:
-        datasets: the datasets to fill.
-        workers: processes at most (None: every usable core,
-            :func:`~mfg_lightning.core.machine.usable_cores`).
-        min_chunk_pairs: the least pairs of a chunk (:data:`MIN_CHUNK_PAIRS`).
-        progress: show a progress bar (advancing per finished chunk).
-
-    Returns:
-        What was computed for each dataset, in order, the pairs' quality sums included.
-    """
-    from tqdm.auto import tqdm
-
-    from mfg_lightning.core.machine import usable_cores
-
-    todo = [ds.missing() for ds in datasets]
-    results = [PreparedPairs() for _ in datasets]
-    total = sum(len(ix) for ix in todo)
-    if not total:
-        return results
-    workers = usable_cores() if workers is None else int(workers)
-    chunks = plan_chunks(datasets, todo, workers, min_chunk_pairs) if workers > 1 else []
-    # (no more processes than chunks, nor than chunks of the least size: a small job would
-    # spend longer starting processes than computing)
-    processes = min(workers, len(chunks), total // max(1, min_chunk_pairs))
-    names = ", ".join(ds.name for ds, ix in zip(datasets, todo, strict=True) if ix)
-    estimators = sorted({ds.estimator.name for ds in datasets})
-    bar = tqdm(
-        total=total,
-        desc=f"render + {'/'.join(estimators)} flow ({names})",
-        unit="pair",
-        disable=not progress,
-    )
-
-    def record(d: int, indices: Sequence[int], stats: np.ndarray, frames: int, worlds: int):
-        ds, result = datasets[d], results[d]
-        result.pairs += len(indices)
-        result.frames += frames
-        result.worlds += worlds
-        result.stats.update((ds.samples[i], s) for i, s in zip(indices, stats, strict=True))
-
-    try:
-        if processes <= 1:
-            for d, (ds, indices) in enumerate(zip(datasets, todo, strict=True)):
-                if indices:
-                    stats, frames, worlds = _compute_chunk(ds, indices, bar)
-                    record(d, list(stats), list(stats.values()), frames, worlds)
-        else:
-            from concurrent.futures import as_completed
-
-            from mfg_lightning.core.processes import single_thread_pool
-
-            with single_thread_pool(processes, _start_worker, (list(datasets),)) as pool:
-                jobs = {pool.submit(_prepare_chunk, d, ix): (d, ix) for d, ix in chunks}
-                for job in as_completed(jobs):
-                    d, indices = jobs[job]
-                    stats, frames, worlds = job.result()
-                    record(d, indices, stats, frames, worlds)
-                    # the dataset's own counters, of work done in the workers (the log reads them)
-                    datasets[d].rendered_frames += frames
-                    datasets[d].estimated_pairs += len(indices)
-                    bar.update(len(indices))
-            for result, indices in zip(results, todo, strict=True):
-                result.processes = processes if indices else 0
-    finally:
-        bar.close()
-    return results
 
 
 def _unpack(packed: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -722,61 +469,3 @@ def world_config(fields: dict[str, Any]) -> Any:
     return worlds.WorldConfig(
         **{k: tuple(v) if isinstance(v, list) else v for k, v in fields.items()}
     )
-
-
-def quality_line(regions: dict[str, dict[str, float | None]]) -> str:
-    """``road EPE 1.23 px Fl 4.5 % · …`` for the log."""
-
-    def one(name: str, q: dict[str, float | None]) -> str:
-        if q["epe"] is None:
-            return f"{name} –"
-        return f"{name} EPE {q['epe']:.2f} px Fl {q['fl']:.1f} %"
-
-    return " · ".join(one(k, v) for k, v in regions.items())
-
-
-#: End-point errors at or above this many pixels get the brightest colour of the EPE panel.
-PICTURE_MAX_EPE = 10.0
-
-
-def flow_picture(full: dict[str, Any]) -> np.ndarray:
-    """The picture grid of one rendered pair at the image size, with the renderer's panels
-    (:func:`~mfg_lightning.pictures.rendered_frames.frame_panels`: RGB, exact flow, regions, object
-    mask)
-    and two more: the estimated flow in the exact flow's colour scale and its end-point error
-    against it (magma, 0 to :data:`PICTURE_MAX_EPE` px; black where the exact flow is
-    unknown).
-
-    Args:
-        full: the ``"full"`` entry of :meth:`RenderedDrivingDataset.compute_pair`.
-
-    Returns:
-        ``(H', W', 3)`` uint8.
-    """
-    from matplotlib import colormaps
-
-    from mfg_lightning.pictures.colours import flow_to_rgb
-    from mfg_lightning.pictures.rendered_frames import frame_panels, picture_grid
-
-    valid = full["exact_valid"]
-    magnitude = np.linalg.norm(full["exact_flow"], axis=2)[valid]
-    max_flow = float(magnitude.max()) if magnitude.size else 1.0
-    estimated = flow_to_rgb(np.moveaxis(full["flow"], 2, 0), max_flow)
-    estimated[~full["flow_valid"]] = 0
-    epe = np.linalg.norm(full["flow"] - full["exact_flow"], axis=2)
-    error = (colormaps["magma"](np.clip(epe / PICTURE_MAX_EPE, 0, 1))[..., :3] * 255).astype(
-        np.uint8
-    )
-    error[~(valid & full["flow_valid"])] = 0
-    shown = valid & full["flow_valid"]
-    mean = float(epe[shown].mean()) if shown.any() else float("nan")
-    panels = frame_panels(
-        full["frame"],
-        full["exact"],
-        extra=[
-            ("estimated flow (same colours)", estimated),
-            (f"end-point error (0-{PICTURE_MAX_EPE:g} px, mean {mean:.2f})", error),
-        ],
-        max_flow=max_flow,
-    )
-    return picture_grid([panels])

@@ -106,7 +106,7 @@ class EpochShuffleSampler(DistributedSampler):
     Attributes:
         on_order: None, or called with this process's indices of each pass (a resumed pass: those
             left) before the first is handed out: a prefetcher follows the order with it
-            (:class:`~mfg_lightning.data.sample_cache.Prefetcher`).
+            (:class:`~mfg_lightning.data.prefetch.Prefetcher`).
     """
 
     def __init__(

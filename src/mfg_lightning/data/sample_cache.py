@@ -1,5 +1,6 @@
-"""Samples computed once: a memory tier up to a stated size, a disk tier beyond it, and a
-background thread that fills them ahead of the training loader.
+"""Samples computed once: a memory tier up to a stated size and a disk tier beyond it, which a
+background thread (:class:`~mfg_lightning.data.prefetch.Prefetcher`) may fill ahead of the
+training loader.
 
 A ``flow=exact`` sample is a pure function of ``(scene seed, sequence, source, target)`` and its
 dataset's settings, so every epoch would regenerate the same samples: a :class:`SampleStore`
@@ -15,8 +16,8 @@ encoded as a few numpy arrays (:data:`Arrays`, :class:`Codec`).
   settings. An entry is one file (:func:`encode_entry`: the arrays and a CRC-32), written
   atomically (:mod:`mfg_lightning.core.atomic`); on read its CRC, names, dtypes and shapes are
   verified, and an entry that fails is warned about (naming the file) and computed again.
-* **Once**: two threads asking for the same sample (the loader and the :class:`Prefetcher`) share
-  one computation.
+* **Once**: two threads asking for the same sample (the loader and the
+  :class:`~mfg_lightning.data.prefetch.Prefetcher`) share one computation.
 
 :func:`source_digest` hashes the source files a sample is computed by, for the keys of this cache
 and of the rendered worlds' flow cache.
@@ -54,8 +55,6 @@ Arrays = dict[str, np.ndarray]
 FieldSpec = Mapping[str, tuple[np.dtype, tuple[int | None, ...]]]
 #: A sample in the form a :class:`SampleStore` keeps it in memory (:class:`Codec`).
 V = TypeVar("V")
-#: How ``dataset.prefetch`` may fill the first epoch ahead of the training step.
-PREFETCH_MODES = ("thread", "worker", "none")
 
 
 @dataclass(frozen=True)
@@ -91,15 +90,6 @@ class SampleCacheSettings:
         if not isinstance(disk, bool):
             raise ValueError(f"dataset.sample_cache.disk must be true or false, got {disk!r}")
         return cls(float(memory), disk)
-
-
-def check_prefetch(mode: str) -> str:
-    """``dataset.prefetch``, refused naming the key unless one of :data:`PREFETCH_MODES`."""
-    if mode not in PREFETCH_MODES:
-        raise ValueError(
-            f"dataset.prefetch must be one of {', '.join(PREFETCH_MODES)}, got {mode!r}"
-        )
-    return mode
 
 
 class _PerProcess:
@@ -445,69 +435,6 @@ class SampleStore(_PerProcess, Generic[V]):
         except OSError as err:
             log.warning("sample cache: cannot write %s (%s): not caching on disk", path, err)
             self.root = None
-
-
-class Prefetcher:
-    """Fills a dataset's cache from a background thread of the training process, in the order
-    the training loader will ask for its samples.
-
-    :meth:`follow` is given the indices of each pass of the loader before the first is handed
-    out (:attr:`~mfg_lightning.data.resumable_loader.EpochShuffleSampler.on_order`); the thread
-    walks them, calling ``fill(index)`` (:meth:`SampleStore.prefetch` of that sample), and
-    stops at the end, when ``fill`` returns False (nothing more can be kept), when a sample
-    fails (the loader then meets the error itself) or at :meth:`stop`.
-
-    The samples are the same whoever computes them (each is a pure function of its index), so
-    the thread changes when a sample is computed, never what the loader returns.
-
-    Args:
-        fill: computes and keeps sample ``index``; False when nothing more can be kept.
-        name: the thread's name (for debuggers and logs).
-    """
-
-    def __init__(self, fill: Callable[[int], bool], name: str = "prefetch") -> None:
-        self.fill, self.name = fill, name
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
-
-    def follow(self, order: Sequence[int]) -> None:
-        """Stop the current walk and start one over ``order``."""
-        self.stop()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(
-            target=self._walk, args=(list(order), self._stop), name=self.name, daemon=True
-        )
-        self._thread.start()
-
-    def _walk(self, order: list[int], stop: threading.Event) -> None:
-        for index in order:
-            if stop.is_set():
-                return
-            try:
-                if not self.fill(index):
-                    return
-            except Exception:
-                log.debug("%s: sample %d failed; leaving it to the loader", self.name, index,
-                          exc_info=True)  # fmt: skip
-                return
-
-    def stop(self) -> None:
-        """Stop the walk (after the sample being computed) and wait for the thread."""
-        self._stop.set()
-        thread, self._thread = self._thread, None
-        if thread is not None and thread is not threading.current_thread():
-            thread.join()
-
-    @property
-    def running(self) -> bool:
-        return self._thread is not None and self._thread.is_alive()
-
-    def __getstate__(self) -> dict[str, Any]:
-        # A copy (a pickled DataModule) has no thread of its own.
-        return {"fill": self.fill, "name": self.name}
-
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__init__(state["fill"], state["name"])
 
 
 # --------------------------------------------------------------------------------------------

@@ -52,7 +52,8 @@ from tqdm.auto import tqdm
 from mfg_lightning.core import geometry
 from mfg_lightning.core.data_errors import DataFileError, DataRootError
 from mfg_lightning.data import transforms
-from mfg_lightning.data.base import FileMotionDataset, check_offsets, normalize_sequence, some_of
+from mfg_lightning.data.base import check_offsets, normalize_sequence
+from mfg_lightning.data.file_datasets import FileMotionDataset, some_of
 from mfg_lightning.data.sample import sanitize_flow
 from mfg_lightning.flow import io as flow_io
 from mfg_lightning.flow.cache import default_cache_dir
@@ -145,7 +146,7 @@ class ImageSequenceDataset(FileMotionDataset):
         kwargs: ``height``, ``width`` (the input size flow, RGB and intrinsics are delivered
             at), ``split``, ``portion`` (``"all"`` frames of each sequence, or its ``"train"``
             head / ``"val"`` tail with ``val_fraction``) and ``skip_bad_samples`` of
-            :class:`~mfg_lightning.data.base.FileMotionDataset`.
+            :class:`~mfg_lightning.data.file_datasets.FileMotionDataset`.
     """
 
     def __init__(
@@ -231,7 +232,7 @@ class ImageSequenceDataset(FileMotionDataset):
 
     def _load_sequence(self, seq: str) -> tuple[ImageSequence, list[int], list[str]]:
         """Read sequence ``seq``: its record, the frame numbers present (sorted) and problems
-        to report (:meth:`~mfg_lightning.data.base.FileMotionDataset.report_problems`)."""
+        to report (:meth:`~mfg_lightning.data.file_datasets.FileMotionDataset.report_problems`)."""
         raise NotImplementedError
 
     def image_path(self, seq: str, frame: int) -> Path:

@@ -28,36 +28,31 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 
+from mfg_lightning.data import rendered_quality
 from mfg_lightning.data.base import (
     MFGDataModule,
     check_offsets,
     normalize_sequence,
 )
 from mfg_lightning.data.driving import SyntheticDrivingDataset
+from mfg_lightning.data.prefetch import Prefetcher, check_prefetch
 from mfg_lightning.data.rendered import (
-    MIN_CHUNK_PAIRS,
     RenderedDrivingDataset,
     flow_render_size,
-    prepare_pairs,
-    quality_line,
     world_config,
 )
+from mfg_lightning.data.rendered_preparation import MIN_CHUNK_PAIRS, prepare_pairs
 from mfg_lightning.data.resumable_loader import ResumableDataLoader
-from mfg_lightning.data.sample_cache import (
-    MemoryBudget,
-    Prefetcher,
-    SampleCacheSettings,
-    check_prefetch,
-)
+from mfg_lightning.data.sample_cache import MemoryBudget, SampleCacheSettings
 from mfg_lightning.flow.estimators import (
     EstimatedFlow,
     ExactFlow,
     FlowSource,
     parse_flow,
 )
+from mfg_lightning.metrics.flow_quality import quality_line
 from mfg_lightning.scene.boxes import SceneConfig
 from mfg_lightning.scene.camera import procedural_trajectory
 from mfg_lightning.scene.seeding import seeded_rng
@@ -81,10 +76,6 @@ log = logging.getLogger(__name__)
 # --------------------------------------------------------------------------------------------
 
 
-# plus "stats": (len(QUALITY_REGIONS) * 3 + 1,) float64, the quality (EPE sum, Fl outliers,
-# pixels per region, at the image size) and the number of non-finite estimated pixels.
-
-
 class SyntheticDataModule(MFGDataModule):
     """The default dataset: procedural driving or real KITTI trajectories, no download.
 
@@ -97,7 +88,8 @@ class SyntheticDataModule(MFGDataModule):
     precomputed into the cache by :meth:`prepare_data`, whose flow quality (EPE, Fl per region)
     is logged when training starts (``<split>/flow_epe/<region>``, ``<split>/flow_fl/<region>``
     and a picture grid, to TensorBoard) and written beside the cache
-    (``quality-<split>-<pairs>pairs-<digest>.json``, named by the pair set it measures).
+    (``quality-<split>-<pairs>pairs-<digest>.json``, named by the pair set it measures:
+    :mod:`mfg_lightning.data.rendered_quality`).
 
     Args:
         trajectory: ``"procedural"`` or ``"kitti"``.
@@ -114,7 +106,8 @@ class SyntheticDataModule(MFGDataModule):
         cache_dir: where estimated flow is cached (``paths.cache_dir``).
         precompute_flow: fill the cache in :meth:`prepare_data` (else on first use).
         prepare_workers: processes of :meth:`prepare_data`'s rendering and estimation
-            (:func:`~mfg_lightning.data.rendered.prepare_pairs`: chunks of frames from every
+            (:func:`~mfg_lightning.data.rendered_preparation.prepare_pairs`: chunks of frames
+            from every
             sequence of every split in one pool of single-threaded processes); None: every
             usable core; 0 or 1: the calling process. The cached pairs are the same whichever.
         prepare_chunk_pairs: the least pairs of one such chunk (fewer pairs than two chunks
@@ -355,7 +348,7 @@ class SyntheticDataModule(MFGDataModule):
 
     def ordinary_train_loader(self) -> ResumableDataLoader:
         """The training loader (:class:`MFGDataModule`'s), with ``flow=exact``'s prefetch:
-        ``thread`` hooks a :class:`~mfg_lightning.data.sample_cache.Prefetcher` to its sampler
+        ``thread`` hooks a :class:`~mfg_lightning.data.prefetch.Prefetcher` to its sampler
         (each pass's order, a resumed one's remaining indices included), ``worker`` gives it at
         least one persistent worker process."""
         exact = not isinstance(self.flow, EstimatedFlow)
@@ -406,22 +399,18 @@ class SyntheticDataModule(MFGDataModule):
 
     def quality_path(self, split: str) -> Path:
         """Where a split's flow quality is written: beside the cache, named by the pair set it
-        measures (the split, its pair count and a digest of its (sequence, source, target)
-        list), so that runs with other offsets, strides or frame counts on the same worlds
-        do not share it."""
-        import hashlib
-
+        measures (:func:`mfg_lightning.data.rendered_quality.quality_path` of its dataset)."""
         ds = self.dataset(split)
         assert isinstance(ds, RenderedDrivingDataset)
-        digest = hashlib.sha256(repr(sorted(ds.samples)).encode()).hexdigest()[:12]
-        return ds.cache.root / f"quality-{split}-{len(ds.samples)}pairs-{digest}.json"
+        return rendered_quality.quality_path(ds, split)
 
     def prepare_data(self) -> None:
         """``flow=dis``: render and estimate every missing pair of every split into the cache,
         then write each split's flow quality and a picture per trajectory beside it.
 
         The train + validation pairs and the test pairs go into one pool
-        (:func:`~mfg_lightning.data.rendered.prepare_pairs`, ``dataset.prepare_workers``
+        (:func:`~mfg_lightning.data.rendered_preparation.prepare_pairs`,
+        ``dataset.prepare_workers``
         processes, every usable core by default), in contiguous chunks of frames; the quality
         sums of the pairs computed come back from the workers, so that only pairs cached by an
         earlier run are read for the quality. Lightning calls this on one process per node;
@@ -477,9 +466,8 @@ class SyntheticDataModule(MFGDataModule):
     def _log_flow_quality(self) -> None:
         """Log each built split's flow quality and pictures to the trainer's loggers (once):
         ``<split>/flow_epe/<region>`` (pixels) and ``<split>/flow_fl/<region>`` (%) at step 0,
-        the picture grids as ``<split>/flow_picture/<seq>`` images."""
-        import json
-
+        the picture grids as ``<split>/flow_picture/<seq>`` images
+        (:func:`~mfg_lightning.data.rendered_quality.log_split_quality`)."""
         trainer = self.trainer
         if trainer is None or not trainer.loggers:
             return
@@ -488,23 +476,5 @@ class SyntheticDataModule(MFGDataModule):
             if split in self._logged_quality or not path.exists():
                 continue
             self._logged_quality.add(split)
-            quality = json.loads(path.read_text())
-            metrics = {}
-            for region, q in quality["regions"].items():
-                if q["epe"] is not None:
-                    metrics[f"{split}/flow_epe/{region}"] = q["epe"]
-                    metrics[f"{split}/flow_fl/{region}"] = q["fl"]
-            metrics[f"{split}/flow_nonfinite_pixels"] = float(quality["nonfinite_pixels"])
-            for logger in trainer.loggers:
-                logger.log_metrics(metrics, step=0)
-            if split == "val":
-                continue  # the validation tails share the training split's pictures
-            for seq in ds.sequences():
-                picture = ds.picture_path(seq)
-                if not picture.exists():
-                    continue
-                grid = np.load(picture)
-                for logger in trainer.loggers:
-                    add_image = getattr(getattr(logger, "experiment", None), "add_image", None)
-                    if add_image is not None:
-                        add_image(f"{split}/flow_picture/{seq}", grid, 0, dataformats="HWC")
+            assert isinstance(ds, RenderedDrivingDataset)
+            rendered_quality.log_split_quality(trainer.loggers, split, ds, path)

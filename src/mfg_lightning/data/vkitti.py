@@ -1,7 +1,7 @@
 """Virtual KITTI 1.3.1 and 2.0.3 as Lightning DataModules with the paper's two splits.
 
-Layouts read (``docs/formats.md``; ``data_root`` is the directory holding the unpacked
-tarballs, never written to)::
+Layouts read (``docs/formats.md``, :mod:`mfg_lightning.data.vkitti_files`; ``data_root`` is the
+directory holding the unpacked tarballs, never written to)::
 
     1.3.1 (version=1)
     vkitti_1.3.1_rgb/<world>/<var>/%05d.png
@@ -60,19 +60,17 @@ import numpy as np
 import torch
 
 from mfg_lightning.core import geometry
-from mfg_lightning.core.data_errors import DataFileError, DataRootError
+from mfg_lightning.core.data_errors import DataFileError
 from mfg_lightning.data import transforms
-from mfg_lightning.data.base import (
-    FileMotionDataset,
-    MFGDataModule,
-    check_data_root,
-    check_split,
-    list_numbered,
-    read_text_lines,
-    some_of,
-    split_sequences,
-)
+from mfg_lightning.data.base import MFGDataModule, check_split, split_sequences
+from mfg_lightning.data.file_datasets import FileMotionDataset, list_numbered, some_of
 from mfg_lightning.data.sample import sanitize_flow
+from mfg_lightning.data.vkitti_files import (
+    check_vkitti_root,
+    normalize_version,
+    read_vkitti_extrinsics,
+    read_vkitti_intrinsics,
+)
 from mfg_lightning.flow import io as flow_io
 from mfg_lightning.flow.estimators import FlowSource, GroundTruthFlow, parse_flow
 
@@ -83,13 +81,7 @@ __all__ = [
     "VKITTI1_INTRINSICS",
     "VirtualKittiDataModule",
     "VirtualKittiDataset",
-    "VkittiLayout",
-    "normalize_version",
     "normalize_world",
-    "read_vkitti_extrinsics",
-    "read_vkitti_intrinsics",
-    "write_vkitti_extrinsics",
-    "write_vkitti_intrinsics",
 ]
 
 WORLDS = ("0001", "0002", "0006", "0018", "0020")
@@ -105,34 +97,6 @@ SPLITS = {
 #: Virtual KITTI 1.3.1's camera, the same for every frame: (fx, fy, cx, cy) at 1242×375.
 VKITTI1_INTRINSICS = (725.0, 725.0, 620.5, 187.0)
 
-VKITTI1_LAYOUT = """\
-<data_root>/                          (the unpacked Virtual KITTI 1.3.1 tarballs)
-├── vkitti_1.3.1_rgb/0001/clone/00000.png 00001.png …
-├── vkitti_1.3.1_depthgt/0001/clone/00000.png …        16-bit depth, cm
-├── vkitti_1.3.1_flowgt/0001/clone/00000.png …         16-bit forward flow
-└── vkitti_1.3.1_extrinsicsgt/0001_clone.txt …         world-to-camera 4×4 per frame
-    (worlds 0001 0002 0006 0018 0020; variations clone, 15-deg-left, …, fog, rain)"""
-
-VKITTI2_LAYOUT = """\
-<data_root>/                          (the unpacked Virtual KITTI 2.0.3 tarballs)
-├── vkitti_2.0.3_rgb/Scene01/clone/frames/rgb/Camera_0/rgb_00000.jpg …
-├── vkitti_2.0.3_depth/Scene01/clone/frames/depth/Camera_0/depth_00000.png …
-├── vkitti_2.0.3_forwardFlow/Scene01/clone/frames/forwardFlow/Camera_0/flow_00000.png …
-└── vkitti_2.0.3_textgt/Scene01/clone/extrinsic.txt, intrinsic.txt
-    (scenes Scene01 Scene02 Scene06 Scene18 Scene20; variations clone, 15-deg-left, …)"""
-
-
-def normalize_version(version: Any) -> int:
-    """``1``, ``"1.3.1"`` → 1; ``2``, ``"2.0.3"`` → 2."""
-    text = str(version).strip()
-    if text in ("1", "1.3", "1.3.1"):
-        return 1
-    if text in ("2", "2.0", "2.0.3"):
-        return 2
-    raise ValueError(
-        f"dataset.version must be 1 (Virtual KITTI 1.3.1) or 2 (2.0.3), got {version!r}"
-    )
-
 
 def normalize_world(world: Any) -> str:
     """``1``, ``"1"``, ``"0001"``, ``"Scene01"`` → ``"0001"``."""
@@ -142,220 +106,6 @@ def normalize_world(world: Any) -> str:
     if not text.isdigit():
         raise ValueError(f"unknown Virtual KITTI world {world!r}; worlds are {', '.join(WORLDS)}")
     return f"{int(text):04d}"
-
-
-# --------------------------------------------------------------------------------------------
-# Text files
-# --------------------------------------------------------------------------------------------
-
-
-def _numeric_rows(path: Path, width: int) -> np.ndarray:
-    """The rows after the header line of a whitespace-separated table, as float64 ``(N, width)``."""
-    lines = read_text_lines(path)
-    rows = [line.split() for line in lines[1:] if line.strip()]
-    for i, row in enumerate(rows):
-        if len(row) != width:
-            raise DataFileError(f"{path}: line {i + 2} has {len(row)} fields, expected {width}")
-    try:
-        table = np.array(rows, np.float64).reshape(-1, width)
-    except ValueError:
-        raise DataFileError(f"{path}: non-numeric entries") from None
-    if not np.isfinite(table).all():
-        raise DataFileError(f"{path}: non-finite entries (nan, inf or out of range)")
-    return table
-
-
-def read_vkitti_extrinsics(path: str | os.PathLike, version: int = 1) -> dict[int, np.ndarray]:
-    """World-to-camera extrinsics per frame (camera 0 for 2.0.3).
-
-    1.3.1: ``frame`` then 16 numbers per line; 2.0.3: ``frame cameraID`` then 16 numbers.
-
-    Returns:
-        frame → ``(4, 4)`` float64 world-to-camera matrix (``T_cam_world``, metres).
-    """
-    path = Path(path)
-    if version == 1:
-        table = _numeric_rows(path, 17)
-        frames, mats = table[:, 0], table[:, 1:]
-    else:
-        table = _numeric_rows(path, 18)
-        table = table[table[:, 1] == 0]
-        frames, mats = table[:, 0], table[:, 2:]
-    return {int(f): m.reshape(4, 4) for f, m in zip(frames, mats, strict=True)}
-
-
-def read_vkitti_intrinsics(path: str | os.PathLike) -> dict[int, np.ndarray]:
-    """2.0.3 ``intrinsic.txt``: ``frame cameraID K[0,0] K[1,1] K[0,2] K[1,2]`` per line.
-
-    Returns:
-        frame → ``(4,)`` ``(fx, fy, cx, cy)`` of camera 0 in native pixels.
-    """
-    table = _numeric_rows(Path(path), 6)
-    table = table[table[:, 1] == 0]
-    return {int(row[0]): row[2:].copy() for row in table}
-
-
-_MATRIX_HEADER = "r1,1 r1,2 r1,3 t1 r2,1 r2,2 r2,3 t2 r3,1 r3,2 r3,3 t3 0 0 0 1"
-
-
-def _write_table(path: str | os.PathLike, header: str, rows: np.ndarray, ints: int) -> None:
-    """A header line, then one row per line: the first ``ints`` columns as integers, the rest as
-    the shortest text that reads back exactly (``repr``)."""
-    from mfg_lightning.core.atomic import atomic_write_text
-
-    lines = [header]
-    for row in rows:
-        lines.append(
-            " ".join([str(int(v)) for v in row[:ints]] + [repr(float(v)) for v in row[ints:]])
-        )
-    atomic_write_text(path, "\n".join(lines) + "\n")
-
-
-def write_vkitti_extrinsics(path: str | os.PathLike, extrinsics: Any, version: int = 1) -> None:
-    """Write world-to-camera extrinsics, one line per frame (the inverse of
-    :func:`read_vkitti_extrinsics`): 1.3.1 ``frame`` then 16 numbers; 2.0.3 ``frame cameraID``
-    (camera 0) then 16 numbers, each after its header line.
-
-    Args:
-        path: the file (replaced atomically).
-        extrinsics: ``(N, 4, 4)`` world-to-camera matrices ``T_cam_world`` of frames 0 … N−1
-            (metres), finite.
-        version: 1 (1.3.1) or 2 (2.0.3).
-    """
-    mats = np.asarray(extrinsics, np.float64)
-    if mats.ndim != 3 or mats.shape[1:] != (4, 4) or not np.isfinite(mats).all():
-        raise ValueError(f"{path}: extrinsics must be finite (N, 4, 4), got {mats.shape}")
-    frames = np.arange(len(mats), dtype=np.float64)[:, None]
-    if normalize_version(version) == 1:
-        _write_table(path, f"frame {_MATRIX_HEADER}", np.hstack([frames, mats.reshape(-1, 16)]), 1)
-    else:
-        table = np.hstack([frames, np.zeros_like(frames), mats.reshape(-1, 16)])
-        _write_table(path, f"frame cameraID {_MATRIX_HEADER}", table, 2)
-
-
-def write_vkitti_intrinsics(path: str | os.PathLike, intrinsics: Any) -> None:
-    """Write a 2.0.3 ``intrinsic.txt`` (the inverse of :func:`read_vkitti_intrinsics`): the
-    header, then ``frame cameraID K[0,0] K[1,1] K[0,2] K[1,2]`` per frame (camera 0).
-
-    Args:
-        path: the file (replaced atomically).
-        intrinsics: ``(N, 4)`` ``(fx, fy, cx, cy)`` of frames 0 … N−1 in pixels, finite.
-    """
-    K = np.asarray(intrinsics, np.float64)
-    if K.ndim != 2 or K.shape[1] != 4 or not np.isfinite(K).all():
-        raise ValueError(f"{path}: intrinsics must be finite (N, 4), got {K.shape}")
-    frames = np.arange(len(K), dtype=np.float64)[:, None]
-    table = np.hstack([frames, np.zeros_like(frames), K])
-    _write_table(path, "frame cameraID K[0,0] K[1,1] K[0,2] K[1,2]", table, 2)
-
-
-# --------------------------------------------------------------------------------------------
-# Layout
-# --------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class VkittiLayout:
-    """Paths of one Virtual KITTI version under ``root`` (the reader's, and the writer's in
-    :mod:`mfg_lightning.data.export`)."""
-
-    root: Path
-    version: int
-
-    @property
-    def tag(self) -> str:
-        return "vkitti_1.3.1" if self.version == 1 else "vkitti_2.0.3"
-
-    @property
-    def tree(self) -> str:
-        return VKITTI1_LAYOUT if self.version == 1 else VKITTI2_LAYOUT
-
-    def _scene(self, world: str) -> str:
-        return world if self.version == 1 else f"Scene{int(world):02d}"
-
-    def top_dirs(self) -> list[Path]:
-        names = (
-            ("rgb", "depthgt", "flowgt", "extrinsicsgt")
-            if self.version == 1
-            else ("rgb", "depth", "forwardFlow", "textgt")
-        )
-        return [self.root / f"{self.tag}_{n}" for n in names]
-
-    def rgb_dir(self, world: str, var: str) -> Path:
-        if self.version == 1:
-            return self.root / f"{self.tag}_rgb" / world / var
-        return self.root / f"{self.tag}_rgb" / self._scene(world) / var / "frames/rgb/Camera_0"
-
-    def depth_dir(self, world: str, var: str) -> Path:
-        if self.version == 1:
-            return self.root / f"{self.tag}_depthgt" / world / var
-        return self.root / f"{self.tag}_depth" / self._scene(world) / var / "frames/depth/Camera_0"
-
-    def flow_dir(self, world: str, var: str) -> Path:
-        if self.version == 1:
-            return self.root / f"{self.tag}_flowgt" / world / var
-        return (
-            self.root / f"{self.tag}_forwardFlow" / self._scene(world) / var
-            / "frames/forwardFlow/Camera_0"
-        )  # fmt: skip
-
-    def extrinsics_file(self, world: str, var: str) -> Path:
-        if self.version == 1:
-            return self.root / f"{self.tag}_extrinsicsgt" / f"{world}_{var}.txt"
-        return self.root / f"{self.tag}_textgt" / self._scene(world) / var / "extrinsic.txt"
-
-    def intrinsics_file(self, world: str, var: str) -> Path | None:
-        if self.version == 1:
-            return None
-        return self.root / f"{self.tag}_textgt" / self._scene(world) / var / "intrinsic.txt"
-
-    # file names: (prefix, suffix) of rgb, depth, flow
-    def names(self) -> dict[str, tuple[str, str]]:
-        if self.version == 1:
-            return {"rgb": ("", ".png"), "depth": ("", ".png"), "flow": ("", ".png")}
-        return {"rgb": ("rgb_", ".jpg"), "depth": ("depth_", ".png"), "flow": ("flow_", ".png")}
-
-    def directory(self, kind: str, world: str, var: str) -> Path:
-        """The directory of the ``rgb``, ``depth`` or ``flow`` files of one world."""
-        return {"rgb": self.rgb_dir, "depth": self.depth_dir, "flow": self.flow_dir}[kind](
-            world, var
-        )
-
-    def file(self, kind: str, world: str, var: str, frame: int) -> Path:
-        prefix, suffix = self.names()[kind]
-        return self.directory(kind, world, var) / f"{prefix}{frame:05d}{suffix}"
-
-
-def check_vkitti_root(
-    data_root: str | os.PathLike | None, version: int, worlds: Sequence[str], variation: str
-) -> VkittiLayout:
-    """Return the layout, or raise ONE :class:`DataRootError` listing what is missing and showing
-    the expected tree."""
-    tree = VKITTI1_LAYOUT if version == 1 else VKITTI2_LAYOUT
-    name = "Virtual KITTI 1.3.1" if version == 1 else "Virtual KITTI 2.0.3"
-    root = check_data_root(data_root, f"the directory holding the unpacked {name} tarballs", tree)
-    layout = VkittiLayout(root.resolve(), version)
-    missing = [d for d in layout.top_dirs() if not d.is_dir()]
-    if not missing:
-        for world in worlds:
-            needed = [
-                layout.rgb_dir(world, variation),
-                layout.depth_dir(world, variation),
-                layout.flow_dir(world, variation),
-                layout.extrinsics_file(world, variation),
-            ]
-            intr = layout.intrinsics_file(world, variation)
-            missing += [p for p in [*needed, intr] if p is not None and not p.exists()]
-    if missing:
-        other = VkittiLayout(layout.root, 3 - version)
-        hint = ""
-        if all(d.is_dir() for d in other.top_dirs()):
-            hint = f"\n(this looks like the other version: set dataset.version={3 - version})"
-        raise DataRootError(
-            f"dataset.data_root={root} does not look like {name} (variation {variation}); "
-            f"missing:\n{some_of(missing, 20)}{hint}\nExpected layout:\n{tree}"
-        )
-    return layout
 
 
 # --------------------------------------------------------------------------------------------
@@ -384,7 +134,7 @@ class VirtualKittiDataset(FileMotionDataset):
         load_rgb: deliver the source image as ``rgb``.
         kwargs: ``height``, ``width`` (the model's input size), ``split``, ``portion`` (``"all"``
             frames of each world, its ``"train"`` head or its ``"val"`` tail) and
-            ``skip_bad_samples`` of :class:`~mfg_lightning.data.base.FileMotionDataset`.
+            ``skip_bad_samples`` of :class:`~mfg_lightning.data.file_datasets.FileMotionDataset`.
     """
 
     name = "vkitti"

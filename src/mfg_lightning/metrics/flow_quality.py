@@ -1,16 +1,37 @@
 """A flow estimate's quality pooled pixel by pixel over a split, per named set of pixels: the mean
-end-point error (px) and KITTI's Fl outlier rate (%), as a torchmetrics ``Metric`` whose sums are
-added up across processes where Lightning and torchmetrics reduce (``compute``)."""
+end-point error (px) and KITTI's Fl outlier rate (%).
+
+Two forms of the same sums: per pair of rendered frames in numpy, per region of the renderer's
+region map (:func:`flow_quality`, what the ``flow=dis`` cache keeps beside each estimate,
+:func:`pair_stats`), pooled over a split's pairs (:func:`pooled_quality`,
+:func:`pooled_quality_by_offset`, :func:`summarize_quality`); and as a torchmetrics ``Metric``
+(:class:`PooledFlowQuality`) whose sums are added up across processes where Lightning and
+torchmetrics reduce (``compute``)."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 from torchmetrics import Metric
 
-__all__ = ["PooledFlowQuality"]
+__all__ = [
+    "QUALITY_REGIONS",
+    "PooledFlowQuality",
+    "flow_quality",
+    "pair_stats",
+    "pooled_quality",
+    "pooled_quality_by_offset",
+    "quality_line",
+    "region_codes",
+    "summarize_quality",
+]
+
+#: The regions flow quality is reported for (the renderer's region map), then all pixels.
+QUALITY_REGIONS = ("road", "structure", "moving", "far", "all")
 
 
 class PooledFlowQuality(Metric):
@@ -67,3 +88,117 @@ class PooledFlowQuality(Metric):
             if n > 0:
                 out[name] = (epe / n, 100.0 * outliers / n)
         return out
+
+
+# -- per pair of rendered frames, pooled over a split (numpy) ---------------------------------
+
+
+def region_codes() -> list[tuple[str, int | None]]:
+    """``(name, code)`` of every :data:`QUALITY_REGIONS` entry in the renderer's region map
+    (``None``: all pixels)."""
+    # (the renderer imported on first use, so that flow=exact never loads it)
+    from mfg_lightning.scene import render
+
+    codes = {
+        "road": render.REGION_ROAD,
+        "structure": render.REGION_STRUCTURE,
+        "moving": render.REGION_MOVING,
+        "far": render.REGION_FAR,
+    }
+    return [(name, codes.get(name)) for name in QUALITY_REGIONS]
+
+
+def flow_quality(
+    estimated: np.ndarray, exact: np.ndarray, valid: np.ndarray, region: np.ndarray
+) -> np.ndarray:
+    """End-point error and KITTI's Fl outliers of an estimated flow against the exact one.
+
+    A pixel is an Fl outlier when its end-point error exceeds 3 px *and* 5 % of the exact flow's
+    magnitude (the KITTI 2015 flow benchmark's definition).
+
+    Args:
+        estimated, exact: ``(H, W, 2)`` pixels (at the image size the flow was estimated at).
+        valid: ``(H, W)`` bool, the pixels that count (exact flow known, estimate finite).
+        region: ``(H, W)`` the renderer's region code of every pixel.
+
+    Returns:
+        ``(len(QUALITY_REGIONS), 3)`` float64: per region, the sum of the end-point errors
+        (pixels), the number of outliers and the number of pixels counted; sums, so that pairs
+        pool by addition.
+    """
+    epe = np.linalg.norm(estimated.astype(np.float64) - exact, axis=2)
+    outlier = (epe > 3.0) & (epe > 0.05 * np.linalg.norm(exact.astype(np.float64), axis=2))
+    out = np.zeros((len(QUALITY_REGIONS), 3))
+    for r, (_, code) in enumerate(region_codes()):
+        m = valid if code is None else valid & (region == code)
+        out[r] = (epe[m].sum(), outlier[m].sum(), m.sum())
+    return out
+
+
+def summarize_quality(stats: np.ndarray) -> dict[str, dict[str, float | None]]:
+    """Pooled ``{region: {"epe": px, "fl": %, "pixels": n}}`` from summed per-pair stats
+    (``(..., R, 3)``: pairs pooled pixel by pixel; None where a region had no pixel)."""
+    total = stats.reshape(-1, len(QUALITY_REGIONS), 3).sum(axis=0)
+    out: dict[str, dict[str, float | None]] = {}
+    for name, (epe, outliers, n) in zip(QUALITY_REGIONS, total, strict=True):
+        out[name] = {
+            "epe": float(epe / n) if n else None,
+            "fl": float(100.0 * outliers / n) if n else None,
+            "pixels": float(n),
+        }
+    return out
+
+
+def pair_stats(quality: np.ndarray, nonfinite: int | np.integer) -> np.ndarray:
+    """A pair's quality sums as the ``flow=dis`` cache keeps them (``stats``):
+    :func:`flow_quality`'s ``(R, 3)`` flattened, then the pair's non-finite estimated pixel
+    count; ``(3 R + 1,)`` float64."""
+    return np.append(quality.ravel(), float(nonfinite))
+
+
+def pooled_quality(pairs: Iterable[np.ndarray]) -> dict[str, Any]:
+    """The flow quality of a set of pairs, pooled pixel by pixel, and their non-finite pixels.
+
+    Args:
+        pairs: each pair's sums (:func:`pair_stats`, ``(3 R + 1,)``).
+
+    Returns:
+        ``{"regions": summarize_quality(...), "nonfinite_pixels": n}``.
+    """
+    stats = np.zeros((len(QUALITY_REGIONS), 3))
+    nonfinite = 0
+    for pair in pairs:
+        stats += pair[:-1].reshape(stats.shape)
+        nonfinite += int(pair[-1])
+    return {"regions": summarize_quality(stats), "nonfinite_pixels": nonfinite}
+
+
+def pooled_quality_by_offset(pairs: Iterable[tuple[int, np.ndarray]]) -> dict[str, dict[str, Any]]:
+    """The flow quality pooled per frame offset (target − source):
+    ``{"-2": {"regions": ..., "pairs": n}, "-1": ..., "1": ..., "2": ...}``, offsets in
+    increasing order (the estimate's error grows with the motion it has to find, which the
+    offset scales).
+
+    Args:
+        pairs: ``(offset, sums)`` of each pair (:func:`pair_stats`, ``(3 R + 1,)``).
+    """
+    stats: dict[int, np.ndarray] = {}
+    counts: dict[int, int] = {}
+    for off, pair in pairs:
+        pooled = stats.setdefault(off, np.zeros((len(QUALITY_REGIONS), 3)))
+        pooled += pair[:-1].reshape(pooled.shape)
+        counts[off] = counts.get(off, 0) + 1
+    return {
+        str(o): {"regions": summarize_quality(stats[o]), "pairs": counts[o]} for o in sorted(stats)
+    }
+
+
+def quality_line(regions: dict[str, dict[str, float | None]]) -> str:
+    """``road EPE 1.23 px Fl 4.5 % · …`` for the log."""
+
+    def one(name: str, q: dict[str, float | None]) -> str:
+        if q["epe"] is None:
+            return f"{name} –"
+        return f"{name} EPE {q['epe']:.2f} px Fl {q['fl']:.1f} %"
+
+    return " · ".join(one(k, v) for k, v in regions.items())
