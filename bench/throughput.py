@@ -83,9 +83,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--batch-sizes", type=int, nargs="+", default=[1, 16, 32])
     p.add_argument("--samples", type=int, default=256, help="samples held in memory")
-    p.add_argument("--steps-per-batch-size", type=int, nargs="+", default=[100, 20, 12])
+    p.add_argument("--steps-per-batch-size", type=int, nargs="+", default=[200, 40, 24])
     p.add_argument("--warmup", type=int, default=5)
-    p.add_argument("--repeats", type=int, default=3, help="of the Lightning/bare comparison")
+    p.add_argument("--repeats", type=int, default=5, help="of the Lightning/bare comparison")
     p.add_argument("--candidate-repeats", type=int, default=2, help="of the other measurements")
     p.add_argument("--rss-steps", type=int, default=60, help="steps of the peak-memory run")
     p.add_argument("--no-compile", action="store_true", help="skip the torch.compile candidate")
@@ -148,7 +148,8 @@ def main(argv: list[str] | None = None) -> Path:
         f"synthetic samples in memory, pre-collated; rates are medians of {args.repeats} "
         f"(Lightning/bare) or {args.candidate_repeats} (candidates) interleaved runs, each "
         f"{args.warmup} warm-up steps then {args.steps_per_batch_size} steps (per batch size "
-        f"{args.batch_sizes})."
+        f"{args.batch_sizes}); a run's rate is the batch over its median step time (a step "
+        "that another process stalled does not count)."
     )
     peaks = gemm_peak.section(run)
     rates = lightning_vs_bare.section(run, peaks)

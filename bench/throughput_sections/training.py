@@ -4,6 +4,7 @@ here (:func:`bare_step_fn`, :func:`bare_rate`) whose options are the candidate s
 
 from __future__ import annotations
 
+import statistics
 import time
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -28,9 +29,13 @@ class InMemory:
 
 
 def steady_rate(stamps: list[float], warmup: int, batch_size: int) -> float:
-    """Samples per second from the end-of-step timestamps, after ``warmup`` steps."""
-    steps = len(stamps) - warmup
-    return steps * batch_size / (stamps[-1] - stamps[warmup - 1])
+    """Samples per second from the end-of-step timestamps, after ``warmup`` steps: the batch
+    over the median step time. On a shared machine a step that another process stalls takes
+    several times its usual time; a total over the steps counts every stall, the median ignores
+    the few there are (the machine profile's rule, :mod:`mfg_lightning.run.machine_profile`, is
+    robust the same way)."""
+    times = [b - a for a, b in zip(stamps[warmup - 1 : -1], stamps[warmup:], strict=True)]
+    return batch_size / statistics.median(times)
 
 
 def quiet_trainer(stamp: Any, **limits: Any) -> Any:

@@ -84,11 +84,13 @@ def im2col_conv2d(
 
     Every output pixel's receptive field (``C · kh · kw`` values, in the weight's own order)
     becomes one row of an ``(N · Ho · Wo, C · kh · kw)`` matrix, which one GEMM multiplies with
-    the weights viewed as ``(C_out, C · kh · kw)`` (no copy of the weights). Autograd derives the
-    backward: the input gradient is the GEMM with the weights scattered back over the windows
-    (overlapping windows summed), the weight gradient one GEMM of the output gradient with the
-    gathered rows. Under autocast the input is cast before the gather (the rows are
-    ``kh · kw / (sh · sw)`` times the input), as autocast casts the GEMM's operands.
+    the weights viewed as ``(C_out, C · kh · kw)`` (no copy of the weights). The gather is
+    ``F.unfold`` (im2col), whose backward is one ``col2im`` that sums the overlapping windows'
+    gradients back into the input: about half the time of the same gather built from
+    ``Tensor.unfold`` views, whose generic backward dominated the deepest layer's step
+    (bench/results/throughput.md, "Per-layer kernels"). The weight gradient is one GEMM of the
+    output gradient with the gathered rows. Under autocast the input is cast before the gather
+    (the rows are ``kh · kw / (sh · sw)`` times the input), as autocast casts the GEMM's operands.
 
     Args:
         x: ``(N, C, H, W)`` input, any memory format.
@@ -105,17 +107,12 @@ def im2col_conv2d(
     n, c, h, w = x.shape
     c_out, _, kh, kw = weight.shape
     (sh, sw), (ph, pw), (dh, dw) = stride, padding, dilation
-    # One copy into a zero-padded contiguous NCHW tensor, whatever the input's memory format: the
-    # gather below then reads each window's kw values from one contiguous run.
-    padded = x.new_zeros(n, c, h + 2 * ph, w + 2 * pw)
-    padded[:, :, ph : ph + h, pw : pw + w] = x
-    span_h, span_w = dh * (kh - 1) + 1, dw * (kw - 1) + 1
-    windows = padded.unfold(2, span_h, sh).unfold(3, span_w, sw)  # (N, C, Ho, Wo, span_h, span_w)
-    if dh > 1 or dw > 1:
-        windows = windows[..., ::dh, ::dw]
-    ho, wo = windows.shape[2], windows.shape[3]
-    # The gather: (N, Ho, Wo, C, kh, kw) made contiguous, one row per output pixel.
-    rows = windows.permute(0, 2, 3, 1, 4, 5).reshape(n * ho * wo, c * kh * kw)
+    ho = (h + 2 * ph - dh * (kh - 1) - 1) // sh + 1
+    wo = (w + 2 * pw - dw * (kw - 1) - 1) // sw + 1
+    # (N, C · kh · kw, Ho · Wo), rows in the weight's (C, kh, kw) order; contiguous NCHW first,
+    # which F.unfold reads fastest whatever the input's memory format.
+    cols = F.unfold(x.contiguous(), (kh, kw), dilation=(dh, dw), padding=(ph, pw), stride=(sh, sw))
+    rows = cols.transpose(1, 2).reshape(n * ho * wo, c * kh * kw)
     out = F.linear(rows, weight.flatten(1), bias)  # (N · Ho · Wo, C_out)
     return out.view(n, ho, wo, c_out).permute(0, 3, 1, 2)
 

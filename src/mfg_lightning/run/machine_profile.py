@@ -54,7 +54,7 @@ from mfg_lightning.run.precision import cpu_has_native_bf16
 log = logging.getLogger(__name__)
 
 #: Bumped when what is measured or how it is decided changes: older files are measured again.
-PROFILE_VERSION = 4
+PROFILE_VERSION = 5  # 5: im2col gathers with F.unfold (faster: measure it again)
 #: Timed rounds per candidate, after one warm-up round.
 ROUNDS = 5
 #: A convolution replaces ``native`` only this much faster (fraction of native's best time).
