@@ -223,7 +223,7 @@ def test_main_run_serves_only_a_converged_run_within_the_other_caps() -> None:
 
     from omegaconf import OmegaConf
 
-    from mfg_lightning.study.run import _seconds, main_run_serves
+    from mfg_lightning.study.stages import _seconds, main_run_serves
 
     budget = {"other_steps": 30000, "other_max_time": "00:00:30:00"}
     study = SimpleNamespace(cfg=OmegaConf.create({"budget": budget}))
@@ -243,7 +243,7 @@ def test_the_size_curve_runs_on_the_main_models_frames_only() -> None:
     """The size curve's points: every stride, then the extra seeds at the largest; a stride off
     the main model's training frames (whose pairs the flow cache has) is refused, by key."""
     from mfg_lightning.core.config import compose
-    from mfg_lightning.study.run import check
+    from mfg_lightning.study.plan import check
     from mfg_lightning.study.stages import size_name, size_runs
 
     cfg = compose("reproduce", [f"poses_dir={POSES}"])

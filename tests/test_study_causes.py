@@ -46,7 +46,7 @@ def test_the_learned_section_places_one_training_against_the_seed_range() -> Non
 def test_the_convergence_figure_groups_seeds_and_never_repeats_a_colour_in_a_panel() -> None:
     from matplotlib.colors import to_hex
 
-    from mfg_lightning.study.claims import convergence_rows
+    from mfg_lightning.study.figures import convergence_rows
 
     def model(steps: int, ates: list[float]) -> dict:
         curve = [{"step": 1000 * (i + 1), "samples": 16000 * (i + 1), "val/ate": a}

@@ -114,16 +114,21 @@ def test_the_offset_ratio_and_the_classical_range_decide_the_central_words() -> 
 
 def _t2(mfg: float, irls: float) -> dict:
     return {"mfg": {"1": {"rpe_rot": mfg}}, "classical": [{"name": IRLS,
-            "metrics": {"rpe_rot": irls}}]}  # fmt: skip
+            "metrics": {"rpe_rot": irls}}], "steps": 6000, "train_pairs": 1696}  # fmt: skip
+
+
+def _exact_against_dis(exact: dict, dis: dict) -> str:
+    """The Table-2-sized paragraph from one run on each flow (no main model's seeds)."""
+    return prose.para_table2({"table2_exact": exact, "table2": dis}.get, {})
 
 
 def test_the_exact_flow_explanation_needs_irls_to_gain_much_more_than_mfg() -> None:
-    unequal = prose._exact_against_dis(_t2(0.00256, 0.00017), _t2(0.00283, 0.00193))
+    unequal = _exact_against_dis(_t2(0.00256, 0.00017), _t2(0.00283, 0.00193))
     assert "falls ×11.4 and MFG's falls ×1.11" in unequal
     assert "helping IRLS several times more than MFG: on flow without estimation noise" in unequal
-    alike = prose._exact_against_dis(_t2(0.001, 0.001), _t2(0.0012, 0.0012))
+    alike = _exact_against_dis(_t2(0.001, 0.001), _t2(0.0012, 0.0012))
     assert "helping IRLS about as much as MFG." in alike and "regressor" not in alike
-    worse = prose._exact_against_dis(_t2(0.003, 0.001), _t2(0.002, 0.002))
+    worse = _exact_against_dis(_t2(0.003, 0.001), _t2(0.002, 0.002))
     assert "MFG's rises ×1.50" in worse
 
 
@@ -183,8 +188,8 @@ def test_the_verdict_count_follows_the_verdicts() -> None:
     for s, v in worse.items():
         v["table1"]["test"]["0.05"]["09/ate"] = 0.0112 + 0.0001 * s  # ×1.12 > 1 + 8.3 %
     fails = judge_all(worse, None, 0.1, 0.8, 0.05)
-    assert "holds: S1" in prose._headline_verdicts(holds)
-    assert "does not hold: S1" in prose._headline_verdicts(fails)
+    assert "holds: S1" in prose.para_verdicts(holds)
+    assert "does not hold: S1" in prose.para_verdicts(fails)
 
 
 def test_the_rule_and_the_recipes_are_read_from_the_results_and_the_config() -> None:

@@ -19,7 +19,8 @@ from omegaconf import DictConfig
 from mfg_lightning.core.config import CONFIG_DIR
 from mfg_lightning.core.errors import exit_on_unknown_choice, exit_on_user_error
 from mfg_lightning.study import stages as S
-from mfg_lightning.study.run import check, run
+from mfg_lightning.study.plan import check
+from mfg_lightning.study.run import run
 
 
 def reproduce(cfg: DictConfig, trainer_choice: str = "default") -> Path:

@@ -10,9 +10,10 @@ import math
 from collections.abc import Callable, Mapping
 from typing import Any
 
-from mfg_lightning.core.tables import Column, Table, fmt
+from mfg_lightning.core.tables import fmt
 from mfg_lightning.study.claims import PAPER_CENTRAL_OVER_FRAME
 from mfg_lightning.study.noise import ratio, spread_of
+from mfg_lightning.study.render import lines, table
 from mfg_lightning.study.sentences import PRINTED_TABLE2_ROT
 from mfg_lightning.study.wording import position
 
@@ -31,10 +32,6 @@ def classical_metrics(rows: list[dict]) -> dict[str, Metrics]:
         for r in rows
         if "oracle" not in r["name"] and not r["name"].startswith("MFG")
     }
-
-
-def _star_over_dagger(m: Metrics, seq: str) -> float | None:
-    return ratio(m.get(f"{seq}/ate_central"), m.get(f"{seq}/ate"))
 
 
 #: Short names for the figure's axis.
@@ -81,13 +78,13 @@ def twin_section(
     if twin is None:
         return [], None
     rows = _twin_rows(views, twin, methods)
-    table = []
+    table_rows = []
     for label, trained, tested, get in rows:
         cells = [label, trained, tested]
         for s in SEQS:
             dagger, star = get(f"{s}/ate"), get(f"{s}/ate_central")
             cells += [fmt(dagger, 4), fmt(star, 4), fmt(ratio(star, dagger), 2)]
-        table.append([*cells, fmt(get("rpe_rot"), 5)])
+        table_rows.append([*cells, fmt(get("rpe_rot"), 5)])
     heads = ["method", "trained on", "tested on"]
     for s in SEQS:
         heads += [f"ATE † {s} (m)", f"ATE * {s} (m)", f"* / † {s}"]
@@ -108,21 +105,8 @@ def twin_section(
         "ATE * / ATE †: the method (exact flow) and the flow (DIS)",
         references=[("the paper's MFG", PAPER_CENTRAL_OVER_FRAME[s]) for s in SEQS],
     )
-    conv = twin.get("convergence") or {}
-    status = "converged" if conv.get("converged") else "not converged"
-    return [
-        "## The flow against the method: the exact-flow twin",
-        "",
-        f"The main model's setting trained again on the same pairs with the rendered worlds' "
-        f"exact flow as input ({twin['steps']} steps, {status}; {twin.get('precision', '?')} "
-        f"on {twin.get('cpu_kind', '?')}), scored on the exact and on the DIS central test, "
-        f"beside every classical method on {'both flows' if methods else 'exact flow'}. "
-        "ATE * (the ±1, ±2 snippets) over ATE † (the +1 pairs) on exact flow is the method's "
-        "own; its growth on DIS is the flow's.",
-        "",
-        Table([Column(h) for h in [*heads, "RPE rotation (rad)"]], table).markdown(),
-        "",
-    ], fig
+    table_md = table([*heads, "RPE rotation (rad)"], table_rows)
+    return lines("report/twin.md.j2", twin=twin, methods=methods, table=table_md), fig
 
 
 def _test_epe(flow_error: dict | None, offset: str = "1", region: str = "all") -> float | None:
@@ -179,47 +163,30 @@ def learned_section(
     )
     rows.append(("MFG on the learned flow", "learned", flow_name, learned["dis_test"].get,
                  study_flow))  # fmt: skip
-    table = []
+    table_rows = []
     for label, trained, tested, get, fe in rows:
         cells = [label, trained, tested, fmt(_test_epe(fe, "1"), 2), fmt(_test_epe(fe, "2"), 2),
                  fmt(_test_epe(fe, "1", "road"), 2), fmt(_test_epe(fe, "1", "far"), 2)]  # fmt: skip
         for s in SEQS:
             dagger, star = get(f"{s}/ate"), get(f"{s}/ate_central")
             cells += [fmt(dagger, 4), fmt(star, 4)]
-        table.append([*cells, fmt(get("rpe_rot"), 5)])
+        table_rows.append([*cells, fmt(get("rpe_rot"), 5)])
     heads = ["model", "trained on", "tested on", "test flow EPE +1 (px)", "EPE +2 (px)",
              "EPE +1 road (px)", "EPE +1 far (px)"]  # fmt: skip
     for s in SEQS:
         heads += [f"ATE † {s} (m)", f"ATE * {s} (m)"]
-    conv = learned.get("convergence") or {}
-    status = "converged" if conv.get("converged") else "not converged"
-    return [
-        "## The learned flow: the main setting on flow=learned",
-        "",
-        "The paper feeds MFG a learned estimator's flow (PWC-Net) on KITTI. The main model's "
-        f"setting trained again on the same worlds and pairs with the framework's learned flow "
-        f"(`flow=learned`, the shipped weights, trained on the rendered worlds of the training "
-        f"sequences only: `docs/flow.md`; {learned['steps']} steps, {status}; "
-        f"{learned.get('precision', '?')} on {learned.get('cpu_kind', '?')}), scored on the "
-        f"central test pairs with the learned flow and with {flow_name}, beside the main model "
-        "and the exact-flow twin. EPE: the test flow's mean end-point error against the exact "
-        "flow (px at the render size; all pixels, then the road and the far scene at +1: near "
-        "pixels carry the translation, far ones mostly the rotation); exact flow has none. No "
-        "verdict reads this section: every verdict's flow is in the verdict table's flow "
-        "column.",
-        "",
-        Table([Column(h) for h in [*heads, "RPE rotation (rad)"]], table).markdown(),
-        "",
-        *_against_seed_range(main, learned["table1"]["test"]["1"], learned.get("seed"), flow_name),
-    ]
+    table_md = table([*heads, "RPE rotation (rad)"], table_rows)
+    against = _against_seed_range(main, learned["table1"]["test"]["1"], learned.get("seed"))
+    return lines("report/learned.md.j2", learned=learned, flow=flow_name, table=table_md,
+                 **against)  # fmt: skip
 
 
 def _against_seed_range(
-    main: Mapping[int, Any], learned: Mapping[str, Any], seed: Any, flow_name: str
-) -> Lines:
+    main: Mapping[int, Any], learned: Mapping[str, Any], seed: Any
+) -> dict[str, Any]:
     """Where the one learned-flow model's test scores fall against the range of the main
-    model's seeds (a single training beside a seed mean needs the spread to be read); nothing
-    with fewer than two main seeds."""
+    model's seeds (a single training beside a seed mean needs the spread to be read): the parts
+    (none with fewer than two main seeds), the main seeds and the learned model's seed."""
     keys = [*(f"{s}/{m}" for s in SEQS for m in ("ate", "ate_central")), "rpe_rot"]
     names = {"ate": "ATE †", "ate_central": "ATE *"}
     parts = []
@@ -229,20 +196,12 @@ def _against_seed_range(
         if spread.n < 2 or value is None:
             continue
         lo, hi = min(spread.values), max(spread.values)
-        where = position(value, lo, hi)
         seq, _, metric = key.rpartition("/")
         label = f"{names[metric]} {seq}" if seq else "RPE rotation"
-        digits = 5 if metric == "rpe_rot" else 4
-        parts.append(f"{label} {fmt(value, digits)} {where} [{fmt(lo, digits)}, {fmt(hi, digits)}]")
-    if not parts:
-        return []
-    n = len(main)
-    seed_text = f" at seed {seed}" if seed is not None else " at the main model's seed"
-    return [
-        f"The learned-flow model is one training{seed_text}; against the range of the main "
-        f"model's {n} seeds on {flow_name}: " + "; ".join(parts) + ".",
-        "",
-    ]
+        d = 5 if metric == "rpe_rot" else 4
+        where = position(value, lo, hi)
+        parts.append(f"{label} {fmt(value, d)} {where} [{fmt(lo, d)}, {fmt(hi, d)}]")
+    return {"parts": parts, "n": len(main), "seed": seed}
 
 
 def _t2_row(label: str, t2: dict) -> list[list[str]]:
@@ -273,23 +232,9 @@ def table2_flow_section(exact: dict | None, dis: dict | None) -> Lines:
     if not exact:
         return []
     rows = [row for lab, r in runs for row in _t2_row(lab, r)]
-    return [
-        "## Table 2's setting on exact flow and on DIS",
-        "",
-        f"The Table-2-sized model ({exact['train_pairs']} training, {exact['test_pairs']} test "
-        "pairs, +1 only) trained and tested on the exact flow, as the paper on Virtual KITTI's "
-        f"ground truth{', beside the same on DIS' if dis else ''}; the classical methods read "
-        "the same flow. The "
-        f"paper: MFG {PRINTED_TABLE2_ROT[0]} rad against the robust continuous method's "
-        f"{PRINTED_TABLE2_ROT[1]} "
-        f"({float(PRINTED_TABLE2_ROT[0]) / float(PRINTED_TABLE2_ROT[1]):.2f}).",
-        "",
-        Table(
-            [Column(h) for h in ("flow", "method", "RPE rotation (rad)", "RPE translation (m)")],
-            rows,
-        ).markdown(),
-        "",
-    ]
+    heads = ("flow", "method", "RPE rotation (rad)", "RPE translation (m)")
+    return lines("report/table2_flows.md.j2", exact=exact, dis=dis, printed=PRINTED_TABLE2_ROT,
+                 table=table(heads, rows))  # fmt: skip
 
 
 def size_points(size: Mapping[str, dict]) -> dict[int, list[dict]]:
@@ -342,40 +287,9 @@ def size_section(size: Mapping[str, dict]) -> tuple[Lines, Any]:
         [n, fmt(m.get("rpe_rot"), 5), fmt(m.get("rpe_trans"), 4)] for n, m in classical.items()
     ]
     test = next(iter(points.values()))[0]["test_pairs"]
-    return [
-        "## Claim 3's data size: the size curve",
-        "",
-        f"Table 2's setting (+1 pairs, all units, exact flow) trained on every Nth source frame of "
-        f"the study's training split, each tested on the same {test} +1 pairs of 09 and 10; the "
-        "classical methods do not train (one value each).",
-        "",
-        Table(
-            [
-                Column(h)
-                for h in (
-                    "stride N",
-                    "training pairs",
-                    "RPE rotation (rad)",
-                    "RPE translation (m)",
-                    "converged",
-                    "trained",
-                )
-            ],
-            rows,
-        ).markdown(),
-        "",
-        *(
-            [
-                Table(
-                    [
-                        Column(h)
-                        for h in ("classical method", "RPE rotation (rad)", "RPE translation (m)")
-                    ],
-                    crows,
-                ).markdown(),
-                "",
-            ]
-            if crows
-            else []
-        ),
-    ], fig
+    heads = ("stride N", "training pairs", "RPE rotation (rad)", "RPE translation (m)",
+             "converged", "trained")  # fmt: skip
+    classical_md = table(("classical method", "RPE rotation (rad)", "RPE translation (m)"),
+                         crows) if crows else ""  # fmt: skip
+    return lines("report/size.md.j2", test=test, table=table(heads, rows),
+                 classical=classical_md), fig  # fmt: skip

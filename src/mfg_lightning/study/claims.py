@@ -5,19 +5,22 @@ verdicts (the verdicts are per sentence of the paper: :mod:`mfg_lightning.study.
 Every ``claim_*`` function takes the stage results it needs (None when not run yet) and returns a
 :class:`Row` and the figure of its evidence (None when not run). The paper's figures are quoted
 from its Tables 1 and 2, section 5 and the supplement. Convergence is not a claim of the paper:
-:func:`convergence_rows` reports it for every trained model.
+:func:`mfg_lightning.study.figures.convergence_rows` reports it for every trained model.
 """
 
 from __future__ import annotations
 
 import math
-import re
 from dataclasses import dataclass
 from typing import Any
+
+from omegaconf import OmegaConf
 
 from mfg_lightning.core.tables import fmt
 from mfg_lightning.pictures import plots
 from mfg_lightning.study.noise import ratio
+from mfg_lightning.study.render import TEMPLATES
+from mfg_lightning.study.rules import smallest_k
 from mfg_lightning.study.verdicts import NOT_RUN, relative_deviation
 
 #: Table 1 (†, frame by frame), ATE 09 / 10 (m) by k.
@@ -60,68 +63,10 @@ class Rule:
     parts: tuple[str, ...]
 
 
+#: The diagnostics' rows, by number, from ``templates/diagnostics.yaml`` (the words).
 RULES: dict[str, Rule] = {
-    r.number: r
-    for r in (
-        Rule(
-            "1",
-            "Table 1: ATE 09/10 against the number of units kept, k",
-            "† 0.012/0.013 at k = 100, 10, 5 %; 0.013/0.013 at 4 %; 0.014/0.014 at 3 %; "
-            "0.018/0.017 at 2 %; 0.049/0.034 at 1 %; 0.120/0.076 at 0.5 %; * 0.020/0.023",
-            (
-                "ATE †(k) / ATE †(100 %) at every k the paper reports, beside the paper's ratio "
-                "and its deviation",
-                "ATE * / ATE † at k = 100 % beside the paper's 1.67 / 1.77 (the classical "
-                "methods' on the same flow in the method comparison)",
-            ),
-        ),
-        Rule(
-            "2",
-            "sparsity at w_s = 100",
-            "α_s = 10² (§5.2); the coefficient affects the sparsity",
-            ("the main model's validation ATE † against k; the w_s sweep beside",),
-        ),
-        Rule(
-            "3",
-            "Table 2 (a VKITTI-sized set): RPE against k, and against classical methods",
-            "RPE trans 0.1769 (all) = 25 % → 0.1788 (20 %) → 0.1900 (15 %) → 0.2849 (10 %) "
-            "→ 0.6973 (5 %); rot 0.0011 against Jaegle et al.'s 0.0014",
-            (
-                "RPE trans(k) / RPE trans(100 %) at 20, 15, 10, 5 % beside the paper's ratios",
-                "RPE rotation of MFG and of every classical method",
-            ),
-        ),
-        Rule(
-            "4",
-            "errors against moving-object coverage",
-            "MFG marginalises the independently moving objects, unlike the classical methods",
-            ("every method's rotation and translation error by coverage bin",),
-        ),
-        Rule(
-            "5",
-            "basis units (supplementary Figures 5–8)",
-            "each unit stands for one translation or one rotation, spread over directions; "
-            "typical |t| ~0.01, |ω| ~0.03–0.15 (|ω| / |t| ≈ 5, axes without a unit)",
-            ("one-motion fits, spread of directions and scale per decoder",),
-        ),
-        Rule(
-            "6",
-            "object masks: the paper's filters against a threshold (the main model, DIS-trained)",
-            "the filters (§4) extract the moving objects, keeping slow and distant ones "
-            "(ground-truth flow, Virtual KITTI)",
-            (
-                "IoU, precision and recall of each with the main model's (DIS-trained) egomotion "
-                "fields, on the exact and on the estimated test flow; S9 and S10 read the "
-                "Table-2-sized exact-flow models instead",
-            ),
-        ),
-        Rule(
-            "R",
-            "CPU recipe against the paper's (not a claim of the paper)",
-            "batch 1, Adam lr 1e-5, betas (0.99, 0.999), constant rate",
-            ("each recipe's validation and test ATE † under the common rule",),
-        ),
-    )
+    str(k): Rule(str(k), r["claim"], r["paper"], tuple(r["parts"]))
+    for k, r in OmegaConf.to_container(OmegaConf.load(TEMPLATES / "diagnostics.yaml")).items()  # type: ignore[union-attr]
 }
 
 
@@ -203,7 +148,6 @@ def claim_sparsity(
 ) -> tuple[Row, Any, list[str]]:
     """The main model's validation ATE † against k; the w_s sweep (this project's extension)
     as extra lines, each labelled with the input scale it was trained at."""
-    from mfg_lightning.study.stages import smallest_k
 
     row = Row.of("2")
     sweep = []
@@ -477,71 +421,6 @@ def claim_recipe(rc: dict | None) -> tuple[Row, Any]:
     return row, plots.line_figure(
         panels, "training samples seen", "Recipes (validation)", log_y=True
     )
-
-
-# --------------------------------------------------------------------------------------------
-# Did it converge (not a claim of the paper)
-# --------------------------------------------------------------------------------------------
-
-
-def convergence_rows(models: dict[str, dict]) -> tuple[list[list[str]], Any]:
-    """One row per trained model: steps, samples, whether the rule was met (or why it stopped),
-    its best validation ATE †; and one figure with every model's validation curve."""
-    rows, lines = [], {}
-    for name, m in models.items():
-        c = m.get("convergence") or {}
-        curve = m.get("curve") or []
-        ates = [p.get("val/ate") for p in curve]
-        finite = [a for a in ates if a is not None and math.isfinite(a)]
-        if c.get("converged"):
-            state = f"converged at step {c.get('decay_start')} (decay to {c.get('decay_end')})"
-        elif c.get("reason") == "budget":
-            state = f"equal budget (decay from {c.get('decay_start')} to {c.get('decay_end')})"
-        else:
-            state = f"not converged at {m.get('steps')} steps ({c.get('reason') or 'no rule'})"
-        rows.append(
-            [
-                name,
-                str(m.get("steps")),
-                str(m.get("samples_seen")),
-                state,
-                fmt(min(finite) if finite else None),
-                f"{m.get('train_seconds', 0.0) / 60:.0f}",
-            ]
-        )
-        if curve:
-            lines[name] = ([p["samples"] for p in curve], ates)
-    fig = None
-    if lines:
-        fig = plots.curve_groups_figure(
-            _curve_panels(lines),
-            "training samples seen",
-            "val ATE † (m)",
-            "Validation curves",
-            log_y=True,
-        )
-    return rows, fig
-
-
-#: The convergence figure's panels: a model goes to the first whose prefix its name has.
-CURVE_PANELS: tuple[tuple[str, tuple[str, ...]], ...] = (
-    ("main setting", ("main", "exact-flow twin", "learned")),
-    ("Table 2 setting", ("table2", "balance")),
-    ("size curve", ("size",)),
-    ("sparsity, recipe", ("sparsity", "recipe")),
-)
-
-
-def _curve_panels(lines: dict[str, tuple]) -> list[tuple[str, dict[str, list[tuple]]]]:
-    """The models' curves in :data:`CURVE_PANELS` (the rest under "other"), a model's seeds
-    (``, seed N``, ``_seedN``) in one group."""
-    panels: dict[str, dict[str, list[tuple]]] = {}
-    for name, curve in lines.items():
-        panel = next((t for t, prefixes in CURVE_PANELS if name.startswith(prefixes)), "other")
-        group = re.sub(r"(, seed \d+|_seed\d+)$", "", name)
-        panels.setdefault(panel, {}).setdefault(group, []).append(curve)
-    order = [t for t, _ in CURVE_PANELS] + ["other"]
-    return [(t, panels[t]) for t in order if t in panels]
 
 
 def _flow_label(result: dict) -> str:

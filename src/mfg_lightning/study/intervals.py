@@ -74,7 +74,6 @@ __all__ = [
     "PARTLY",
     "Claim",
     "Interval",
-    "bootstrap_method",
     "bootstrap_se",
     "combine",
     "construction",
@@ -297,21 +296,6 @@ def median_interval(
                f"{100 * (1 - 2 * 0.5**n):.1f} % at most, below {100 * level:g} %, so the "
                "interval is the whole grid")  # fmt: skip
     return Interval(float(np.median(xs)), float(lo), float(hi), how)
-
-
-def bootstrap_method() -> str:
-    """The test pairs' part of an interval in the report's words: the moving-block bootstrap as
-    run, its block length and where that length came from."""
-    return (
-        f"The bootstrap draws {BOOTSTRAP_DRAWS} resamples of the test pairs in their temporal "
-        f"order, each ⌈n / {BLOCK_PAIRS}⌉ runs of {BLOCK_PAIRS} consecutive pairs from uniform "
-        "starts, cut to the n pairs, because consecutive frames' errors are correlated; every "
-        "seed is tested on the same pairs, and both sides of a comparison "
-        f"read the same resampled pairs. The block length of {BLOCK_PAIRS} pairs was chosen "
-        "after the 2 × 2's per-pair test errors had been seen, in place of the plain paired "
-        "bootstrap of single pairs used before; the standard errors by block length are printed "
-        "with the 2 × 2 below, and `changes.json` records the change."
-    )
 
 
 def interval_verdict(

@@ -3,7 +3,8 @@ per quoted sentence of the paper (:mod:`mfg_lightning.study.sentences`) with its
 the seed spread (:mod:`mfg_lightning.study.noise`), the main model's headline numbers over the
 seeds, the diagnostics beside the paper's tables (:mod:`mfg_lightning.study.claims`), the
 generated reading (:mod:`mfg_lightning.study.prose`), the machine, the budget and the stages'
-times."""
+times. Each section's words are a template (``templates/report/<section>.md.j2``,
+:mod:`mfg_lightning.study.render`); the code here computes its tables and figures."""
 
 from __future__ import annotations
 
@@ -15,16 +16,18 @@ from typing import Any
 
 from mfg_lightning.core.atomic import atomic_write_bytes, atomic_write_text
 from mfg_lightning.core.paths import portable_overrides, portable_path
-from mfg_lightning.core.tables import Column, Table, fmt
+from mfg_lightning.core.tables import fmt
 from mfg_lightning.flow.cache import default_cache_dir
 from mfg_lightning.pictures.plots import figure_png
 from mfg_lightning.study import claims as C
-from mfg_lightning.study import config_findings as F
+from mfg_lightning.study import plan
 from mfg_lightning.study import prose as P
-from mfg_lightning.study import settle as T
 from mfg_lightning.study import stages as S
-from mfg_lightning.study.intervals import FLOORS, bootstrap_method
+from mfg_lightning.study.config_findings import config_default, input_scale_finding
+from mfg_lightning.study.figures import convergence_rows, verdict_figure
+from mfg_lightning.study.intervals import BLOCK_PAIRS, BOOTSTRAP_DRAWS, FLOORS
 from mfg_lightning.study.noise import spread_of
+from mfg_lightning.study.render import lines, table
 from mfg_lightning.study.sentences import Judged, Settled, judge_all, seed_views, test_at
 from mfg_lightning.study.settle_report import settle_section
 
@@ -105,7 +108,7 @@ def _trained_models(
     return models
 
 
-def _stage_rows(study: S.Study) -> tuple[list[str], float]:
+def _stage_rows(study: S.Study) -> tuple[list[dict], float]:
     """One row per cached stage: seconds (training included), steps × batch, the commit."""
     rows, total = [], 0.0
     for path in sorted(study.results.glob("**/*.json")):
@@ -122,114 +125,94 @@ def _stage_rows(study: S.Study) -> tuple[list[str], float]:
         trained = [t for t in trained if not t.get("same_as")]
         shape = ", ".join(f"{t['steps']} × {t['batch_size']}" for t in trained)
         train_s = sum(float(t.get("train_seconds", 0.0)) for t in trained)
-        rows.append(
-            f"| {name} | {seconds:.0f} | {train_s:.0f} | {shape} | {r.get('commit') or '-'} |"
-        )
+        rows.append({"name": name, "seconds": seconds, "train": train_s, "shape": shape,
+                     "commit": r.get("commit")})  # fmt: skip
     return rows, total
 
 
 def write_report(study: S.Study, report: Path) -> Path:
     """Rewrite the report from every cached stage; figures into ``<report stem>/`` (a figure no
     longer produced is removed, so none goes stale)."""
-    cfg = study.cfg
-    figdir = report.with_suffix("")
+    cfg, cached = study.cfg, study.cached
+    figdir, made = report.with_suffix(""), []
+
+    def link(name: str, fig: Any) -> str:
+        if fig is None:
+            return ""
+        made.append(name)
+        atomic_write_bytes(figdir / name, figure_png(fig))
+        return f"[{name}]({figdir.name}/{name})"
+
     sparsity = _sparsity_models(study)
     tol = float(cfg.sparsity.ate_tolerance)
-    views = seed_views(study.cached, int(cfg.seed), [int(s) for s in cfg.seeds.extra])
-    twin = study.cached("twin")
+    views = seed_views(cached, int(cfg.seed), [int(s) for s in cfg.seeds.extra])
     size = {n: r for n in [S.size_name(*p) for p in S.size_runs(cfg)] + ["classical"]
-            if (r := study.cached(f"size/{n}")) is not None}  # fmt: skip
-    settled = Settled.load(study.cached, cfg)
+            if (r := cached(f"size/{n}")) is not None}  # fmt: skip
+    settled = Settled.load(cached, cfg)
     judged = judge_all(views, settled, float(cfg.basis.residual), float(cfg.basis.one_motion), tol)
-    t1 = study.cached("table1")
+    t1 = cached("table1")
     row2, fig2, sweep = C.claim_sparsity(t1, sparsity, tol)
     built = [
         (C.claim_table1(t1), "table1.png"),
         ((row2, fig2), "sparsity.png"),
-        (C.claim_table2(study.cached("table2"), _offsets(study, "table2")), "table2.png"),
-        (C.claim_robustness(study.cached("methods")), "robustness.png"),
-        (C.claim_basis(study.cached("basis"), float(cfg.basis.residual)), "basis.png"),
-        (C.claim_object_motion(study.cached("object_motion")), "object_motion.png"),
-        (C.claim_recipe(study.cached("recipe")), "recipe.png"),
+        (C.claim_table2(cached("table2"), _offsets(study, "table2")), "table2.png"),
+        (C.claim_robustness(cached("methods")), "robustness.png"),
+        (C.claim_basis(cached("basis"), float(cfg.basis.residual)), "basis.png"),
+        (C.claim_object_motion(cached("object_motion")), "object_motion.png"),
+        (C.claim_recipe(cached("recipe")), "recipe.png"),
     ]
-    made = []
     for (row, fig), name in built:
-        if fig is not None:
-            row.figure = _figure(figdir, name, fig)
-            made.append(name)
-    table = Table(
-        [Column(h) for h in ("#", "diagnostic", "paper", "ours (seed 0)", "figure")],
-        [[r.number, r.claim, r.paper, r.ours, r.figure] for (r, _), _ in built],
-    )
-    models = _trained_models(study, sparsity, size, settled)
-    conv_rows, conv_fig = C.convergence_rows(models)
-    conv_link = _figure(figdir, "convergence.png", conv_fig) if conv_fig is not None else ""
-    made += ["convergence.png"] if conv_fig is not None else []
-    flow_lines, flow_fig = _flow_error_section(study.cached("flow_error"))
-    if flow_fig is not None:
-        flow_lines[2] += " " + _figure(figdir, "flow_error.png", flow_fig)
-        made.append("flow_error.png")
-    causes = _causes_sections(study, views, twin, size, settled, figdir, made)
-    verdict_fig = _verdict_figure(judged)
-    verdict_link = _figure(figdir, "verdicts.png", verdict_fig) if verdict_fig else ""
-    made += ["verdicts.png"] if verdict_fig is not None else []
+        row.figure = link(name, fig) or row.figure
+    rows = [[r.number, r.claim, r.paper, r.ours, r.figure] for (r, _), _ in built]
+    diagnostics = table(("#", "diagnostic", "paper", "ours (seed 0)", "figure"), rows)
+    conv_rows, conv_fig = convergence_rows(_trained_models(study, sparsity, size, settled))
+    conv_link = link("convergence.png", conv_fig)
+    flow_lines = _flow_error_section(cached("flow_error"), link)
+    causes = _causes_sections(study, views, size, settled, link)
+    verdict_link = link("verdicts.png", verdict_figure(judged))
     _remove_stale(figdir, made)
     scale_model = next((m for k, m in sparsity.items() if "input_scale" in k), None)
-    default_scale = float(F.config_default("model.net.input_scale"))
-    scale_text = F.input_scale_finding(views, scale_model, cfg.sparsity.input_scale, default_scale)
+    default_scale = float(config_default("model.net.input_scale"))
+    scale_text = input_scale_finding(views, scale_model, cfg.sparsity.input_scale, default_scale)
     stage_rows, total = _stage_rows(study)
+    flow = study_flow_name(study)
+    conv_heads = ("model", "steps", "samples", "status", "best val ATE †", "training (min)")
     text = [
         *_header(study, views, total),
-        *_verdicts_section(judged, verdict_link, study_flow_name(study)),
+        *lines("report/verdicts.md.j2", judged=judged, figure=verdict_link, flow=flow,
+               draws=BOOTSTRAP_DRAWS, block=BLOCK_PAIRS, floors=FLOORS, table=table(
+                   ("#", "the paper", "measured as", "flow", "ours (parts)", "verdict"),
+                   [[j.sentence.key, f"“{j.sentence.quote}” ({j.sentence.where})",
+                     j.sentence.measured, j.sentence.flow.format(study=flow),
+                     "; ".join(p.text() for p in j.parts) or "not run yet", j.verdict]
+                    for j in judged])),
         *_headline_section(views),
-        *_diagnostics_section(table, sweep),
-        *_methods_section(study.cached("methods")),
+        *lines("report/diagnostics.md.j2", rules=C.RULES.values(), table=diagnostics, sweep=sweep),
+        *_methods_section(cached("methods")),
         *flow_lines,
         *causes,
-        *_balance_section(
-            study.cached("basis"), study.cached("methods"), study.cached("balance"),
-            float(cfg.basis.residual),
-        ),
-        "## Did it converge",
-        "",
-        "Not a claim of the paper (it says only that it trains to convergence): each model's "
-        f"status by the rule above. {conv_link}",
-        "",
-        Table(
-            [Column(h) for h in ("model", "steps", "samples", "status", "best val ATE †",
-                                 "training (min)")],
-            conv_rows,
-        ).markdown()
-        if conv_rows
-        else "no model trained yet",
-        "",
-        "## Reading the results",
-        "",
-        "Generated from the stage results (`mfg_lightning.study.prose`).",
-        "",
-        *P.reading(study.cached, views, judged, float(cfg.basis.residual),
-                   float(F.config_default("object_motion.theta_d")), scale_text, size, settled,
+        *_balance_section(cached("basis"), cached("methods"), cached("balance"),
+                          float(cfg.basis.residual)),
+        *lines("report/converge.md.j2", conv_link=conv_link,
+               conv_table=table(conv_heads, conv_rows) if conv_rows else ""),
+        *P.reading(cached, views, judged, float(cfg.basis.residual),
+                   float(config_default("object_motion.theta_d")), scale_text, size, settled,
                    list(cfg.data)),
         *_notes(report),
-        "## Stages",
-        "",
-        *_pending(study),
-        "| stage | seconds | of which training | trained (steps × batch) | commit |",
-        "|---|---:|---:|---:|---|",
-        *stage_rows,
-        "",
+        *lines("report/stages.md.j2", stages=stage_rows,
+               missing=[n for _, n, _ in plan.results(cfg) if cached(n) is None]),
     ]  # fmt: skip
     path = atomic_write_text(report, "\n".join(text))
     print(f"wrote {path}", flush=True)
     if cfg.get("readme"):
-        write_readme_table(Path(cfg.readme), judged, views, report)
+        write_readmetable(Path(cfg.readme), judged, views, report)
     return path
 
 
 README_START, README_END = "<!-- reproduction-table:start -->", "<!-- reproduction-table:end -->"
 
 
-def readme_table(judged: list[Judged], views: dict, report: str) -> list[str]:
+def readmetable(judged: list[Judged], views: dict, report: str) -> list[str]:
     """The README's quoted table: every sentence's short name, our values and the verdict."""
     rows = [
         [j.sentence.key, j.sentence.short,
@@ -237,21 +220,11 @@ def readme_table(judged: list[Judged], views: dict, report: str) -> list[str]:
          j.verdict]
         for j in judged
     ]  # fmt: skip
-    seeds = len(views)
-    return [
-        f"Latest report ([{report}]({report})): one verdict per quoted sentence of the paper, "
-        f"each part's value the mean over the seeds ({seeds} of the main model for S1–S3, S7 and "
-        "S8; the Table-2-sized models' for S4–S6, S9 and S10), judged by its 95 % interval: "
-        "holds on the claimed side of the bound, does not hold on the other, inconclusive "
-        "across it (the report quotes each sentence and gives every bound and interval):",
-        "",
-        Table(
-            [Column(h) for h in ("#", "the paper says", "ours (parts)", "verdict")], rows
-        ).markdown(),
-    ]
+    quoted = table(("#", "the paper says", "ours (parts)", "verdict"), rows)
+    return lines("report/readme.md.j2", report=report, seeds=len(views), table=quoted)
 
 
-def write_readme_table(readme: Path, judged: list[Judged], views: dict, report: Path) -> None:
+def write_readmetable(readme: Path, judged: list[Judged], views: dict, report: Path) -> None:
     """Replace the README's text between :data:`README_START` and :data:`README_END` with
     :func:`readme_table` (the report linked relative to the README); a README without both
     markers is left alone, with a warning."""
@@ -264,7 +237,7 @@ def write_readme_table(readme: Path, judged: list[Judged], views: dict, report: 
     head, rest = text.split(README_START, 1)
     _, tail = rest.split(README_END, 1)
     rel = os.path.relpath(report.resolve(), readme.resolve().parent)
-    block = "\n".join(readme_table(judged, views, rel.replace(os.sep, "/")))
+    block = "\n".join(readmetable(judged, views, rel.replace(os.sep, "/")))
     atomic_write_text(readme, f"{head}{README_START}\n{block}\n{README_END}{tail}")
 
 
@@ -277,160 +250,37 @@ def _offsets(study: S.Study, stage: str) -> list[int] | None:
     return [int(o) for o in cfg.dataset.get("offsets", [1])]
 
 
-def _diagnostics_section(table: Table, sweep: list[str]) -> list[str]:
-    """The paper's tables beside ours, and the w_s sweep: read, not judged."""
-    return [
-        "## Diagnostics: the paper's tables beside ours (not verdicts)",
-        "",
-        "The shape of the paper's tables and figures, with each deviation from the paper's "
-        "figure; Table 1's ratios at every k, ATE * / ATE †, Table 2's ratios, row R and the w_s "
-        "sweep are read here, not judged.",
-        "",
-        *(f"- **{r.number}. {r.claim}.** " + "; ".join(r.parts) + "." for r in C.RULES.values()),
-        "",
-        table.markdown(),
-        "",
-        "### The w_s sweep (this project's extension)",
-        "",
-        *([f"- {line}" for line in sweep] or ["not run yet"]),
-        "",
-    ]
-
-
 def _header(study: S.Study, views: dict, total: float) -> list[str]:
-    """The report's title, what produced it, the machine, the main model and the budget."""
-    cfg = study.cfg
-    main = study.cached("main")
-    recipe = main["recipe"] if main else None
-    # Paths as a reader finds them (relative, ../shared, <cache>), not this machine's.
-    data = " ".join(portable_overrides(cfg.data, Path.cwd(), default_cache_dir()))
-    main_overrides = main["overrides"] if main else cfg.main
-    main_text = " ".join(portable_overrides(main_overrides, Path.cwd(), default_cache_dir()))
-    rule = ", ".join(f"{k}={v}" for k, v in cfg.convergence.items())
-    return [
-        "# Reproduction of the paper's claims",
-        "",
-        "Produced by `python -m mfg_lightning.reproduce` (one command; every figure and every "
-        "number below comes from it; a fresh clone rebuilds this report from the committed stage "
-        f"results in `{portable_path(str(study.results), Path.cwd(), default_cache_dir())}/` "
-        "without retraining): synthetic worlds rendered along "
-        f"the real KITTI trajectories, overrides `{data}`; choices made on the validation tails "
-        "of the training sequences only, then fixed.",
-        "",
-        *(f"- **{k}**: {v}" for k, v in _machine().items()),
-        f"- **main model**: `{main_text}`, seeds {', '.join(str(s) for s in sorted(views))} "
-        "trained",
-        f"- **convergence rule** (every model, stated before training): {rule}",
-        f"- **budget used**: {total / 60:.1f} min over the stages below (training included), "
-        f"frames per sequence {cfg.budget.max_frames or 'all'}",
-        *_deviations(study),
-        "- **recipe**: "
-        + (
-            f"CPU: batch {recipe['batch_size']}, {recipe['optimizer']} lr {recipe['lr']:g}, betas "
-            f"{recipe['betas']}, constant until the rule is met, w_s {recipe['w_s']:g}; the "
-            "paper: batch 1, Adam lr 1e-5, betas (0.99, 0.999), constant (row R compares them)."
-            if recipe
-            else "not run yet"
-        ),
-        "",
-    ]
-
-
-def _deviations(study: S.Study) -> list[str]:
-    """The header's list of every way the study's data differ from the paper's."""
-    cfg = study.cfg
-    data = study.cached("data") or {}
-    main_ov = dict(str(o).split("=", 1) for o in cfg.main if "=" in str(o))
-    offsets = len(main_ov.get("dataset.offsets", "[1]").strip("[]").split(","))
-    pairs = (data.get("main") or {}).get("train_pairs")
-    stride = int(cfg.budget.main_frame_stride)
-    frames = f"about {pairs // offsets:,} source frames ({pairs:,} pairs)" if pairs else "–"
+    """The report's title, what produced it, the machine, the main model, the budget, the
+    deviations from the paper's data and the recipes (the paper's from ``recipe.paper``)."""
     from mfg_lightning.core.config import compose
     from mfg_lightning.data.rendered import RENDER_SIZE
 
+    cfg = study.cfg
+    main = study.cached("main")
+    # Paths as a reader finds them (relative, ../shared, <cache>), not this machine's.
+    here, cache = Path.cwd(), default_cache_dir()
+    main_ov = dict(str(o).split("=", 1) for o in cfg.main if "=" in str(o))
+    stride = int(cfg.budget.main_frame_stride)
     size = [str(o) for o in cfg.data if str(o).startswith(("dataset.height", "dataset.width"))]
     ds = compose("train", size).dataset
-    render = (ds.flow.get("height") or RENDER_SIZE[0], ds.flow.get("width") or RENDER_SIZE[1])
-    t2 = dict(str(o).split("=", 1) for o in cfg.table2.overrides if "=" in str(o))
-    nth = {1: "", 2: "2nd ", 3: "3rd "}.get(stride, f"{stride}th ")
-    return [
-        "- **deviations from the paper's data**: "
-        f"(1) *frame stride*: the main model trains on every {nth}source frame of 00–08, "
-        f"{frames}, against the paper's ~20.4K frames (every frame); validation and test use "
-        "every frame; "
-        f"(2) *resolution*: the model reads {ds.height} × {ds.width} flow (downsampled from the "
-        f"{render[0]} × {render[1]} render, as the released code feeds PWC-Net's "
-        "quarter-resolution output; the paper states no input size); "
-        "(3) *flow*: OpenCV's DIS on rendered frames where the paper used PWC-Net on KITTI's "
-        "images, and the rendered worlds' exact flow where it used Virtual KITTI's ground "
-        "truth; "
-        "(4) *scenes*: synthetic worlds rendered along the real KITTI trajectories (00–10), not "
-        "KITTI's or Virtual KITTI's images; the Table-2-sized set is the first "
-        f"{t2.get('dataset.max_frames', '?')} frames of sequences "
-        f"{t2.get('dataset.train_sequences', '?')} in place of Virtual KITTI's egomotion split "
-        "(1,679 training frames).",
-    ]
-
-
-def _floors_text() -> str:
-    units = {
-        "rotation": "rad of rotation error",
-        "translation": "m of translation error",
-        "fraction": "for a fraction",
-        "pairs": "test pairs holding the objects of a bin",
-    }
-    return ", ".join(f"{v:g} {units.get(k, k)}" for k, v in FLOORS.items())
-
-
-def _verdicts_section(judged: list[Judged], figure: str, flow_name: str = "DIS") -> list[str]:
-    """The sentences, their measurement, the flow it uses (``flow_name``: the study's own) and
-    verdict: one row per sentence."""
-    rows = [
-        [j.sentence.key, f"“{j.sentence.quote}” ({j.sentence.where})", j.sentence.measured,
-         j.sentence.flow.format(study=flow_name),
-         "; ".join(p.text() for p in j.parts) or "not run yet", j.verdict]
-        for j in judged
-    ]  # fmt: skip
-    return [
-        "## Verdicts, one per sentence of the paper",
-        "",
-        "Each sentence is quoted and measured in the direction it claims, in parts. Each part is "
-        "a value with a 95 % interval: Student's t over the seeds' values (t · sd / √n) where "
-        "several models were trained (for S3's k, a grid value, the exact sign test's interval "
-        "of the seeds' median), plus, where the stage kept per-pair values, 1.96 standard errors "
-        "of a paired moving-block bootstrap over the test pairs, added in quadrature. "
-        f"{bootstrap_method()} A bound read off the paper's printed numbers is known only to "
-        "their print precision (a printed 0.012 stands for [0.0115, 0.0125)), so the "
-        "interval is widened by that fraction of the bound on each side. A part **holds** when "
-        "its whole interval lies on the claimed side of the bound, **does not hold** when it "
-        "lies wholly on the other side, and is **inconclusive** when it straddles the bound or "
-        "covers every value the quantity can take. A ratio whose denominator is below its floor "
-        f"({_floors_text()}) is **no verdict**. The parts of one sentence are one family: "
-        "Holm's step-down procedure decides them at a family level of 95 % (the most decisive "
-        "part, by its distance from the bound in half-widths, at 1 − 0.05 / m, the next at "
-        "1 − 0.05 / (m − 1)…; the first part not decided at its level leaves itself and every "
-        "later part inconclusive), and a part judged at more than 95 % prints that interval "
-        "beside its 95 % one. A sentence holds when every part holds, does not "
-        "hold when one part does not, and is otherwise **partly** (some parts hold, the rest are "
-        "inconclusive) or **inconclusive** (none holds). Ratios of errors are judged as the log "
-        "of the ratio and printed as ×ratio. The rules are data in "
-        "`mfg_lightning.study.sentences.SENTENCES` and the construction is "
-        f"`mfg_lightning.study.intervals`. The flow column names the input flow each "
-        f"verdict's models read ({flow_name}: the flow estimated on the rendered frames; exact: "
-        "the renderer's exact flow; the learned flow's models are a diagnostic, no verdict "
-        f"reads them). {figure}",
-        "",
-        Table(
-            [
-                Column(h)
-                for h in ("#", "the paper", "measured as", "flow", "ours (parts)", "verdict")
-            ],
-            rows,
-        ).markdown(),
-        "",
-        *[f"- {j.sentence.key}: {j.beside}" for j in judged if j.beside],
-        "",
-    ]
+    paper = study.train_config("recipe_paper", [*cfg.main, *cfg.recipe.paper], 1)
+    return lines(
+        "report/header.md.j2",
+        results=portable_path(str(study.results), here, cache),
+        data=" ".join(portable_overrides(cfg.data, here, cache)),
+        machine=_machine(),
+        main=" ".join(portable_overrides(main["overrides"] if main else cfg.main, here, cache)),
+        seeds=sorted(views), total=total, max_frames=cfg.budget.max_frames,
+        rule=", ".join(f"{k}={v}" for k, v in cfg.convergence.items()),
+        nth={1: "", 2: "2nd ", 3: "3rd "}.get(stride, f"{stride}th "),
+        pairs=((study.cached("data") or {}).get("main") or {}).get("train_pairs"),
+        offsets=len(main_ov.get("dataset.offsets", "[1]").strip("[]").split(",")),
+        size=(ds.height, ds.width),
+        render=(ds.flow.get("height") or RENDER_SIZE[0], ds.flow.get("width") or RENDER_SIZE[1]),
+        t2=dict(str(o).split("=", 1) for o in cfg.table2.overrides if "=" in str(o)),
+        cpu=main["recipe"] if main else None, paper=S.recipe_of(paper),
+    )  # fmt: skip
 
 
 def _headline_section(views: dict) -> list[str]:
@@ -444,36 +294,18 @@ def _headline_section(views: dict) -> list[str]:
         per = {s: v for s, v in zip(sp.seeds, sp.values, strict=True)}
         rel = "–" if sp.relative_std is None else f"{100 * sp.relative_std:.1f} %"
         rows.append([label, *(fmt(per.get(s), digits) for s in seeds), sp.text(digits), rel])
-    kinds = "; ".join(
-        f"seed {s}: {views[s]['trained'].get('precision', 'precision not recorded')}, "
-        f"{views[s]['trained'].get('cpu_kind', 'CPU kind not recorded')}"
-        for s in seeds
-    )
-    return [
-        "## The main model's headline numbers (seed mean ± sd)",
-        "",
-        f"The main setting trained at {len(seeds)} seed{'s' if len(seeds) > 1 else ''} "
-        f"(same pairs, rule and caps; {kinds}).",
-        "",
-        Table(
-            [
-                Column(h)
-                for h in ("quantity", *(f"seed {s}" for s in seeds), "mean ± sd", "relative sd")
-            ],
-            rows,
-        ).markdown(),
-        "",
-    ]
+    heads = ("quantity", *(f"seed {s}" for s in seeds), "mean ± sd", "relative sd")
+    return lines("report/headline.md.j2", seeds=seeds, views=views, table=table(heads, rows))
 
 
-def _flow_error_section(fe: dict | None) -> tuple[list[str], Any]:
+def _flow_error_section(fe: dict | None, link: Any) -> list[str]:
     """DIS's error against the exact flow by frame offset (stage ``flow_error``): a table per
     region and its figure; nothing before the stage has run."""
-    from mfg_lightning.data.rendered import QUALITY_REGIONS
+    from mfg_lightning.metrics.flow_quality import QUALITY_REGIONS
     from mfg_lightning.pictures.plots import bar_figure
 
     if fe is None:
-        return [], None
+        return []
     test = dict(sorted(fe["test"].items(), key=lambda kv: int(kv[0])))
     rows = [
         [f"{int(o):+d}", str(q["pairs"]),
@@ -489,49 +321,32 @@ def _flow_error_section(fe: dict | None) -> tuple[list[str], Any]:
         "DIS's error by frame offset (test pairs)",
     )  # fmt: skip
     heads = ("offset", "pairs", *(f"{r}: EPE (px) / Fl (%)" for r in QUALITY_REGIONS))
-    return [
-        "## The flow by offset (what ATE * / ATE † also measures)",
-        "",
-        "DIS's error against the rendered worlds' exact flow on the central test pairs, by frame "
-        "offset (target − source) and image region, at the render resolution; Fl is KITTI's "
-        "outlier rate (end-point error above 3 px and 5 % of the motion).",
-        "",
-        Table([Column(h) for h in heads], rows).markdown(),
-        "",
-    ], fig
+    return lines("report/flow_error.md.j2", figure=link("flow_error.png", fig),
+                 table=table(heads, rows))  # fmt: skip
 
 
 def _causes_sections(
-    study: S.Study,
-    views: dict,
-    twin: dict | None,
-    size: dict,
-    settled: Settled,
-    figdir: Path,
-    made: list[str],
+    study: S.Study, views: dict, size: dict, settled: Settled, link: Any
 ) -> list[str]:
     """The causes separated (:mod:`mfg_lightning.study.causes`): the exact-flow twin, Table 2 on
     exact flow beside DIS, the size curve (``size``: its results by name); their figures
-    written and added to ``made``."""
+    written by ``link``."""
     from mfg_lightning.study import causes
 
-    twin_lines, twin_fig = causes.twin_section(views, twin, study.cached("methods"))
-    size_lines, size_fig = causes.size_section(size)
-    for lines, fig, name in ((twin_lines, twin_fig, "twin.png"), (size_lines, size_fig,
-                                                                  "size.png")):  # fmt: skip
+    cached, twin = study.cached, study.cached("twin")
+    sections = []
+    for (text, fig), name in ((causes.twin_section(views, twin, cached("methods")), "twin.png"),
+                              (causes.size_section(size), "size.png"),
+                              (settle_section(settled), "settle.png")):  # fmt: skip
         if fig is not None:
-            lines[2] += " " + _figure(figdir, name, fig)
-            made.append(name)
-    settle_lines, settle_fig = settle_section(settled)
-    if settle_fig is not None:
-        settle_lines[2] += " " + _figure(figdir, "settle.png", settle_fig)
-        made.append("settle.png")
-    t2 = causes.table2_flow_section(study.cached("table2_exact"), study.cached("table2"))
+            text[2] += " " + link(name, fig)
+        sections.append(text)
     learned = causes.learned_section(
-        views, twin, study.cached("learned"), study.cached("flow_error"), study_flow_name(study)
+        views, twin, cached("learned"), cached("flow_error"), study_flow_name(study)
     )
-    stale = {n: study.cached(n) for n in ("twin", "table2", "table2_exact")}
-    stale["size/classical"] = study.cached("size/classical")
+    t2 = causes.table2_flow_section(cached("table2_exact"), cached("table2"))
+    stale = {n: cached(n) for n in ("twin", "table2", "table2_exact", "size/classical")}
+    twin_lines, size_lines, settle_lines = sections
     return [*twin_lines, *learned, *settle_lines, *t2, *size_lines, *stale_essential(stale)]
 
 
@@ -540,73 +355,6 @@ def study_flow_name(study: S.Study) -> str:
     chosen = [str(d).split("=", 1)[1] for d in study.cfg.data if str(d).startswith("flow=")]
     name = chosen[-1] if chosen else "dis"
     return {"dis": "DIS", "exact": "exact"}.get(name, name)
-
-
-def _pending(study: S.Study) -> list[str]:
-    """The configured stages whose result is not cached yet, in the order the study runs them
-    (what a reader should not look for in the report yet)."""
-    cfg = study.cfg
-    names = [
-        "data", "flow_error", "main", "table1", "basis", "object_motion", "methods",
-        *[f"seeds/seed{int(s)}" for s in cfg.seeds.extra], "twin", "learned", "table2",
-        "table2_exact",
-        *[f"settle_classical/{f}" for f in cfg.settle.flows],
-        *[f"settle/{f}_seed{s}" for f, s in T.seed_runs(cfg)],
-        *[f"settle/strided_seed{s}" for s in T.strided_runs(cfg)],
-        *[f"size/{S.size_name(*p)}" for p in S.size_runs(cfg)], "size/classical",
-        *[f"sparsity/{v[0]}" for v in S.sparsity_variants(cfg)], "balance", "recipe",
-    ]  # fmt: skip
-    missing = [n for n in names if study.cached(n) is None]
-    if not missing:
-        return ["Every stage has run.", ""]
-    return [f"Not run yet, in the study's order: {', '.join(f'`{n}`' for n in missing)}.", ""]
-
-
-def _verdict_figure(judged: list[Judged]) -> Any:
-    """Every judged part's interval against its bound, on one axis: the distance from the bound
-    in half-widths of the part's own interval, signed so that the claimed side is on the left
-    for every part (holds: the whole bar left of 0; does not hold: right of it)."""
-    from matplotlib.figure import Figure
-
-    parts = [(j.sentence.key, p) for j in judged for p in j.parts if p.judged is not None]
-    if not parts:
-        return None
-    lim = 6.0
-    colour = {"holds": "tab:green", "does not hold": "tab:red"}
-    fig = Figure(figsize=(10, 0.32 * len(parts) + 1.8))
-    ax = fig.subplots()
-    for i, (_, p) in enumerate(parts):
-        iv = p.judged
-        half = max((iv.hi - iv.lo) / 2, 1e-300)
-        sign = 1.0 if p.direction == "<=" else -1.0
-        centre = sign * (iv.value - p.bound) / half
-        c = colour.get(p.verdict, "0.5")
-        shown = min(max(centre, -lim), lim)
-        if iv.hi == iv.lo:
-            # no spread at all (the same value in every seed and pair): a point, not a bar
-            ax.plot(shown, i, "D", color=c)
-            continue
-        lo, hi = max(centre - 1, -lim), min(centre + 1, lim)
-        if lo < hi:
-            ax.plot([lo, hi], [i, i], color=c, lw=4, solid_capstyle="butt")
-        ax.plot(shown, i, "o" if shown == centre else ">" if centre > lim else "<", color=c)
-    ax.axvline(0.0, color="k", lw=0.8)
-    ax.set_xlim(-lim - 0.5, lim + 0.5)
-    ax.set_yticks(range(len(parts)))
-    # S10's bins name their size and speed last: shortened so that the tick label keeps them
-    short = [p.label.replace("velocity error, ", "").replace(" of the image", "") for _, p in parts]
-    ax.set_yticklabels([f"{k} {lab[:70]}" for (k, _), lab in zip(parts, short, strict=True)],
-                       fontsize=7)  # fmt: skip
-    ax.set_xlabel(
-        "distance from the bound, in half-widths of the part's 95 % interval\n"
-        "(left of 0: the claimed side; a triangle: beyond the axis; a diamond: no spread)"
-    )
-    ax.invert_yaxis()
-    ax.set_title(
-        "Verdicts per part\ngreen holds · red does not hold · grey inconclusive", fontsize=10
-    )
-    fig.tight_layout()
-    return fig
 
 
 def _remove_stale(figdir: Path, made: list[str]) -> None:
@@ -627,16 +375,7 @@ def stale_essential(results: dict[str, dict | None]) -> list[str]:
     """A note naming the stages (by name) whose essential-matrix rows predate the fix, or
     nothing."""
     stale = [n for n, r in results.items() if r and r.get("baselines_version", 1) < ESSENTIAL_FIX]
-    if not stale:
-        return []
-    return [
-        f"The essential-matrix rows of {', '.join(f'`{n}`' for n in stale)} were computed at a "
-        "commit without the cheirality fix (`motion.baselines._cheirality_pose`): their "
-        "failures on slow pairs in far scenes (a rotation off by π) are that bug's, not the "
-        "method's, and their means are too large; the 2 × 2's classical methods "
-        "(`settle_classical/*`) have the fix.",
-        "",
-    ]
+    return lines("report/stale.md.j2", stale=stale) if stale else []
 
 
 def _methods_section(mt: dict | None) -> list[str]:
@@ -657,17 +396,8 @@ def _methods_section(mt: dict | None) -> list[str]:
                                   for k in keys), ms, note])  # fmt: skip
     heads = ("method", "ATE † 09 (m)", "ATE † 10 (m)", "ATE * 09 (m)", "ATE * 10 (m)",
              "RPE trans (m)", "RPE rot (rad)", "ms / pair", "note")  # fmt: skip
-    return [
-        "## The method comparison (every test pair of 09 and 10, DIS flow)",
-        "",
-        f"The main model against every classical baseline on the {mt['test_pairs']} test pairs "
-        f"(±1, ±2; † and RPE from the {mt['forward_pairs']} +1 pairs). The classical methods see "
-        "one pair and cannot know the scale: their translation is given the ground-truth length.",
-        "",
-        Table([Column(h) for h in heads], rows).markdown(),
-        "",
-        *stale_essential({"methods": mt}),
-    ]
+    return [*lines("report/methods.md.j2", mt=mt, table=table(heads, rows)),
+            *stale_essential({"methods": mt})]  # fmt: skip
 
 
 def _balance_section(
@@ -695,33 +425,16 @@ def _balance_section(
              "one motion, ω units (%)", "|ω| / |t| typical")  # fmt: skip
     rows = [
         row("released code: norm ratio (main model)", main_test, basis),
-        row(
-            f"paper's print: squared ratio ({balance['steps']} steps)",
-            balance.get("test", {}),
-            balance.get("basis"),
-        ),
-    ]
-    return [
-        "## The balancing weights, two readings (claims 3 and 5)",
-        "",
-        "The released code weighs the rotational term by the ratio of the fields' norms, the "
-        "paper's equation by its square (`model.loss.balance_squared=true`); both clamped at "
-        "the same maximum, on the main model's data and rule.",
-        "",
-        Table([Column(h) for h in heads], rows).markdown(),
-        "",
-    ]
-
-
-def _figure(figdir: Path, name: str, fig: Any) -> str:
-    atomic_write_bytes(figdir / name, figure_png(fig))
-    return f"[{name}]({figdir.name}/{name})"
+        row(f"paper's print: squared ratio ({balance['steps']} steps)", balance.get("test", {}),
+            balance.get("basis")),
+    ]  # fmt: skip
+    return lines("report/balance.md.j2", table=table(heads, rows))
 
 
 def _notes(report: Path) -> list[str]:
     """The reading of the results that a person wrote beside the report
-    (``<report stem>_notes.md``), kept apart so that a rerun of the study does not overwrite it;
-    nothing when there is none."""
+    (``<report stem>_notes.md``), kept apart so that a rerun of the study does not overwrite it
+    (and printed as written); nothing when there is none."""
     notes = report.with_name(f"{report.stem}_notes.md")
     if not notes.is_file():
         return []

@@ -9,152 +9,70 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 from omegaconf import DictConfig
 
+from mfg_lightning.study import plan
 from mfg_lightning.study import settle as T
 from mfg_lightning.study import stages as S
 from mfg_lightning.study.report import write_report
+from mfg_lightning.study.rules import growth, smallest_k
 
 
-def check(cfg: DictConfig) -> None:
-    """Refuse a config the study cannot run, naming the key."""
-    if not cfg.poses_dir and any("trajectory=kitti" in str(o) for o in cfg.data):
-        raise ValueError("poses_dir: set it to KITTI's poses/ directory (00.txt ... 10.txt)")
-    if cfg.poses_dir and not Path(cfg.poses_dir).expanduser().is_dir():
-        raise FileNotFoundError(f"poses_dir: no such directory: {cfg.poses_dir}")
-    known = set(STAGES)
-    unknown = [s for s in cfg.stages if s not in known]
-    if unknown:
-        raise ValueError(f"stages: unknown {unknown}; known: {', '.join(STAGES)}")
-    for key in (
-        "main_steps",
-        "other_steps",
-        "val_every",
-        "batch_size",
-        "eval_batch_size",
-        "main_frame_stride",
-    ):
-        if int(cfg.budget[key]) <= 0:
-            raise ValueError(f"budget.{key} must be positive, got {cfg.budget[key]}")
-    seeds = [int(s) for s in cfg.seeds.extra]
-    if int(cfg.seed) in seeds or len(set(seeds)) != len(seeds):
-        raise ValueError(
-            f"seeds.extra: {seeds} must be distinct and differ from the main model's seed "
-            f"({cfg.seed})"
-        )
-    main_stride = int(cfg.budget.main_frame_stride)
-    bad = [int(n) for n in cfg.size.strides if int(n) <= 0 or int(n) % main_stride]
-    if bad:
-        # a stride off the main model's frames would render pairs the flow cache does not have
-        raise ValueError(
-            f"size.strides: {bad} must be positive multiples of budget.main_frame_stride "
-            f"({main_stride}), the source frames whose pairs the main model's data rendered"
-        )
-    if int(cfg.seed) in [int(s) for s in cfg.size.seeds]:
-        raise ValueError(
-            f"size.seeds: {list(cfg.size.seeds)} must not hold the study's seed ({cfg.seed}), "
-            "whose run at each stride is the curve's own"
-        )
+def _runners(study: S.Study) -> dict[str, Callable[[Any], dict | None]]:
+    """Per stage of the table, the function that computes one of its results from the runner
+    argument :func:`~mfg_lightning.study.plan.results` gives it. The stages that evaluate the
+    main model compute nothing (None: not cached) until the main model's result exists."""
+    cfg, b = study.cfg, study.cfg.budget
+    extra = list(cfg.main)
 
+    def of_main(f: Callable[[dict], dict | None]) -> Callable[[Any], dict | None]:
+        return lambda _: (m := study.cached("main")) and f(m)
 
-STAGES = (
-    "data",
-    "flow_error",
-    "main",
-    "table1",
-    "basis",
-    "object_motion",
-    "methods",
-    "seeds",
-    "twin",
-    "learned",
-    "table2",
-    "table2_exact",
-    "settle_classical",
-    "settle",
-    "size",
-    "sparsity",
-    "balance",
-    "recipe",
-)
+    return {
+        "data": lambda _: stage_data(study, extra),
+        "flow_error": lambda _: stage_flow_error(study, extra),
+        "main": lambda _: study.train("main", extra, b.main_steps, b.get("main_max_time")),
+        "table1": of_main(lambda m: stage_table1(study, m, extra)),
+        "basis": of_main(lambda m: stage_basis(study, m, extra)),
+        "object_motion": of_main(lambda m: stage_object_motion(study, m, extra)),
+        "methods": of_main(lambda m: stage_methods(study, m, extra, study.cached("table1"))),
+        "seeds": lambda seed: stage_seed(study, seed, extra),
+        "twin": lambda _: stage_twin(study, extra),
+        "learned": lambda _: stage_learned(study, extra),
+        "table2": lambda _: stage_table2(study),
+        "table2_exact": lambda _: stage_table2(study, exact=True),
+        "settle_classical": lambda flow: T.stage_classical(study, flow),
+        "settle": lambda r: T.stage_strided(study, r[1]) if r[0] == "strided" else
+        T.stage_seed(study, *r),
+        "size": lambda p: stage_size_classical(study) if p is None else stage_size(study, *p),
+        "sparsity": lambda v: stage_sparsity(study, *v, study.cached("main")),
+        "balance": lambda _: stage_balance(study),
+        "recipe": lambda _: stage_recipe(study, study.cached("main")),
+    }  # fmt: skip
 
 
 def run(study: S.Study, report: Path) -> Path:
-    """Every selected stage in order, the report rewritten after each.
+    """Every selected stage result of the plan (:func:`mfg_lightning.study.plan.results`) in
+    order, the report rewritten after each that ran (a reader follows a long study), and once
+    at the start (a study whose stages are all cached writes it once).
 
-    The stages that evaluate the main model (``table1`` … ``object_motion``) follow it at once,
+    The stages that evaluate the main model (``table1`` … ``methods``) follow it at once,
     while its checkpoint is on this machine (a fresh clone resuming from the committed results
     trains it again only when one of them is not cached); then the other models, each trained
     and evaluated in its own stage.
     """
-    cfg = study.cfg
-    main_extra = list(cfg.main)
-    budget = cfg.budget
-
-    written = [0]
-
-    def write(final: bool = False) -> Path:
-        # after each stage that ran (a reader follows a long study), and once at the end: a
-        # study whose stages are all cached writes its report once, not once per stage
-        if final or len(study.ran) != written[0]:
+    runners, written = _runners(study), [-1]
+    for stage, name, arg in plan.results(study.cfg):
+        study.stage(name, partial(runners[stage], arg))
+        if len(study.ran) != written[0]:
             written[0] = len(study.ran)
-            return write_report(study, report)
-        return report
-
-    study.stage("data", lambda: stage_data(study, main_extra))
-    write()
-    study.stage("flow_error", lambda: stage_flow_error(study, main_extra))
-    write()
-    main = study.stage(
-        "main",
-        lambda: study.train("main", main_extra, budget.main_steps, budget.get("main_max_time")),
-    )
-    write()
-    if main:
-        t1 = study.stage("table1", lambda: stage_table1(study, main, main_extra))
-        write()
-        study.stage("basis", lambda: stage_basis(study, main, main_extra))
-        write()
-        study.stage("object_motion", lambda: stage_object_motion(study, main, main_extra))
-        write()
-        # the longest of them (every classical method on every test pair) last
-        study.stage("methods", lambda: stage_methods(study, main, main_extra, t1))
-        write()
-    for seed in cfg.seeds.extra:
-        study.stage(f"seeds/seed{int(seed)}", partial(stage_seed, study, int(seed), main_extra))
-        write()
-    study.stage("twin", lambda: stage_twin(study, main_extra))
-    write()
-    study.stage("learned", lambda: stage_learned(study, main_extra))
-    write()
-    study.stage("table2", lambda: stage_table2(study))
-    write()
-    study.stage("table2_exact", lambda: stage_table2(study, exact=True))
-    write()
-    for flow in cfg.settle.flows:
-        study.stage(f"settle_classical/{flow}", partial(T.stage_classical, study, str(flow)))
-        write()
-    for flow, seed in T.seed_runs(cfg):
-        study.stage(f"settle/{flow}_seed{seed}", partial(T.stage_seed, study, flow, seed))
-        write()
-    for seed in T.strided_runs(cfg):
-        study.stage(f"settle/strided_seed{seed}", partial(T.stage_strided, study, seed))
-        write()
-    for stride, seed in S.size_runs(cfg):
-        study.stage(f"size/{S.size_name(stride, seed)}", partial(stage_size, study, stride, seed))
-        write()
-    study.stage("size/classical", lambda: stage_size_classical(study))
-    write()
-    for name, extra, plain, w in S.sparsity_variants(cfg):
-        study.stage(f"sparsity/{name}", partial(stage_sparsity, study, name, extra, plain, w, main))
-        write()
-    study.stage("balance", lambda: stage_balance(study))
-    write()
-    study.stage("recipe", lambda: stage_recipe(study, main))
-    return write(final=True)
+            write_report(study, report)
+    return report
 
 
 # --------------------------------------------------------------------------------------------
@@ -333,27 +251,6 @@ def _other(study: S.Study, name: str, extra: list[str], steps: int | None = None
     return study.train(name, extra, steps or int(b.other_steps), b.get("other_max_time"))
 
 
-def _seconds(max_time: str | None) -> float:
-    """Lightning's ``max_time`` "DD:HH:MM:SS" in seconds (``inf``: no cap)."""
-    if not max_time:
-        return math.inf
-    d, h, m, sec = (int(x) for x in str(max_time).split(":"))
-    return float(((d * 24 + h) * 60 + m) * 60 + sec)
-
-
-def main_run_serves(study: S.Study, main: dict | None, max_time: str | None = None) -> bool:
-    """Whether the main model's run is the run a model of the main setting would make under
-    the other models' caps: it met the rule (was not stopped by its own caps) within
-    ``budget.other_steps`` and ``max_time`` (default ``budget.other_max_time``). Training
-    such a model again gives the same model (the seed and data are the same; the sweep's
-    w_s = 100 run repeated the main model's curve bit for bit), so it is not trained twice."""
-    if main is None or not (main.get("convergence") or {}).get("converged"):
-        return False
-    b = study.cfg.budget
-    cap = _seconds(max_time or b.get("other_max_time"))
-    return int(main["steps"]) <= int(b.other_steps) and float(main["train_seconds"]) <= cap
-
-
 def stage_sparsity(
     study: S.Study, name: str, extra: list[str], plain: bool, w: float, main: dict | None
 ) -> dict:
@@ -365,7 +262,7 @@ def stage_sparsity(
     cfg = study.cfg
     extra = [*cfg.main, *extra]
     same = plain and main is not None and float(main["recipe"]["w_s"]) == float(w)
-    if same and main_run_serves(study, main):
+    if same and S.main_run_serves(study, main):
         trained = {**main, "same_as": "main"}
     else:
         trained = _other(study, name, extra)
@@ -373,7 +270,7 @@ def stage_sparsity(
     dm = study.datamodule(study.train_config(name, extra, 1))
     ks = [float(k) for k in cfg.table1.top_k]
     val = S.mfg_scores(model, study.loader(dm, "val"), ks)
-    k_star = S.smallest_k(val, float(cfg.sparsity.ate_tolerance))
+    k_star = smallest_k(val, float(cfg.sparsity.ate_tolerance))
     test = S.mfg_scores(model, study.loader(dm, "test"), [1.0, k_star or 1.0])
     active = S.active_fraction(model, study.loader(dm, "val"))
     units = int(model.net.hidden_units)
@@ -435,7 +332,7 @@ def stage_methods(
     model = study.model(main)
     central = study.test_datamodule(main_extra)
     ds = central.dataset("test")
-    k_star = S.smallest_k(t1["val"], float(cfg.sparsity.ate_tolerance)) if t1 else None
+    k_star = smallest_k(t1["val"], float(cfg.sparsity.ate_tolerance)) if t1 else None
     sparse = k_star is not None and k_star < 1
     predicts = mfg_top_k_methods(model, [None, k_star] if sparse else [None])
     rows = [Method("MFG (all units)", predicts[0])]
@@ -454,7 +351,7 @@ def stage_methods(
         bins[m.name] = {
             "rot_bins": rot,
             "trans_bins": S.bin_errors(cov, [m.trans_err[i] for i in pick], edges),
-            "growth": S.growth(rot),
+            "growth": growth(rot),
         }
     return {
         "test_pairs": len(ds),
@@ -545,7 +442,7 @@ def stage_recipe(study: S.Study, main: dict | None) -> dict:
     ):
         epoch_steps = max(1, math.ceil(samples / batch))
         scores = None
-        if name == "cpu" and main_run_serves(study, main) and main["samples_seen"] >= samples:
+        if name == "cpu" and S.main_run_serves(study, main) and main["samples_seen"] >= samples:
             trained = {**main, "same_as": "main"}
             if (t1 := study.cached("table1")) is not None:
                 scores = (t1["val"]["1"].get("ate"), t1["test"]["1"].get("ate"))

@@ -14,9 +14,9 @@ from typing import Any
 
 import numpy as np
 
-from mfg_lightning.core.tables import Column, Table, fmt
-from mfg_lightning.study import wording
+from mfg_lightning.core.tables import fmt
 from mfg_lightning.study.intervals import BLOCK_PAIRS, Interval, bootstrap_se, difference
+from mfg_lightning.study.render import lines, paragraph, table
 from mfg_lightning.study.sentences import (
     IRLS,
     MIN_SEEDS,
@@ -66,22 +66,12 @@ def block_errors(settled: Settled, blocks: tuple[int, ...] = BLOCKS) -> dict[str
     return out
 
 
-def _block_text(settled: Settled) -> list[str]:
-    """The standard errors by block length, and where the verdicts' length came from."""
-    by = block_errors(settled)
-    if not by:
-        return []
-    cells = "; ".join(
+def _block_text(settled: Settled) -> str:
+    """The standard errors by block length (block length in brackets), per flow."""
+    return "; ".join(
         f"{_FLOW[f]}: " + ", ".join(f"{se:.3f} ({b})" for b, se in zip(BLOCKS, ses, strict=True))
-        for f, ses in by.items()
+        for f, ses in block_errors(settled).items()
     )
-    return [
-        f"The verdicts' bootstrap resamples the test pairs in runs of {BLOCK_PAIRS} consecutive "
-        "pairs (`study.intervals.BLOCK_PAIRS`), a length chosen after these per-pair errors had "
-        "been seen (`changes.json`). Its standard error of log(MFG / IRLS), all units, the "
-        f"seeds' root mean square, by block length (pairs in brackets): {cells}.",
-        "",
-    ]
 
 
 def rot_summary(errors: np.ndarray) -> tuple[float, float, float]:
@@ -208,128 +198,51 @@ def settle_section(settled: Settled) -> tuple[list[str], Any]:
     flows = settled.flows()
     if not flows:
         return [], None
-    seeds = ", ".join(f"{len(settled.seeds[f])} on {f}" for f in flows)
     some = settled.seeds[flows[0]][min(settled.seeds[flows[0]])]
-    steps = some.get("step_cap")
-    decay = (some.get("convergence") or {}).get("rule", {}).get("decay_fraction")
-    ours, theirs = PRINTED_TABLE2_ROT
-    paper = (
-        f"{ours} rad against the robust continuous method's {theirs} "
-        f"(×{float(ours) / float(theirs):.2f})"
-    )
-    lines = [
-        "## Table 2's setting at every seed: flow × method",
-        "",
-        f"The Table-2-sized model ({some['train_pairs']:,} training pairs) trained at every seed "
-        f"({seeds}) for the same budget, stated before training ({steps:,} steps: a constant rate, "
-        f"then a linear decay to 0 over the last {100 * float(decay or 0):g} %; the last "
-        f"checkpoint evaluated; {some.get('precision')}), "
-        f"each tested on the same {some['test_pairs']} +1 pairs of 09 and 10 as the classical "
-        f"methods on the same flow. A failure is a rotation error above {FAILURE_RAD:g} rad. "
-        "The last column is the paired 95 % interval of the method's mean rotation error over "
-        "IRLS's (t over the seeds plus the paired bootstrap over the test pairs). The paper: "
-        f"MFG {paper}.",
-        "",
-        Table(
-            [
-                Column(h)
-                for h in (
-                    "flow",
-                    "method",
-                    "seeds",
-                    "mean rotation error (rad)",
-                    "median (rad)",
-                    "failures",
-                    "over IRLS",
-                )
-            ],
-            _rows(settled),
-        ).markdown(),
-        "",
-        *_block_text(settled),
-    ]
-    if (mixed := mixed_reading(settled)) is not None:
-        lines += [
-            f"The mixed reading (a diagnostic, not the verdict): MFG on exact flow over IRLS on "
-            f"DIS {_ratio_text(mixed)}.",
-            "",
-        ]
-    if (cs := contiguous_against_strided(settled)) is not None:
-        iv, sides = cs
+    heads = ("flow", "method", "seeds", "mean rotation error (rad)", "median (rad)", "failures",
+             "over IRLS")  # fmt: skip
+    cs, cs_table, frames = contiguous_against_strided(settled), "", None
+    if cs is not None:
         rows = [
             [name, str(s["seeds"]), ", ".join(map(str, s["train_pairs"])),
              fmt(math.exp(statistics.fmean(s["logs"])), 5)]
-            for name, s in sides.items()
+            for name, s in cs[1].items()
         ]  # fmt: skip
-        lines += [
-            "Contiguous against strided training pairs at a matched size (exact flow, the same "
-            f"budget and test pairs): {_training_frames(settled.seeds['exact'])} against "
-            f"{_training_frames(settled.strided)}.",
-            "",
-            Table(
-                [
-                    Column(h)
-                    for h in (
-                        "training pairs",
-                        "seeds",
-                        "pairs",
-                        "geometric mean of the seeds' mean rotation error (rad)",
-                    )
-                ],
-                rows,
-            ).markdown(),
-            "",
-            f"Strided over contiguous: ×{fmt(math.exp(iv.value), 3)} "
-            f"[×{fmt(math.exp(iv.lo), 3)}, ×{fmt(math.exp(iv.hi), 3)}] ({iv.how}).",
-            "",
-        ]
-    return lines, _figure(settled)
+        mean = "geometric mean of the seeds' mean rotation error (rad)"
+        cs_table = table(("training pairs", "seeds", "pairs", mean), rows)
+        frames = (_training_frames(settled.seeds["exact"]), _training_frames(settled.strided))
+    mixed = mixed_reading(settled)
+    text = lines(
+        "report/settle.md.j2", some=some, seeds=", ".join(f"{len(settled.seeds[f])} on {f}"
+        for f in flows), steps=some.get("step_cap"), decay=float(
+        (some.get("convergence") or {}).get("rule", {}).get("decay_fraction") or 0),
+        failure=FAILURE_RAD, printed=PRINTED_TABLE2_ROT, table=table(heads, _rows(settled)),
+        block=BLOCK_PAIRS, blocks=_block_text(settled), cs=cs, cs_table=cs_table, frames=frames,
+        mixed=_ratio_text(mixed) if mixed is not None else "",
+    )  # fmt: skip
+    return text, _figure(settled)
 
 
 def para_settle(settled: Settled, data: Sequence[str] = ()) -> str | None:
     """The reading of the 2 × 2 and of contiguous against strided pairs, from the results
     (``data``: the study's data overrides, whose training sequences a run without its own
     has)."""
-    flows = settled.flows()
-    if not flows:
+    if not settled.flows():
         return None
-    bits = []
-    for flow in flows:
+    flows = []
+    for flow in settled.flows():
         rot = settled.classical_rot(flow)
         irls = next((n for n in rot if IRLS in n), None)
         errs = settled.mfg_rot(flow, "1")
-        if not irls or not errs:
-            continue
-        p = log_ratio_part("", errs, rot[irls])
-        mean = statistics.fmean(float(e.mean()) for e in errs)
-        side = wording.side(p.iv.lo, p.iv.hi) if p.iv else "not yet judged against"
-        on = "on" if bits else "On"
-        bits.append(
-            f"{on} {_FLOW[flow]} MFG's mean rotation error is {fmt(mean, 5)} rad over "
-            f"{len(errs)} seed{'s' * (len(errs) != 1)} against IRLS's "
-            f"{fmt(float(rot[irls].mean()), 5)}, {_ratio_text(p)}: {side} IRLS's"
-        )
-    text = "**Table 2's setting at every seed.** " + "; ".join(bits) + "."
+        if irls and errs:
+            p = log_ratio_part("", errs, rot[irls])
+            mean = statistics.fmean(float(e.mean()) for e in errs)
+            irls_mean = float(rot[irls].mean())
+            flows.append({"name": _FLOW[flow], "mean": mean, "seeds": len(errs),
+                          "irls": irls_mean, "part": p, "text": _ratio_text(p)})  # fmt: skip
+    more = 0
     if (cs := contiguous_against_strided(settled)) is not None:
-        iv, sides = cs
         seqs = [_sequences(settled.seeds["exact"], data), _sequences(settled.strided, data)]
         # a caveat to the reading where the sets also differ in how many sequences they draw on
         more = len(seqs[1]) - len(seqs[0]) if None not in seqs else 0  # type: ignore[arg-type]
-        also = f" (the strided set also holds {wording.spelled(abs(more))} "
-        also += f"{'more' if more > 0 else 'fewer'} sequence{'s' * (abs(more) > 1)})"
-        also = also if more else ""
-        reading = {
-            "below": "the strided set is better: at the same size, frames spread over the whole "
-            f"split lower the error{also}",
-            "above": f"the strided set is worse{also}",
-            "not distinguishable from": "the two cannot be told apart at these seeds: diversity "
-            "is not shown to matter",
-        }[wording.side(iv.lo, iv.hi)]
-        text += (
-            f" At a matched size ({sides['contiguous']['train_pairs'][0]} contiguous against "
-            f"{sides['strided']['train_pairs'][0]} strided training pairs, "
-            f"{sides['contiguous']['seeds']} and {sides['strided']['seeds']} seeds) the strided "
-            f"set's rotation error is ×{fmt(math.exp(iv.value), 3)} [×{fmt(math.exp(iv.lo), 3)}, "
-            f"×{fmt(math.exp(iv.hi), 3)}] the contiguous one's: {reading}."
-        )
-    return text
+    return paragraph("reading/settle.md.j2", flows=flows, cs=cs, more=more)

@@ -274,6 +274,27 @@ def recipe_of(cfg: DictConfig) -> dict[str, Any]:
 # --------------------------------------------------------------------------------------------
 
 
+def _seconds(max_time: str | None) -> float:
+    """Lightning's ``max_time`` "DD:HH:MM:SS" in seconds (``inf``: no cap)."""
+    if not max_time:
+        return math.inf
+    d, h, m, sec = (int(x) for x in str(max_time).split(":"))
+    return float(((d * 24 + h) * 60 + m) * 60 + sec)
+
+
+def main_run_serves(study: Study, main: dict | None, max_time: str | None = None) -> bool:
+    """Whether the main model's run is the run a model of the main setting would make under
+    the other models' caps: it met the rule (was not stopped by its own caps) within
+    ``budget.other_steps`` and ``max_time`` (default ``budget.other_max_time``). Training
+    such a model again gives the same model (the seed and data are the same; the sweep's
+    w_s = 100 run repeated the main model's curve bit for bit), so it is not trained twice."""
+    if main is None or not (main.get("convergence") or {}).get("converged"):
+        return False
+    b = study.cfg.budget
+    cap = _seconds(max_time or b.get("other_max_time"))
+    return int(main["steps"]) <= int(b.other_steps) and float(main["train_seconds"]) <= cap
+
+
 def size_name(stride: int, seed: int | None) -> str:
     """The stage (and model) name of one point of the training-set-size curve."""
     return f"stride{stride}" + (f"_seed{seed}" if seed is not None else "")
@@ -298,15 +319,6 @@ def mfg_scores(model: Any, loader: DataLoader, ks: list[float]) -> dict[str, dic
         f"{k:g}": {key: float(v) for key, v in m.evaluator.compute().metrics.items()}
         for k, m in zip(ks, rows, strict=True)
     }
-
-
-def smallest_k(val: dict[str, dict[str, float]], tolerance: float) -> float | None:
-    """The smallest k whose validation ATE is within ``tolerance`` of the full model's."""
-    full = val.get("1", {}).get("ate")
-    if full is None or not math.isfinite(full):
-        return None
-    ok = [float(k) for k, m in val.items() if m.get("ate", math.inf) <= (1 + tolerance) * full]
-    return min(ok) if ok else 1.0
 
 
 def active_fraction(model: Any, loader: DataLoader) -> float | None:
@@ -363,14 +375,6 @@ def bin_errors(
         n = int(sel.sum())
         out.append({"lo": lo, "hi": hi, "n": n, "mean": float(err[sel].mean()) if n else None})
     return out
-
-
-def growth(bins: list[dict[str, float]]) -> float | None:
-    """Mean error of the most covered non-empty bin over that of the least covered one."""
-    filled = [b for b in bins if b["n"] and b["mean"] is not None]
-    if len(filled) < 2 or not filled[0]["mean"]:
-        return None
-    return filled[-1]["mean"] / filled[0]["mean"]
 
 
 def object_motion_scores(

@@ -21,6 +21,8 @@ Where an interval exists the words compare the interval, not its point estimate
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
+from typing import Any
 
 __all__ = [
     "MUCH",
@@ -33,6 +35,8 @@ __all__ = [
     "number",
     "percent",
     "position",
+    "recipe_text",
+    "rule_met",
     "side",
     "spelled",
 ]
@@ -117,3 +121,22 @@ def side(lo: float, hi: float, bound: float = 0.0) -> str:
     excludes it, "not distinguishable from" when it contains it (a point estimate on one side
     decides nothing)."""
     return "below" if hi < bound else "above" if lo > bound else "not distinguishable from"
+
+
+def rule_met(c: Mapping[str, Any], rule: str = "the rule") -> str:
+    """Whether a run's convergence record ``c`` met ``rule`` (``reason`` "plateau") or stopped
+    for another reason (a step, time or budget cap), and at which step its decay began."""
+    start = c.get("decay_start")
+    if c.get("converged", c.get("reason") == "plateau"):
+        return f"met {rule}" + (f" at step {count(start)}" if start is not None else "")
+    why = f"did not meet {rule} ({c.get('reason') or 'no reason recorded'})"
+    return why + (f" and began its decay at step {count(start)}" if start is not None else "")
+
+
+def recipe_text(recipe: Mapping[str, Any]) -> str:
+    """A run's recorded recipe in words ("batch 1, Adam lr 1e-5, betas 0.99 / 0.999")."""
+    betas = recipe.get("betas") or []
+    text = f"batch {recipe['batch_size']}, {recipe['optimizer']} lr {number(recipe['lr'])}"
+    if betas:
+        text += ", betas " + " / ".join(number(b) for b in betas)
+    return text + (f", {recipe['scheduler']} schedule" if recipe.get("scheduler") else "")
