@@ -30,6 +30,9 @@ CURVE_KEYS = (
     "val/epe", "val/epe_+1", "val/epe_-1", "val/epe_+2", "val/epe_-2",
     "val/epe/road", "val/epe/structure", "val/epe/moving", "val/epe/far", "val/fl",
 )  # fmt: skip
+#: ... and on the non-occluded pixels alone (logged by runs whose pairs carry the renderer's
+#: visibility marks; the table shows them where a run has them).
+NOC_KEYS = ("val/epe_noc", "val/fl_noc")
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -55,7 +58,7 @@ def read_run(run: Path) -> dict[str, Any]:
     events.Reload()
     tags = set(events.Tags()["scalars"])
     curve: dict[int, dict[str, float]] = {}
-    for key in CURVE_KEYS:
+    for key in (*CURVE_KEYS, *NOC_KEYS):
         for e in events.Scalars(key) if key in tags else []:
             if e.step > 0:  # (step 0: the final metrics logged again with the hyperparameters)
                 curve.setdefault(int(e.step), {})[key] = float(e.value)
@@ -90,14 +93,18 @@ def read_run(run: Path) -> dict[str, Any]:
 
 def dis_val_epe(out: Path) -> float | None:
     """DIS medium's validation EPE at +1 (all pixels, every frame of the tails) from
-    flow_quality.md's first table."""
+    flow_quality.md's first table (its ``val`` row, or ``val``'s ``all`` row where the table
+    gives the ``noc`` and ``all`` pixels a row each)."""
     path = out / "flow_quality.md"
     if not path.is_file():
         return None
     for line in path.read_text().splitlines():
         cells = [c.strip() for c in line.strip("|").split("|")]
-        if len(cells) > 13 and cells[0] == "val" and cells[1] == "medium":
-            return float(cells[12])
+        if len(cells) > 13 and cells[0] == "val" and "medium" in cells[1:3]:
+            if cells[1] == "noc":
+                continue
+            # EPE all: the 13th cell, one later with the column naming the pixels
+            return float(cells[11 + cells.index("medium")])
     return None
 
 
@@ -150,12 +157,14 @@ def main(argv: list[str] | None = None) -> Path:
     out = report.out_dir
     dis = args.dis_val_epe if args.dis_val_epe is not None else dis_val_epe(out)
     png = figure(data, dis, out / "flow_quality" / "learned_training.png")
+    noc = any(k in p for p in data["curve"] for k in NOC_KEYS)
+    keys = (*CURVE_KEYS, *NOC_KEYS) if noc else CURVE_KEYS
     rows = []
     for p in data["curve"]:
-        rows.append([str(p["step"]), *(fmt(p.get(k), 2 if k != "val/fl" else 1)
-                                       for k in CURVE_KEYS)])  # fmt: skip
+        rows.append([str(p["step"]), *(fmt(p.get(k), 1 if "/fl" in k else 2)
+                                       for k in keys)])  # fmt: skip
     heads = ["step", "EPE all", "+1", "-1", "+2", "-2", "road", "structure", "moving", "far",
-             "Fl all (%)"]  # fmt: skip
+             "Fl all (%)", *(("EPE noc", "Fl noc (%)") if noc else ())]  # fmt: skip
     seqs = data["sequences"]
     where = (f"the rendered worlds of KITTI's {', '.join(seqs)}" if isinstance(seqs, list)
              else f"{seqs} procedural worlds")  # fmt: skip
@@ -172,7 +181,14 @@ def main(argv: list[str] | None = None) -> Path:
         f"on 2 {data.get('cpu_kind') or '?'} cores, rendering excluded. The shipped weights "
         f"are its {data.get('checkpoint') or 'best'} checkpoint (the lowest validation EPE). "
         f"![validation curve]({png.relative_to(out).as_posix()})\n\n"
-        "Validation end-point error (px) at every validation, by offset and region:\n\n"
+        "Validation end-point error (px) at every validation, by offset and region, on all "
+        "pixels whose exact flow is known"
+        + (
+            " and on the non-occluded ones (noc)"
+            if noc
+            else " (the run predates the visibility marks: no noc scores)"
+        )
+        + ":\n\n"
         + markdown_table(heads, rows)
     )
     return report.write_section(MARKER, HEADING)

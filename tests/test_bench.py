@@ -80,12 +80,14 @@ def test_accuracy_benchmark(tmp_path: Path, shared_poses: Path) -> None:
         # The paper's numbers are quoted beside MFG, labelled as on real KITTI images.
         assert rows["MFG (all units)"][6] == "0.012 ± 0.006"
     assert "real KITTI images" in text
-    # the flow's own table: EPE and Fl per region, and the cost
+    # the flow's own table: EPE and Fl per region on the noc and all pixels, and the cost
     quality = (tmp_path / "flow_quality.md").read_text()
-    splits = {r[0]: r for r in _table_rows(quality, "## Quality by region")}
-    assert set(splits) == {"train", "val", "test"}
-    assert splits["test"][1:3] == ["medium", "64×128"]
-    assert math.isfinite(_number(splits["test"][-3]))  # EPE over all pixels
+    splits = {(r[0], r[1]): r for r in _table_rows(quality, "## Quality by region")}
+    assert set(splits) == {(s, p) for s in ("train", "val", "test") for p in ("noc", "all")}
+    assert splits["test", "all"][2:4] == ["medium", "64×128"]
+    for pixels in ("noc", "all"):
+        assert math.isfinite(_number(splits["test", pixels][-3]))  # EPE of the whole image
+    assert _number(splits["test", "noc"][4]) <= _number(splits["test", "all"][4])  # per pair
     parts = {r[0]: r for r in _table_rows(quality, "## Cost of rendering")}
     assert set(parts) == {"train+val", "test"}
     assert "faster** (target ≥ 50×)" in quality
@@ -196,8 +198,9 @@ def test_quick_start_benchmark(tmp_path: Path) -> None:
 
 
 def test_flow_estimators_benchmark(tmp_path: Path, shared_poses: Path) -> None:
-    """Three estimators on the tiny pair set, the learned one among them: a row each, by region
-    and by offset; the stages are cached and a rerun reads them."""
+    """Three estimators on the tiny pair set of both sets of worlds (scene seed 0's and the
+    study's test worlds), the learned one among them: a row each per set of pixels (noc, all),
+    by region and by offset; the stages are cached and a rerun reads them."""
     args = ("--poses-dir", str(shared_poses), "--work", str(tmp_path / "work"),
             "--estimators", "dis_medium", "farneback", "learned")  # fmt: skip
     env = dict(os.environ, OMP_NUM_THREADS="1", MFG_CACHE_DIR=str(tmp_path))
@@ -207,11 +210,16 @@ def test_flow_estimators_benchmark(tmp_path: Path, shared_poses: Path) -> None:
     assert proc.returncode == 0, proc.stderr[-5000:]
     text = (tmp_path / "flow_quality.md").read_text()  # a section of flow_quality.md
     assert "### Environment of this section" in text and "opencv" in text
-    rows = _table_rows(text, "## Every estimator on the same test pairs")
-    assert [r[0] for r in rows[:3]] == ["DIS medium", "Farnebäck", "learned (PWC-Net design)"]
-    assert all(_number(r[1]) > 0 and 0 < _number(r[-2]) < 100 for r in rows[:3])
+    labels = ["DIS medium", "Farnebäck", "learned (PWC-Net design)"]
+    for heading, seed in (("### Scene seed 0's worlds", 0), ("### The study's worlds", 7919)):
+        rows = _table_rows(text, heading)
+        assert [r[0] for r in rows[:6:2]] == labels, heading
+        assert [r[1] for r in rows[:6]] == ["noc", "all"] * 3
+        assert all(_number(r[2]) > 0 and 0 < _number(r[-2]) < 100 for r in rows[:6])
+        assert f"world seed {seed})" in text.split(heading, 1)[1]
     assert sorted(p.name for p in (tmp_path / "work").iterdir()) == [
-        "dis_medium_tiny.json", "farneback_tiny.json", "learned_tiny.json"
+        "dis_medium_study_tiny.json", "dis_medium_tiny.json", "farneback_study_tiny.json",
+        "farneback_tiny.json", "learned_study_tiny.json", "learned_tiny.json",
     ]  # fmt: skip
 
 

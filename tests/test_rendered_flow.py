@@ -21,7 +21,7 @@ from mfg_lightning.flow.estimators import (
     EstimatedFlow,
     parse_flow,
 )
-from mfg_lightning.metrics.flow_quality import QUALITY_REGIONS, flow_quality
+from mfg_lightning.metrics.flow_quality import QUALITY_REGIONS, QUALITY_SETS, flow_quality
 from mfg_lightning.scene import render
 
 H, W = 32, 64  # model input
@@ -222,6 +222,11 @@ def test_samples_carry_estimated_and_exact_flow_and_the_quality_is_stored(
     assert sum(parts) == total["pixels"]
     assert 0 < total["epe"] < 5 and 0 <= total["fl"] < 50
     assert quality["nonfinite_pixels"] == 0
+    # KITTI's noc: all pixels but the occluded and out-of-frame ones (some, not most)
+    noc = quality["regions_noc"]["all"]
+    hidden = quality["occluded_pixels"] + quality["out_of_frame_pixels"]
+    assert noc["pixels"] + hidden == total["pixels"] and 0 < hidden < 0.5 * total["pixels"]
+    assert 0 < noc["epe"] < 5
     # by offset: the pairs and pixels of every offset add up to the split's pooled quality
     by = ds.quality_by_offset()
     offsets = {str(t - s) for _, s, t in ds.samples}
@@ -292,7 +297,7 @@ def test_flow_quality_is_the_kitti_outlier_definition() -> None:
     region = np.array([[render.REGION_ROAD] * 4, [render.REGION_FAR] * 4], np.uint8)
     valid = np.ones((2, 4), bool)
     valid[1, 3] = False
-    q = flow_quality(est, exact, valid, region)
+    q = flow_quality(est, exact, valid, region, noc=valid)[QUALITY_SETS.index("all")]
     road, far, everything = (QUALITY_REGIONS.index(r) for r in ("road", "far", "all"))
     np.testing.assert_allclose(q[road], [3.5 + 4.0 + 6.0 + 2.0, 2, 4])
     np.testing.assert_allclose(q[far], [0.0, 0, 3])

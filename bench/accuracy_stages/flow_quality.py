@@ -100,7 +100,7 @@ def stage_breakdown(args: argparse.Namespace, max_frames: int | None, pairs: int
         spent["render"] += clock() - t
         t = clock()
         world, K, hw = ds.world(seq), ds.image_intrinsics, ds.image_hw
-        render.exact_flow(world, src, tgt, K, *hw, source=a.rendered)
+        render.exact_flow(world, src, tgt, K, *hw, source=a.rendered, target=b.rendered)
         spent["exact flow"] += clock() - t
         t = clock()
         ds.estimator(a.image, b.image)
@@ -161,21 +161,32 @@ def frames_note(max_frames: int | None) -> str:
     return f"the first {max_frames} frames of every sequence, " if max_frames else ""
 
 
+def _value(regions: dict | None, region: str, key: str, digits: int) -> str:
+    """One cell of :func:`quality_table` (``–``: a split measured before noc was scored, or a
+    region without pixels)."""
+    value = None if regions is None else regions[region][key]
+    return "–" if value is None else fmt(value, digits)
+
+
 def quality_table(rendered: dict) -> str:
+    """Two rows per split: its non-occluded pixels (``noc``: visible in the second frame and
+    inside it) and all pixels whose exact flow is known (``all``), each with its pixels per
+    pair, EPE and Fl by region and the non-finite estimated pixels."""
     hw = "×".join(str(x) for x in rendered["image_hw"])
-    header = ["split", "DIS preset", "render size", "pixels / pair"]
+    header = ["split", "pixels", "DIS preset", "render size", "pixels / pair"]
     for region in QUALITY_ORDER:
         header += [f"EPE {region} (px)", f"Fl {region} (%)"]
     header.append("non-finite px")
     body = []
     for split, q in rendered["quality"].items():
-        pairs = rendered["parts"]["test" if split == "test" else "train+val"]["pairs"]
-        regions = q["regions"]
-        row = [split, rendered["preset"], hw, fmt(regions["all"]["pixels"] / max(pairs, 1), 0)]
-        for region in QUALITY_ORDER:
-            row += [fmt(regions[region]["epe"], 2), fmt(regions[region]["fl"], 1)]
-        row.append(str(q["nonfinite_pixels"]))
-        body.append(row)
+        pairs = max(rendered["parts"]["test" if split == "test" else "train+val"]["pairs"], 1)
+        for name, regions in (("noc", q.get("regions_noc")), ("all", q["regions"])):
+            per_pair = "–" if regions is None else fmt(regions["all"]["pixels"] / pairs, 0)
+            row = [split, name, rendered["preset"], hw, per_pair]
+            for region in QUALITY_ORDER:
+                row += [_value(regions, region, "epe", 2), _value(regions, region, "fl", 1)]
+            row.append(str(q["nonfinite_pixels"]))
+            body.append(row)
     return markdown_table(header, body)
 
 
@@ -280,8 +291,11 @@ def write_flow_quality(
         "seed 0), DIS at the render size, compared with the exact flow from the same ray "
         "casts at that size. EPE: mean end-point error (pixels of the render size). Fl: "
         "KITTI's outlier rate, pixels with EPE > 3 px and > 5 % of the exact flow's "
-        "magnitude. Pooled over every pixel of every pair whose exact flow is known "
-        "(`quality-<split>-<pairs>pairs-<digest>.json` beside the cache). Regions are the "
+        "magnitude. Pooled pixel by pixel over the pairs "
+        "(`quality-<split>-<pairs>pairs-<digest>.json` beside the cache), as KITTI 2015 scores "
+        "flow: on the non-occluded pixels (`noc`: the point visible in the second frame and "
+        "inside it) and on all pixels whose exact flow is known (`all`: occluded and "
+        "out-of-frame ones included; the renderer marks them, `docs/flow.md`). Regions are the "
         "renderer's: road, structure (facades, parked cars, crates), moving objects, far "
         "field (sky)."
     )

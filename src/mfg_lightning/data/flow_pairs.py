@@ -10,9 +10,16 @@ the study's MFG training worlds.
 
 Cache: ``<cache_dir>/flow_pairs/<key>/<seq>/<src:06d>_<tgt:06d>.npz`` holding ``images``
 ``(H, W, 6)`` uint8 (both RGB frames), ``flow`` ``(H, W, 2)`` float16 (input pixels, NaN where
-the exact flow is unknown: occluded, outside the target frame) and ``region`` ``(H, W)`` uint8
-(the renderer's region map of the source frame), filled on every core by :meth:`prepare_data`
-(:func:`~mfg_lightning.data.rendered_preparation.prepare_pairs`).
+the exact flow is unknown: a point behind the target camera, which the renderer's worlds
+almost never have), ``region`` ``(H, W)`` uint8 (the renderer's region map of the source frame)
+and ``visibility`` ``(H, W)`` uint8 (:func:`~mfg_lightning.metrics.flow_quality.visibility_codes`:
+visible, occluded in the target frame, out of its frame, or unknown), filled on every core by
+:meth:`prepare_data` (:func:`~mfg_lightning.data.rendered_preparation.prepare_pairs`).
+
+Occluded and out-of-frame pixels keep their exact flow (it is known: where the point goes) and
+count in the training loss, as every pixel with known flow did before they were marked; the
+marks only split the validation's scores into KITTI's non-occluded (``noc``) and all pixels
+(:func:`~mfg_lightning.models.flow_module.score_flow`).
 """
 
 from __future__ import annotations
@@ -32,14 +39,21 @@ from mfg_lightning.data.base import EvaluationShard, UnpaddedDistributedSampler,
 from mfg_lightning.data.rendered import RenderedDrivingDataset
 from mfg_lightning.data.rendered_preparation import MIN_CHUNK_PAIRS, prepare_pairs
 from mfg_lightning.flow.estimators import EstimatedFlow
-from mfg_lightning.metrics.flow_quality import QUALITY_REGIONS
+from mfg_lightning.metrics.flow_quality import (
+    OCCLUDED,
+    OUT_OF_FRAME,
+    QUALITY_REGIONS,
+    QUALITY_SETS,
+)
 
 log = logging.getLogger(__name__)
 
 __all__ = ["FlowPairsDataModule", "FlowPairsDataset"]
 
-# Bump when the arrays cached per pair change.
-_PAIRS_CACHE_FORMAT = 1
+# Bump when the arrays cached per pair change. 2: the visibility codes.
+_PAIRS_CACHE_FORMAT = 2
+#: The arrays cached per pair.
+_ARRAYS = ("images", "flow", "region", "visibility")
 
 
 class _RGBFrames:
@@ -62,8 +76,11 @@ class FlowPairsDataset(RenderedDrivingDataset):
     """Rendered frame pairs with their exact flow at the render size (``image_hw``).
 
     A sample: ``image0``, ``image1`` ``(3, H, W)`` uint8 RGB; ``flow`` ``(2, H, W)`` float32
-    input pixels with ``image0(x) ≈ image1(x + flow(x))``, NaN where unknown; ``region``
-    ``(H, W)`` uint8 (the renderer's codes); ``offset`` (target − source frame), ``sample_id``.
+    input pixels with ``image0(x) ≈ image1(x + flow(x))`` where the point is visible in
+    ``image1``, NaN where unknown; ``region`` ``(H, W)`` uint8 (the renderer's codes);
+    ``visibility`` ``(H, W)`` uint8 (:func:`~mfg_lightning.metrics.flow_quality.visibility_codes`:
+    the flow of an occluded or out-of-frame pixel is kept, marked); ``offset`` (target − source
+    frame), ``sample_id``.
 
     Args:
         trajectories, frames, seed, offsets, name, stride: as
@@ -103,26 +120,29 @@ class FlowPairsDataset(RenderedDrivingDataset):
         return {**key, "format": f"flow-pairs-{_PAIRS_CACHE_FORMAT}"}
 
     def _cached(self, i: int) -> dict[str, np.ndarray] | None:
-        arrays = self.cache.load_arrays(self.pair_path(i), ("images", "flow", "region"))
+        arrays = self.cache.load_arrays(self.pair_path(i), _ARRAYS)
         if arrays is None or arrays["images"].shape != (*self.image_hw, 6):
             return None
         return arrays
 
     def compute_pair(self, seq: str, src: int, tgt: int, a: Any, b: Any) -> dict:
-        """The two frames (rendered, with their RGB as ``image``) and the exact flow
-        ``src → tgt`` at the render size."""
-        _, flow, valid = self.exact_pair(seq, src, tgt, a)
+        """The two frames (rendered, with their RGB as ``image``), the exact flow ``src → tgt``
+        at the render size and its visibility codes."""
+        _, flow, valid, visibility = self.exact_pair(seq, src, tgt, a, b)
         return {
             "images": np.concatenate((a.image, b.image), axis=2),
             "flow": np.where(valid[..., None], flow, np.nan).astype(np.float16),
             "region": a.rendered.region.detach().cpu().numpy().astype(np.uint8),
+            "visibility": visibility,
             # (the preparation's per-pair statistics: this dataset estimates nothing)
-            "quality": np.zeros((len(QUALITY_REGIONS), 3)),
+            "quality": np.zeros((len(QUALITY_SETS), len(QUALITY_REGIONS), 3)),
             "nonfinite": np.int64(0),
+            "occluded": np.int64((visibility == OCCLUDED).sum()),
+            "out_of_frame": np.int64((visibility == OUT_OF_FRAME).sum()),
         }
 
     def _store(self, i: int, pair: dict) -> dict[str, np.ndarray]:
-        arrays = {k: pair[k] for k in ("images", "flow", "region")}
+        arrays = {k: pair[k] for k in _ARRAYS}
         self.cache.store_arrays(self.pair_path(i), arrays)
         return arrays
 
@@ -136,6 +156,7 @@ class FlowPairsDataset(RenderedDrivingDataset):
             "image1": images[3:],
             "flow": torch.from_numpy(arrays["flow"].transpose(2, 0, 1).astype(np.float32)),
             "region": torch.from_numpy(np.ascontiguousarray(arrays["region"])),
+            "visibility": torch.from_numpy(np.ascontiguousarray(arrays["visibility"])),
             "offset": tgt - src,
             "sample_id": f"{self.name}/{seq}/{src:06d}->{tgt:06d}",
         }

@@ -26,10 +26,14 @@ from mfg_lightning.flow.estimators import (
     FlowCache,
 )
 from mfg_lightning.metrics.flow_quality import (
+    OCCLUDED,
+    OUT_OF_FRAME,
+    VISIBLE,
     flow_quality,
     pair_stats,
     pooled_quality,
     pooled_quality_by_offset,
+    visibility_codes,
 )
 from mfg_lightning.pictures.rendered_frames import flow_picture
 from mfg_lightning.scene.camera import kitti_like_intrinsics
@@ -39,8 +43,9 @@ from mfg_lightning.scene.camera import kitti_like_intrinsics
 RENDER_SIZE = (192, 512)
 
 
-# Bump when the arrays cached per pair change, so old caches are not misread.
-_RENDER_CACHE_FORMAT = 2
+# Bump when the arrays cached per pair change, so old caches are not misread. 3: "stats" holds
+# the quality on the non-occluded pixels beside all pixels, and the hidden pixel counts.
+_RENDER_CACHE_FORMAT = 3
 
 
 #: What :class:`RenderedDrivingDataset` caches per pair, at the model input ``h × w``: the
@@ -55,8 +60,9 @@ _FLOAT_FIELDS = (
 
 
 _BYTE_FIELDS = (("rgb", 3), ("object_mask", 1))  # source frame; moving-object mask (0 / 1)
-# plus "stats": (len(QUALITY_REGIONS) * 3 + 1,) float64, the quality (EPE sum, Fl outliers,
-# pixels per region, at the image size) and the number of non-finite estimated pixels
+# plus "stats": (PAIR_STATS_SIZE,) float64, the quality (EPE sum, Fl outliers, pixels per set of
+# pixels, noc and all, and region, at the image size), the occluded and out-of-frame pixel
+# counts and the number of non-finite estimated pixels
 # (mfg_lightning.metrics.flow_quality.pair_stats).
 
 
@@ -99,7 +105,10 @@ class RenderedDrivingDataset(TrajectoryDataset):
     is the estimate (valid where finite); ``exact_flow``, ``depth``, ``object_mask`` and
     ``object_flow`` are the ground truth at the model input. The flow quality (EPE and Fl per
     region, at the image size, against the exact flow) is computed with the estimate and kept
-    in the cache beside it.
+    in the cache beside it, on the non-occluded pixels and on all pixels
+    (:func:`~mfg_lightning.metrics.flow_quality.flow_quality`: the renderer marks the pixels
+    whose point leaves the target frame or is hidden in it). The marks change no sample: the
+    exact flow of a hidden pixel is known and stays in ``exact_flow`` and ``flow_valid``.
 
     Cache: ``<cache_dir>/synthetic_flow/<key>/<seq>/<src:06d>_<tgt:06d>.npz``, ``<key>`` a hash
     of everything that changes a pair (estimator and its settings, image and input size, seed,
@@ -219,33 +228,41 @@ class RenderedDrivingDataset(TrajectoryDataset):
         return _Frame(rendered, self.estimator.prepare(rgb))
 
     def exact_pair(
-        self, seq: str, src: int, tgt: int, a: _Frame
-    ) -> tuple[dict[str, Any], np.ndarray, np.ndarray]:
+        self, seq: str, src: int, tgt: int, a: _Frame, b: _Frame
+    ) -> tuple[dict[str, Any], np.ndarray, np.ndarray, np.ndarray]:
         """The renderer's exact flow ``src → tgt`` at the image size, from the rendered source
-        frame ``a``: its fields (:func:`mfg_lightning.scene.render.exact_flow`), the flow
-        ``(H, W, 2)`` float32 in pixels (0 where unknown) and where it is known ``(H, W)`` bool
-        (valid and finite)."""
+        and target frames ``a``, ``b``: its fields
+        (:func:`mfg_lightning.scene.render.exact_flow`), the flow ``(H, W, 2)`` float32 in
+        pixels (0 where unknown), where it is known ``(H, W)`` bool (valid and finite), and
+        every pixel's visibility code ``(H, W)`` uint8
+        (:func:`~mfg_lightning.metrics.flow_quality.visibility_codes`: unknown, visible,
+        occluded in ``b`` or out of its frame)."""
         _, render = _renderer()
         exact = render.exact_flow(
-            self.world(seq), src, tgt, self.image_intrinsics, *self.image_hw, source=a.rendered
-        )
+            self.world(seq), src, tgt, self.image_intrinsics, *self.image_hw,
+            source=a.rendered, target=b.rendered,
+        )  # fmt: skip
         flow = _hw2(exact["flow"])
         valid = _numpy(exact["flow_valid"]).astype(bool) & np.isfinite(flow).all(2)
-        return exact, np.where(valid[..., None], flow, 0.0).astype(np.float32), valid
+        codes = visibility_codes(valid, _numpy(exact["out_of_frame"]), _numpy(exact["occluded"]))
+        return exact, np.where(valid[..., None], flow, 0.0).astype(np.float32), valid, codes
 
     def compute_pair(self, seq: str, src: int, tgt: int, a: _Frame, b: _Frame) -> dict:
         """Exact and estimated flow of ``src → tgt`` from the rendered frames ``a``, ``b``: the
         fields of a sample at the model input (``flow`` ``(h, w, 2)``, ``exact_flow``,
         ``object_flow``, ``depth`` ``(h, w)``, ``rgb`` ``(h, w, 3)``, ``object_mask``), the
-        ``quality`` (:func:`~mfg_lightning.metrics.flow_quality.flow_quality`) and ``nonfinite``
-        count at the image size, and the image-size fields under ``"full"`` (for pictures)."""
-        exact, exact_flow, exact_valid = self.exact_pair(seq, src, tgt, a)
+        ``quality`` (:func:`~mfg_lightning.metrics.flow_quality.flow_quality`, noc and all),
+        ``nonfinite``, ``occluded`` and ``out_of_frame`` counts at the image size, and the
+        image-size fields under ``"full"`` (for pictures)."""
+        exact, exact_flow, exact_valid, visibility = self.exact_pair(seq, src, tgt, a, b)
         est = np.asarray(self.estimator(a.image, b.image), dtype=np.float32)
         self.estimated_pairs += 1
         finite = np.isfinite(est).all(axis=2)
         est = np.where(finite[..., None], est, 0.0).astype(np.float32)
         region = _numpy(a.rendered.region)
-        quality = flow_quality(est, exact_flow, exact_valid & finite, region)
+        quality = flow_quality(
+            est, exact_flow, exact_valid & finite, region, noc=visibility == VISIBLE
+        )
         h, w = self.height, self.width
         flow, flow_ok = transforms.resize_flow(est, finite, h, w)
         exact_small, _ = transforms.resize_flow(exact_flow, exact_valid, h, w)
@@ -265,11 +282,14 @@ class RenderedDrivingDataset(TrajectoryDataset):
             "rgb": transforms.resize_rgb(rgb, h, w),
             "quality": quality,
             "nonfinite": np.int64((~finite).sum()),
+            "occluded": np.int64((visibility == OCCLUDED).sum()),
+            "out_of_frame": np.int64((visibility == OUT_OF_FRAME).sum()),
             "full": {
                 "frame": a.rendered,
                 "exact": exact,
                 "exact_flow": exact_flow,
                 "exact_valid": exact_valid,
+                "visibility": visibility,
                 "flow": est,
                 "flow_valid": finite,
             },
@@ -283,7 +303,7 @@ class RenderedDrivingDataset(TrajectoryDataset):
             "bytes": np.concatenate(
                 [pair[k].reshape(self.height, self.width, n) for k, n in _BYTE_FIELDS], axis=2
             ).astype(np.uint8),
-            "stats": pair_stats(pair["quality"], pair["nonfinite"]),
+            "stats": _stats(pair),
         }
         self.cache.store_arrays(self.pair_path(i), packed)
         return _unpack(packed)
@@ -310,7 +330,7 @@ class RenderedDrivingDataset(TrajectoryDataset):
                     frames[(seq, f)] = self.render(seq, f)
             pair = self.compute_pair(seq, src, tgt, frames[(seq, src)], frames[(seq, tgt)])
             self._store(i, pair)
-            stats[i] = pair_stats(pair["quality"], pair["nonfinite"])
+            stats[i] = _stats(pair)
             if self.pictures and i in middle:
                 self.cache.store(self.picture_path(seq), flow_picture(pair["full"]))
             if bar is not None:
@@ -357,7 +377,9 @@ class RenderedDrivingDataset(TrajectoryDataset):
     def quality(
         self, known: Mapping[tuple[str, int, int], np.ndarray] | None = None
     ) -> dict[str, Any]:
-        """The flow quality of this split (pooled over its pairs) and its non-finite pixels.
+        """The flow quality of this split (pooled over its pairs), by region, on its
+        non-occluded pixels (``regions_noc``) and on all (``regions``), with its occluded,
+        out-of-frame and non-finite pixel counts.
 
         Args:
             known: the quality sums of pairs just computed
@@ -374,7 +396,7 @@ class RenderedDrivingDataset(TrajectoryDataset):
         self, known: Mapping[tuple[str, int, int], np.ndarray] | None = None
     ) -> dict[str, dict[str, Any]]:
         """The flow quality pooled per frame offset (target − source):
-        ``{"-2": {"regions": ..., "pairs": n}, "-1": ..., "1": ..., "2": ...}`` (the estimate's
+        ``{"-2": {"regions": ..., "regions_noc": ..., "pairs": n}, ...}`` (the estimate's
         error grows with the motion it has to find, which the offset scales); ``known`` as in
         :meth:`quality` (:func:`~mfg_lightning.metrics.flow_quality.pooled_quality_by_offset`)."""
         return pooled_quality_by_offset(
@@ -420,6 +442,12 @@ class RenderedDrivingDataset(TrajectoryDataset):
         }
         sample.update(self._identity(seq, src, tgt, self._pose(seq, src, tgt)))
         return sample
+
+
+def _stats(pair: dict) -> np.ndarray:
+    """A computed pair's quality sums and pixel counts
+    (:func:`~mfg_lightning.metrics.flow_quality.pair_stats`)."""
+    return pair_stats(pair["quality"], pair["nonfinite"], pair["occluded"], pair["out_of_frame"])
 
 
 def _unpack(packed: dict[str, np.ndarray]) -> dict[str, np.ndarray]:

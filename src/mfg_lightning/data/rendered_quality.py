@@ -33,18 +33,21 @@ def log_split_quality(
     loggers: Iterable[Any], split: str, ds: RenderedDrivingDataset, path: Path
 ) -> None:
     """Log the flow quality written at ``path`` to ``loggers`` (Lightning loggers):
-    ``<split>/flow_epe/<region>`` (pixels), ``<split>/flow_fl/<region>`` (%) and
-    ``<split>/flow_nonfinite_pixels`` at step 0, then, except for ``val`` (the validation tails
-    share the training split's pictures), the picture grid of each sequence of ``ds`` that is
-    cached (:meth:`~mfg_lightning.data.rendered.RenderedDrivingDataset.picture_path`) as the
-    image ``<split>/flow_picture/<seq>`` of every logger that takes images."""
+    ``<split>/flow_epe/<region>`` (pixels) and ``<split>/flow_fl/<region>`` (%) on all pixels,
+    ``<split>/flow_epe_noc/<region>`` and ``<split>/flow_fl_noc/<region>`` on the non-occluded
+    ones, and ``<split>/flow_nonfinite_pixels`` at step 0, then, except for ``val`` (the
+    validation tails share the training split's pictures), the picture grid of each sequence
+    of ``ds`` that is cached
+    (:meth:`~mfg_lightning.data.rendered.RenderedDrivingDataset.picture_path`) as the image
+    ``<split>/flow_picture/<seq>`` of every logger that takes images."""
     loggers = list(loggers)
     quality = json.loads(path.read_text())
     metrics = {}
-    for region, q in quality["regions"].items():
-        if q["epe"] is not None:
-            metrics[f"{split}/flow_epe/{region}"] = q["epe"]
-            metrics[f"{split}/flow_fl/{region}"] = q["fl"]
+    for key, suffix in (("regions", ""), ("regions_noc", "_noc")):
+        for region, q in quality.get(key, {}).items():
+            if q["epe"] is not None:
+                metrics[f"{split}/flow_epe{suffix}/{region}"] = q["epe"]
+                metrics[f"{split}/flow_fl{suffix}/{region}"] = q["fl"]
     metrics[f"{split}/flow_nonfinite_pixels"] = float(quality["nonfinite_pixels"])
     for logger in loggers:
         logger.log_metrics(metrics, step=0)

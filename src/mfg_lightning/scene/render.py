@@ -329,16 +329,20 @@ def exact_flow(
         world, intrinsics, height, width: as :func:`render_frame`.
         src, tgt: frame indices.
         source: the rendered source frame, reused instead of rendering it again.
-        target: the rendered target frame; when given, adds ``"visible"``.
+        target: the rendered target frame; when given, adds ``"occluded"`` and ``"visible"``.
 
     Returns:
         ``"flow"``: ``(2, H, W)`` float32 pixels; ``"flow_valid"``: ``(H, W)`` bool, finite
-        flow of a point in front of the target camera; ``"object_mask"``: ``(H, W)`` bool,
-        valid pixels on moving objects; ``"object_flow"``: ``(2, H, W)`` float32, the part of
-        the flow due to the objects' own motion (zero elsewhere); ``"depth"``: ``(H, W)``
-        float32 source depth (metres). With ``target``: ``"visible"``, ``(H, W)`` bool, the
-        point lands inside the target image and is not occluded there (its depth in the target
-        camera is at most 2 % + 5 cm behind the target's rendered depth at the nearest pixel).
+        flow of a point in front of the target camera; ``"out_of_frame"``: ``(H, W)`` bool,
+        valid pixels whose flow lands outside the target image; ``"object_mask"``: ``(H, W)``
+        bool, valid pixels on moving objects; ``"object_flow"``: ``(2, H, W)`` float32, the
+        part of the flow due to the objects' own motion (zero elsewhere); ``"depth"``:
+        ``(H, W)`` float32 source depth (metres). With ``target``: ``"occluded"``, ``(H, W)``
+        bool, valid pixels landing inside the target image whose point is more than
+        :data:`~.optical_flow.OCCLUSION_TOLERANCE` (2 %) behind the largest depth the target
+        frame sees at the four pixel centres around where it lands; ``"visible"``, valid
+        pixels neither out of frame nor occluded (:func:`.optical_flow.visibility`). The flow
+        is the same for all: marking a pixel changes nothing of its flow.
 
     Raises:
         ValueError: as :func:`render_frame`, or a ``source`` of another frame or size.
