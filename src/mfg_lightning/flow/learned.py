@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from mfg_lightning.flow.pwc import PWCFlowNet, config_from
 
@@ -33,6 +34,7 @@ __all__ = [
     "WEIGHTS_FORMAT",
     "LearnedFlowEstimator",
     "load_weights",
+    "model_input_flow",
     "save_weights",
 ]
 
@@ -103,7 +105,9 @@ def load_weights(path: str | Path) -> tuple[PWCFlowNet, dict[str, Any]]:
         )
     elif "flow_net_config" in data and "state_dict" in data:
         config = data["flow_net_config"]
-        state = {k[4:]: v for k, v in data["state_dict"].items() if k.startswith("net.")}
+        # the network's place in the module: "net." (train_flow), "flow_net." (end to end)
+        prefix = str(data.get("flow_net_prefix", "net."))
+        state = {k[len(prefix) :]: v for k, v in data["state_dict"].items() if k.startswith(prefix)}
         provenance = {"checkpoint": str(path), "global_step": data.get("global_step")}
     else:
         what = data.get("format") or ("an MFG checkpoint" if "state_dict" in data else "no format")
@@ -129,6 +133,38 @@ def load_weights(path: str | Path) -> tuple[PWCFlowNet, dict[str, Any]]:
     except RuntimeError as err:
         raise _refuse(path, f"its weights do not fit the network ({err})") from None
     return net.eval(), dict(provenance)
+
+
+def model_input_flow(full: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """The flow MFG reads under ``flow=learned``, from the estimate at the image size, with
+    gradients (end-to-end training, :mod:`mfg_lightning.models.end_to_end`).
+
+    The dataset's path in torch: :class:`~mfg_lightning.data.rendered.RenderedDrivingDataset`
+    resizes the estimate (:meth:`LearnedFlowEstimator.estimate_batch`: the network's quarter-size
+    output upsampled bilinearly) to the model input with
+    :func:`~mfg_lightning.data.transforms.resize_flow`, an area average whose vectors are
+    scaled by the size ratios (``u · w / W``, ``v · h / H``). The network's flow is finite
+    everywhere, so every pixel counts. Equal to it (to float rounding) where the image size is
+    a whole multiple of the model input (192 × 512 → 48 × 128: OpenCV's area average is then
+    the block mean that torch's is); tests/test_end_to_end.py compares the two.
+
+    Args:
+        full: ``(B, 2, H, W)`` flow, pixels of the image.
+        height, width: the model input (at most ``H × W``).
+
+    Returns:
+        ``(B, 2, height, width)`` flow, pixels of the model input.
+    """
+    h, w = full.shape[-2:]
+    if (h, w) == (height, width):
+        return full
+    if height > h or width > w:
+        raise ValueError(
+            f"the flow is {h} × {w}, smaller than the model input {height} × {width}: render "
+            "at least at the input size"
+        )
+    scale = full.new_tensor([width / w, height / h]).view(1, 2, 1, 1)
+    return F.interpolate(full, size=(height, width), mode="area") * scale
 
 
 def file_digest(path: str | Path) -> str:

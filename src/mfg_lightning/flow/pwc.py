@@ -261,15 +261,24 @@ class PWCFlowNet(nn.Module):
         """The flow at the input size: ``(B, 2, H, W)`` input pixels, for any ``H × W`` (padded
         at the bottom and right to the divisor by edge replication, then cropped; the finest
         level's flow upsampled bilinearly)."""
+        return self.levels_and_estimate(image0, image1)[1]
+
+    def levels_and_estimate(
+        self, image0: torch.Tensor, image1: torch.Tensor
+    ) -> tuple[list[torch.Tensor], torch.Tensor]:
+        """:meth:`forward`'s levels and :meth:`estimate`'s flow of one pass, with gradients
+        (end-to-end training: :mod:`mfg_lightning.models.end_to_end`)."""
         h, w = image0.shape[-2:]
         d = self.config.divisor
         ph, pw = (-h) % d, (-w) % d
         if ph or pw:
             image0 = F.pad(image0, (0, pw, 0, ph), mode="replicate")
             image1 = F.pad(image1, (0, pw, 0, ph), mode="replicate")
-        flow = self.forward(image0, image1)[-1].float()
-        full = F.interpolate(flow, size=(h + ph, w + pw), mode="bilinear", align_corners=False)
-        return full[..., :h, :w]
+        flows = self.forward(image0, image1)
+        full = F.interpolate(
+            flows[-1].float(), size=(h + ph, w + pw), mode="bilinear", align_corners=False
+        )
+        return flows, full[..., :h, :w]
 
 
 def config_from(values: dict | PWCConfig | None) -> PWCConfig:

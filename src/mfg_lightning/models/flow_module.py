@@ -16,8 +16,11 @@ module, by every DDP process together (:class:`~mfg_lightning.models.agreement.A
 Validation: the flow at the input size (:meth:`PWCFlowNet.estimate`: the finest level upsampled)
 against the exact flow, pooled pixel by pixel over the split, by offset and by region:
 ``val/epe`` (px, all pixels, every offset), ``val/epe_+1`` …, ``val/epe/<region>``, ``val/fl``
-(KITTI's outlier rate, %): a :class:`~mfg_lightning.metrics.flow_quality.PooledFlowQuality`,
-whose sums torchmetrics adds up across DDP processes once per validation.
+and ``val/fl/<region>`` (KITTI's outlier rate, %), and on the non-occluded pixels alone
+(KITTI's ``noc``: the pairs' visibility codes) ``val/epe_noc``, ``val/fl_noc``,
+``val/epe_noc/<region>``, ``val/fl_noc/<region>``: a
+:class:`~mfg_lightning.metrics.flow_quality.PooledFlowQuality`, whose sums torchmetrics adds up
+across DDP processes once per validation.
 """
 
 from __future__ import annotations
@@ -32,10 +35,23 @@ import torch
 import torch.nn.functional as F
 
 from mfg_lightning.flow.pwc import PWCConfig, PWCFlowNet, config_from
-from mfg_lightning.metrics.flow_quality import PooledFlowQuality
+from mfg_lightning.metrics.flow_quality import (
+    QUALITY_REGIONS,
+    VISIBLE,
+    PooledFlowQuality,
+    region_codes,
+)
 from mfg_lightning.models.agreement import AgreedSteps
 
-__all__ = ["MAX_OFFSET", "FlowLitModule", "downsample_flow", "endpoint_error"]
+__all__ = [
+    "MAX_OFFSET",
+    "FlowLitModule",
+    "downsample_flow",
+    "endpoint_error",
+    "flow_quality_metrics",
+    "multiscale_loss",
+    "score_flow",
+]
 
 #: Validation scores per offset up to this many frames apart (larger offsets count in "all").
 MAX_OFFSET = 8
@@ -187,18 +203,8 @@ class FlowLitModule(AgreedSteps, L.LightningModule):
     def multiscale_loss(
         self, flows: Sequence[torch.Tensor], target: torch.Tensor
     ) -> tuple[torch.Tensor, list[torch.Tensor]]:
-        """``Σ_l w_l · mean EPE_l`` (input px) over the known pixels of each level, and the
-        per-level mean EPEs (coarsest first)."""
-        height = target.shape[-2]
-        total = target.new_zeros(())
-        per_level = []
-        for weight, flow in zip(self.level_weights, flows, strict=True):
-            gt, known = downsample_flow(target, height // flow.shape[-2])
-            epe = endpoint_error(flow, gt)
-            mean = (epe * known).sum() / known.sum().clamp_min(1)
-            per_level.append(mean)
-            total = total + weight * mean
-        return total, per_level
+        """:func:`multiscale_loss` with this module's level weights."""
+        return multiscale_loss(flows, target, self.level_weights)
 
     def training_step(self, batch: dict[str, Any] | None, batch_idx: int) -> torch.Tensor | None:
         if batch is None:  # one process: Lightning skips a None batch itself; a direct call
@@ -228,44 +234,21 @@ class FlowLitModule(AgreedSteps, L.LightningModule):
         self.val_quality.reset()
 
     def validation_step(self, batch: dict[str, Any] | None, batch_idx: int) -> None:
-        from mfg_lightning.data.rendered import region_codes
-
         if batch is None:  # a DDP process with no validation pair (FlowPairsDataModule)
             return
         image0, image1 = self.images(batch)
         target = batch["flow"].float()
         pred = self.net.estimate(image0, image1)
-        known = torch.isfinite(target).all(dim=1)
-        epe = torch.where(known, endpoint_error(pred, torch.nan_to_num(target)), 0.0)
-        magnitude = torch.linalg.vector_norm(torch.nan_to_num(target), dim=1)
-        outlier = (epe > 3.0) & (epe > 0.05 * magnitude) & known
-        offsets = batch["offset"].view(-1, 1, 1)
-        masks = {"all": known}
-        for name, code in region_codes():
-            if code is not None:
-                masks[name] = known & (batch["region"] == code)
-        for off in torch.unique(batch["offset"]).tolist():
-            masks[f"{int(off):+d}"] = known & (offsets == off)
-        self.val_quality.update(epe, outlier, masks)
+        score_flow(self.val_quality, pred, target, batch["region"], batch["offset"],
+                   visibility=batch.get("visibility"))  # fmt: skip
         if batch_idx == 0:
             self.figure_batch = {"stage": "val", "image0": image0, "image1": image1,
                                  "flow": target, "pred": pred,
                                  "labels": pair_labels(batch)}  # fmt: skip
 
     def on_validation_epoch_end(self) -> None:
-        # every process's sums added up by the metric (DDP shares the validation pairs out)
-        with warnings.catch_warnings():
-            # a process given no validation pair (FlowPairsDataModule) still takes part
-            warnings.filterwarnings("ignore", message=".*was called before the ``update``")
-            quality = self.val_quality.compute()
-        for name, (epe, fl) in quality.items():
-            if name == "all":
-                self.log("val/epe", epe, prog_bar=True)
-                self.log("val/fl", fl)
-            elif name[0] in "+-":
-                self.log(f"val/epe_{name}", epe)
-            else:
-                self.log(f"val/epe/{name}", epe)
+        for name, value in flow_quality_metrics(self.val_quality, "val/").items():
+            self.log(name, value, prog_bar=name == "val/epe")
 
     # -- optimisation and checkpoints ---------------------------------------------------------
 
@@ -286,10 +269,103 @@ class FlowLitModule(AgreedSteps, L.LightningModule):
         checkpoint["flow_net_config"] = self.config.to_dict()
 
 
+def multiscale_loss(
+    flows: Sequence[torch.Tensor], target: torch.Tensor, level_weights: Sequence[float]
+) -> tuple[torch.Tensor, list[torch.Tensor]]:
+    """PWC-Net's multi-scale loss: ``Σ_l w_l · mean EPE_l`` (input px) over the known pixels of
+    each level, and the per-level mean EPEs (coarsest first).
+
+    Args:
+        flows: every decoder level's ``(B, 2, H / 2^l, W / 2^l)`` flow, input pixels, coarsest
+            first (:meth:`PWCFlowNet.forward`).
+        target: ``(B, 2, H, W)`` the exact flow, input pixels, NaN where unknown.
+        level_weights: one weight per level, coarsest first.
+    """
+    height = target.shape[-2]
+    total = target.new_zeros(())
+    per_level = []
+    for weight, flow in zip(level_weights, flows, strict=True):
+        gt, known = downsample_flow(target, height // flow.shape[-2])
+        epe = endpoint_error(flow, gt)
+        mean = (epe * known).sum() / known.sum().clamp_min(1)
+        per_level.append(mean)
+        total = total + weight * mean
+    return total, per_level
+
+
+def score_flow(
+    quality: PooledFlowQuality,
+    pred: torch.Tensor,
+    target: torch.Tensor,
+    region: torch.Tensor,
+    offset: torch.Tensor,
+    visibility: torch.Tensor | None = None,
+) -> None:
+    """Add a batch's end-point errors and KITTI outliers (EPE > 3 px and > 5 % of the exact
+    flow's length) to ``quality``, pixel by pixel, for all known pixels, each region and each
+    offset, and for the non-occluded pixels of each region (:func:`quality_names`).
+
+    Args:
+        quality: the pooled sums (:func:`quality_names`' sets).
+        pred: ``(B, 2, H, W)`` the estimated flow, input pixels.
+        target: ``(B, 2, H, W)`` the exact flow, input pixels, NaN where unknown.
+        region: ``(B, H, W)`` the renderer's region codes.
+        offset: ``(B,)`` target − source frame.
+        visibility: ``(B, H, W)`` uint8 visibility codes
+            (:func:`~mfg_lightning.metrics.flow_quality.visibility_codes`); the ``noc/…`` sets
+            are its :data:`~mfg_lightning.metrics.flow_quality.VISIBLE` pixels. None: no
+            ``noc`` set is scored (they stay empty and :func:`flow_quality_metrics` leaves
+            them out).
+    """
+    known = torch.isfinite(target).all(dim=1)
+    epe = torch.where(known, endpoint_error(pred, torch.nan_to_num(target)), 0.0)
+    magnitude = torch.linalg.vector_norm(torch.nan_to_num(target), dim=1)
+    outlier = (epe > 3.0) & (epe > 0.05 * magnitude) & known
+    offsets = offset.view(-1, 1, 1)
+    masks = {"all": known}
+    for name, code in region_codes():
+        if code is not None:
+            masks[name] = known & (region == code)
+    if visibility is not None:
+        noc = visibility == VISIBLE
+        masks.update({f"noc/{name}": mask & noc for name, mask in list(masks.items())})
+    for off in torch.unique(offset).tolist():
+        masks[f"{int(off):+d}"] = known & (offsets == off)
+    quality.update(epe, outlier, masks)
+
+
+def flow_quality_metrics(quality: PooledFlowQuality, prefix: str) -> dict[str, torch.Tensor]:
+    """The pooled scores by name: ``<prefix>epe`` (px) and ``<prefix>fl`` (%) of all known
+    pixels, ``<prefix>epe_+1`` … per offset, ``<prefix>epe/<region>`` and ``<prefix>fl/<region>``
+    per region, and the same on the non-occluded pixels: ``<prefix>epe_noc``,
+    ``<prefix>fl_noc``, ``<prefix>epe_noc/<region>``, ``<prefix>fl_noc/<region>`` (only where
+    a set had pixels). Every DDP process's sums are added up first (a collective: every process
+    calls it)."""
+    with warnings.catch_warnings():
+        # a process given no validation pair (FlowPairsDataModule) still takes part
+        warnings.filterwarnings("ignore", message=".*was called before the ``update``")
+        pooled = quality.compute()
+    values = {}
+    for name, (epe, fl) in pooled.items():
+        noc, region = ("_noc", name[4:]) if name.startswith("noc/") else ("", name)
+        if region == "all":
+            values[f"{prefix}epe{noc}"] = epe
+            values[f"{prefix}fl{noc}"] = fl
+        elif region[0] in "+-":
+            values[f"{prefix}epe_{region}"] = epe
+        else:
+            values[f"{prefix}epe{noc}/{region}"] = epe
+            values[f"{prefix}fl{noc}/{region}"] = fl
+    return values
+
+
 def quality_names() -> list[str]:
     """The sets of validation pixels scored: every region of
-    :data:`~mfg_lightning.data.rendered.QUALITY_REGIONS` (``all`` among them) and each offset up
-    to :data:`MAX_OFFSET` frames (``+1``, ``-1``, …)."""
-    from mfg_lightning.data.rendered import QUALITY_REGIONS
-
-    return [*QUALITY_REGIONS, *(f"{o:+d}" for o in range(-MAX_OFFSET, MAX_OFFSET + 1) if o)]
+    :data:`~mfg_lightning.metrics.flow_quality.QUALITY_REGIONS` (``all`` among them), the same
+    on the non-occluded pixels (``noc/road``, …, ``noc/all``) and each offset up to
+    :data:`MAX_OFFSET` frames (``+1``, ``-1``, …)."""
+    return [
+        *QUALITY_REGIONS,
+        *(f"noc/{r}" for r in QUALITY_REGIONS),
+        *(f"{o:+d}" for o in range(-MAX_OFFSET, MAX_OFFSET + 1) if o),
+    ]

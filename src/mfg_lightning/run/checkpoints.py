@@ -214,6 +214,9 @@ PROJECT_TARGETS = (
     # the learned flow's training (python -m mfg_lightning.train_flow)
     "mfg_lightning.models.flow_module.FlowLitModule",
     "mfg_lightning.data.flow_pairs.FlowPairsDataModule",
+    # the flow network and MFG trained together (experiment=end_to_end)
+    "mfg_lightning.models.end_to_end.EndToEndLitModule",
+    "mfg_lightning.data.image_pairs.ImagePairsDataModule",
 )
 
 
