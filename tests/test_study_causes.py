@@ -34,9 +34,10 @@ def test_the_learned_section_places_one_training_against_the_seed_range() -> Non
     rows = [line for line in text.splitlines() if line.startswith("| MFG")]
     assert rows[0].split("|")[4:8] == [" 5.40 ", " 5.40 ", " 9.10 ", " 1.27 "]
     assert rows[1].split("|")[4:8] == [" 2.50 ", " 2.50 ", " 2.90 ", " 1.30 "]
-    assert "ATE † 09 0.0210 inside [0.0200, 0.0220]" in text
-    assert "ATE * 09 0.0300 below [0.0400, 0.0440]" in text
-    assert "RPE rotation 0.00170 above [0.00140, 0.00160]" in text
+    assert "ATE † 09 0.0210 is within their 0.0200–0.0220" in text
+    assert "ATE * 09 0.0300 is better than their 0.0400–0.0440" in text
+    assert "RPE rotation 0.00170 is worse than their 0.00140–0.00160" in text
+    assert "the RPE translation of the learned-flow model is not measured;" in text
     # one main seed has no range to place it in
     one = learned_section({0: views[0]}, None, learned, None)
     assert not any("range" in line for line in one)

@@ -12,10 +12,10 @@ from typing import Any
 
 from mfg_lightning.core.tables import fmt
 from mfg_lightning.study.claims import PAPER_CENTRAL_OVER_FRAME
+from mfg_lightning.study.findings import LearnedFlow
 from mfg_lightning.study.noise import ratio, spread_of
 from mfg_lightning.study.render import lines, table
 from mfg_lightning.study.sentences import PRINTED_TABLE2_ROT
-from mfg_lightning.study.wording import position
 
 SEQS = ("09", "10")
 #: The paper's robust continuous baseline's name stem among the classical rows.
@@ -170,38 +170,34 @@ def learned_section(
         for s in SEQS:
             dagger, star = get(f"{s}/ate"), get(f"{s}/ate_central")
             cells += [fmt(dagger, 4), fmt(star, 4)]
-        table_rows.append([*cells, fmt(get("rpe_rot"), 5)])
+        table_rows.append([*cells, fmt(get("rpe_trans"), 4), fmt(get("rpe_rot"), 5)])
     heads = ["model", "trained on", "tested on", "test flow EPE +1 (px)", "EPE +2 (px)",
              "EPE +1 road (px)", "EPE +1 far (px)"]  # fmt: skip
     for s in SEQS:
         heads += [f"ATE † {s} (m)", f"ATE * {s} (m)"]
-    table_md = table([*heads, "RPE rotation (rad)"], table_rows)
-    against = _against_seed_range(main, learned["table1"]["test"]["1"], learned.get("seed"))
-    return lines("report/learned.md.j2", learned=learned, flow=flow_name, table=table_md,
-                 **against)  # fmt: skip
+    table_md = table([*heads, "RPE translation (m)", "RPE rotation (rad)"], table_rows)
+    f = _against_seed_range(main, learned["table1"]["test"]["1"])
+    f.epe = {r: (_test_epe(learned.get("flow_error"), "1", r), _test_epe(study_flow, "1", r))
+             for r in ("all", "road", "far")}  # fmt: skip
+    return lines("report/learned.md.j2", learned=learned, flow=flow_name, table=table_md, f=f,
+                 n=len(main), seed=learned.get("seed"))  # fmt: skip
 
 
-def _against_seed_range(
-    main: Mapping[int, Any], learned: Mapping[str, Any], seed: Any
-) -> dict[str, Any]:
+def _against_seed_range(main: Mapping[int, Any], learned: Mapping[str, Any]) -> LearnedFlow:
     """Where the one learned-flow model's test scores fall against the range of the main
-    model's seeds (a single training beside a seed mean needs the spread to be read): the parts
-    (none with fewer than two main seeds), the main seeds and the learned model's seed."""
-    keys = [*(f"{s}/{m}" for s in SEQS for m in ("ate", "ate_central")), "rpe_rot"]
-    names = {"ate": "ATE †", "ate_central": "ATE *"}
-    parts = []
+    model's seeds (a single training beside a seed mean needs the spread to be read; none with
+    fewer than two main seeds)."""
+    keys = [*(f"{s}/{m}" for s in SEQS for m in ("ate", "ate_central")), "rpe_trans", "rpe_rot"]
+    names = {"ate": "ATE †", "ate_central": "ATE *", "rpe_trans": "RPE translation",
+             "rpe_rot": "RPE rotation"}  # fmt: skip
+    scores = {}
     for key in keys:
         spread = spread_of(main, lambda v, key=key: v["table1"]["test"]["1"].get(key))
-        value = learned.get(key)
-        if spread.n < 2 or value is None:
-            continue
-        lo, hi = min(spread.values), max(spread.values)
-        seq, _, metric = key.rpartition("/")
-        label = f"{names[metric]} {seq}" if seq else "RPE rotation"
-        d = 5 if metric == "rpe_rot" else 4
-        where = position(value, lo, hi)
-        parts.append(f"{label} {fmt(value, d)} {where} [{fmt(lo, d)}, {fmt(hi, d)}]")
-    return {"parts": parts, "n": len(main), "seed": seed}
+        if spread.n >= 2 and (value := learned.get(key)) is not None:
+            seq, _, metric = key.rpartition("/")
+            label, d = f"{names[metric]} {seq}".strip(), 5 if metric == "rpe_rot" else 4
+            scores[label] = (value, min(spread.values), max(spread.values), d)
+    return LearnedFlow(scores, {})
 
 
 def _t2_row(label: str, t2: dict) -> list[list[str]]:

@@ -25,6 +25,7 @@ __all__ = [
     "Central",
     "FlowGain",
     "InputScale",
+    "LearnedFlow",
     "Robustness",
     "RuleWeakness",
     "SizeCurve",
@@ -210,6 +211,31 @@ class RuleWeakness:
     @property
     def gain(self) -> float | None:
         return 1 - self.after / self.before if self.before else None
+
+
+@dataclass
+class LearnedFlow:
+    """The one learned-flow model's test scores against the range of the main model's seeds on
+    the study's flow (``scores``: label → its value, the lowest and the highest seed's, decimals)
+    and the two flows' test EPE at +1 (``epe``: region → the learned flow's, the study flow's)."""
+
+    scores: dict[str, tuple[float, float, float, int]]
+    epe: dict[str, tuple[float | None, float | None]]
+
+    def place(self, label: str) -> str:
+        """ "below", "inside" or "above" the seeds' range ("" where not measured)."""
+        return position(*self.scores[label][:3]) if label in self.scores else ""
+
+    def where(self, stem: str) -> dict[str, list[str]]:
+        """The labels starting with ``stem`` by their place against the seeds' range."""
+        out: dict[str, list[str]] = {}
+        for k in (k for k in self.scores if k.startswith(stem)):
+            out.setdefault(self.place(k), []).append(k)
+        return {p: out[p] for p in ("below", "inside", "above") if p in out}
+
+    def epe_ratio(self, region: str) -> float | None:
+        """The learned flow's EPE over the study flow's on ``region``'s pixels."""
+        return ratio(*self.epe.get(region, (None, None)))
 
 
 def verdict_count(judged: list[Any]) -> dict[str, list[str]]:

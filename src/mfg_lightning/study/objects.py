@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -13,6 +14,7 @@ from mfg_lightning.core.tables import fmt
 from mfg_lightning.study.intervals import FLOORS, INCONCLUSIVE, bootstrap_se, interval
 from mfg_lightning.study.parts import MIN_SEEDS, Judged, Part, Settled, few_seeds
 from mfg_lightning.study.quotes import SENTENCES
+from mfg_lightning.study.render import paragraph
 
 __all__ = ["object_sentences", "velocity_bins"]
 
@@ -121,9 +123,9 @@ def _velocity_parts(seeds: Mapping[int, dict], b: dict) -> list[Part]:
     return parts
 
 
-def _grid_edges(seeds: Mapping[int, dict]) -> str:
-    """A warning for the seeds whose filter constants were chosen at the edge of their grid (a
-    larger value might have done better on validation), or nothing."""
+def _grid_edges(seeds: Mapping[int, dict]) -> list[str]:
+    """The seeds' filter constants chosen at the edge of their grid (a larger value might have
+    done better on validation): "seed s name value" each."""
     edge = []
     for s, r in sorted(seeds.items()):
         fc = r["objects"].get("filters_choice") or {}
@@ -132,42 +134,32 @@ def _grid_edges(seeds: Mapping[int, dict]) -> str:
             values = [g[i] for g in grid]
             if values and float(fc[name]) in (min(values), max(values)):
                 edge.append(f"seed {s} {name} {fc[name]:g}")
-    if not edge:
-        return ""
-    return (
-        f" At the edge of the filters' grid: {', '.join(edge)}; a wider grid might favour the "
-        "filters."
-    )
+    return edge
 
 
 def object_sentences(settled: Settled) -> list[Judged]:
     """S9 and S10 on the exact-flow Table-2-sized models' object masks and velocities (every
-    seed, per-pair counts: t over the seeds plus the paired bootstrap)."""
+    seed, per-pair counts: t over the seeds plus the paired bootstrap). Beside S10, its verdict
+    under the rule stated before the strict one (an interval on its bound holds)."""
     j9, j10 = Judged(SENTENCES["S9"]), Judged(SENTENCES["S10"])
     seeds = {s: r for s, r in (settled.seeds.get("exact") or {}).items() if r.get("objects")}
     if not seeds:
         return [j9, j10]
     j9.parts += [_mask_part(seeds, "iou", "mask IoU, filters − threshold"),
                  _mask_part(seeds, "precision", "precision, filters − threshold")]  # fmt: skip
+    bins, before = velocity_bins(seeds[min(seeds)]), None
     if len(seeds) < MIN_SEEDS:
         label = "velocity error, filters − threshold (px), every size × speed bin"
         j10.parts.append(Part(label, None, 0.0, "<=", floor=few_seeds(len(seeds))))
     else:
-        j10.parts += [
-            p for b in velocity_bins(seeds[min(seeds)]) for p in _velocity_parts(seeds, b)
-        ]
-    beside = (
-        f"The exact-flow Table-2-sized models ({len(seeds)} seeds), the threshold and the "
-        "filters' constants chosen on validation for each; the exact-flow twin's masks (one "
-        "model) are diagnostic 6." + _grid_edges(seeds)
-    )
-    j9.beside = beside
-    j10.beside = beside + (
-        " An object is an 8-connected component of the true mask, binned by its area and mean "
-        "true speed; a pixel's velocity error is |extracted − true object flow|, a missed "
-        "object costing its whole speed. Both methods extract the same residual flow and differ "
-        "in the pixels they keep, so their difference prices the masks' misses and false "
-        "pixels in velocity units; the absolute reading's bound is the error of reporting no "
-        "motion (the objects' own speed). A bin not measured is inconclusive."
-    )
+        j10.parts += [p for b in bins for p in _velocity_parts(seeds, b)]
+        j10.close()
+        parts = [replace(p, strict=False) if p.strict else p for p in j10.parts]
+        before = Judged(j10.sentence, parts).close()
+    found = {"n": len(seeds), "edges": _grid_edges(seeds)}
+    j9.beside = paragraph("beside/s9.md.j2", **found)
+    j10.beside = paragraph("beside/s10.md.j2", **found, bins=bins, floor=int(FLOORS["pairs"]),
+                           verdict=j10.verdict, before=before, changed=[
+                               (p, q) for p, q in zip(j10.parts, before.parts, strict=True)
+                               if p.verdict != q.verdict] if before else [])  # fmt: skip
     return [j9, j10]

@@ -18,8 +18,11 @@ from mfg_lightning.core.tables import fmt
 from mfg_lightning.study import rules
 from mfg_lightning.study.intervals import (
     FLOORS,
+    HOLDS,
+    INCONCLUSIVE,
     NO_SPREAD,
     NO_VERDICT,
+    NOT_HOLD,
     Claim,
     Interval,
     bootstrap_se,
@@ -116,9 +119,13 @@ class Part:
     def show(self, x: float) -> str:
         return f"×{fmt(math.exp(x), self.digits)}" if self.scale == "log" else fmt(x, self.digits)
 
+    @property
+    def sign(self) -> str:
+        """The claimed side as printed: ≤ / ≥, or < / > where the bound itself fails (strict)."""
+        return {"<=": "≤<", ">=": "≥>"}[self.direction][self.strict]
+
     def text(self) -> str:
-        sign = self.direction.replace("<=", "≤").replace(">=", "≥")
-        note = f"; {self.note}" if self.note else ""
+        sign, note = self.sign, f"; {self.note}" if self.note else ""
         if self.floor:
             return f"{self.label}: {self.floor}{note} — {self.verdict}"
         if self.iv is None:
@@ -155,6 +162,17 @@ class Judged:
         if self.verdict == NO_VERDICT:
             self.verdict = NOT_RUN if all(p.iv is None for p in self.parts) else NO_VERDICT
         return self
+
+    def deciding(self) -> Part | None:
+        """The one part that decides the verdict (the README's headline): where the sentence
+        holds, the binding part (the least decisive, :meth:`~mfg_lightning.study.intervals.
+        Claim.decisiveness`); where it does not hold, the most decisive failing part; otherwise
+        the part Holm's procedure stopped at (the most decisive inconclusive one)."""
+        want = self.verdict if self.verdict in (HOLDS, NOT_HOLD) else INCONCLUSIVE
+        rank = [(c.decisiveness() if (c := p.claim()) else -math.inf, p)
+                for p in self.parts if p.verdict == want]  # fmt: skip
+        pick = min if want == HOLDS else max  # the first of equals
+        return pick(rank, key=lambda r: r[0], default=(0, None))[1]
 
 
 @dataclass

@@ -213,15 +213,8 @@ README_START, README_END = "<!-- reproduction-table:start -->", "<!-- reproducti
 
 
 def readmetable(judged: list[Judged], views: dict, report: str) -> list[str]:
-    """The README's quoted table: every sentence's short name, our values and the verdict."""
-    rows = [
-        [j.sentence.key, j.sentence.short,
-         "; ".join(f"{p.label} {p.show(p.iv.value) if p.iv else '–'}" for p in j.parts) or "–",
-         j.verdict]
-        for j in judged
-    ]  # fmt: skip
-    quoted = table(("#", "the paper says", "ours (parts)", "verdict"), rows)
-    return lines("report/readme.md.j2", report=report, seeds=len(views), table=quoted)
+    """The README's quoted table: one line per sentence, the part that decides it, the verdict."""
+    return lines("report/readme.md.j2", report=report, seeds=len(views), judged=judged)
 
 
 def write_readmetable(readme: Path, judged: list[Judged], views: dict, report: Path) -> None:

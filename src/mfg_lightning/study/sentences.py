@@ -55,6 +55,7 @@ from mfg_lightning.study.parts import (
     test_at,
 )
 from mfg_lightning.study.quotes import SENTENCES, Sentence
+from mfg_lightning.study.render import paragraph
 from mfg_lightning.study.rules import growth_ends, smallest_k, smallest_k_by_ratio
 
 __all__ = [
@@ -336,14 +337,7 @@ def _s7(views: Mapping[int, View]) -> Judged:
                     f"×{fmt(math.exp(iv.value), 2)} [×{fmt(math.exp(iv.lo), 2)}, "
                     f"×{fmt(math.exp(iv.hi), 2)}]"
                 )
-    j.beside = (
-        "The verdict is the reading stated before the numbers were seen: robust means MFG's "
-        "errors do not grow as moving objects cover more of the image. The comparative "
-        "reading ('an advantage' over methods without a sparse representation), proposed after "
-        "the growths were seen and therefore not the verdict, 95 % interval over MFG's seeds "
-        "with the classical growth taken as measured: " + ("; ".join(beside) or "–") + ". The "
-        "essential-matrix methods' growths are in diagnostic 4."
-    )
+    j.beside = paragraph("beside/s7.md.j2", beside=beside)
     return j
 
 
@@ -374,11 +368,5 @@ def _s8(views: Mapping[int, View], residual: float, one_motion: float) -> Judged
                         f"{firing.interval_text()} ({firing.verdict} against the same bound; "
                         "not the verdict)")
         )  # fmt: skip
-    j.beside = (
-        "The verdict reads every top unit (by column norm), the reading stated before any "
-        "number was seen; the units that fire on validation are shown beside, not judged "
-        "(changes.json). The scale of a unit's motion (the supplement's |t| ~0.01, |ω| "
-        "~0.03–0.15, |ω| / |t| ≈ 5) is not judged: the supplement's Euler-coordinate axes "
-        "state no unit."
-    )
+    j.beside = paragraph("beside/s8.md.j2")
     return j
