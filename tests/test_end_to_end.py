@@ -121,6 +121,26 @@ def test_the_flow_term_joins_the_loss_once_the_network_trains(
     assert logged["train/flow_lr"] == pytest.approx(5e-5)
 
 
+@pytest.mark.parametrize("find_unused", [False, True])
+def test_a_frozen_warm_up_under_ddp_needs_unused_parameters_found(find_unused: bool) -> None:
+    """Two DDP processes that do not look for unused parameters would fail at the warm-up's
+    second step (the flow network has no gradient): the module's setup, which runs before the
+    strategy wraps it, names the setting instead. The Trainer is built, not launched."""
+    import lightning as L
+    from lightning.pytorch.strategies import DDPStrategy
+
+    trainer = L.Trainer(accelerator="cpu", devices=2, logger=False,
+                        strategy=DDPStrategy(find_unused_parameters=find_unused))  # fmt: skip
+    for freeze in (0, 3):
+        module = _module(freeze_flow_steps=freeze)
+        module.trainer = trainer
+        if freeze and not find_unused:
+            with pytest.raises(ValueError, match="find_unused_parameters=true"):
+                module.setup("fit")
+        else:
+            module.setup("fit")
+
+
 @pytest.mark.slow
 def test_the_experiment_runs_and_predict_reads_its_checkpoints_flow_network(
     tmp_path: Path,

@@ -295,6 +295,28 @@ class EndToEndLitModule(MFGLitModule):
 
     # -- optimisation and checkpoints --------------------------------------------------------
 
+    def setup(self, stage: str) -> None:
+        """Refuse a frozen warm-up under several DDP processes that do not look for unused
+        parameters: the flow network gets no gradient in the warm-up, and DDP's reducer would
+        stop the run at its second step with an error that names neither setting. (A module's
+        setup runs before the strategy wraps it.)"""
+        super().setup(stage)
+        from lightning.pytorch.strategies import DDPStrategy
+
+        strategy = self._trainer.strategy if self._trainer is not None else None
+        if (
+            stage == "fit"
+            and self.freeze_flow_steps > 0
+            and isinstance(strategy, DDPStrategy)
+            and strategy.num_processes * strategy.num_nodes > 1
+            and not strategy._ddp_kwargs.get("find_unused_parameters", False)
+        ):
+            raise ValueError(
+                f"model.freeze_flow_steps={self.freeze_flow_steps} under DDP needs "
+                "trainer.strategy.find_unused_parameters=true (the flow network has no gradient "
+                "in the warm-up), or model.freeze_flow_steps=0"
+            )
+
     def configure_optimizers(self) -> Any:
         """One optimiser, two parameter groups: MFG's (and every other parameter) at the
         configured rate, the flow network's at ``flow_lr``."""
