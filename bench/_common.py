@@ -239,6 +239,19 @@ def marked_blocks(text: str) -> list[str]:
     return [m.group(0).rstrip("\n") + "\n" for m in found]
 
 
+def write_marked(path: Path, marker: str, body: str) -> None:
+    """Replace the block between ``marker``'s lines in the file ``path`` (a README) with
+    ``body``; a file without the marker is left alone, with a warning."""
+    from mfg_lightning.core.atomic import atomic_write_text
+
+    text = path.read_text()
+    if _markers(marker)[0] not in text:
+        print(f"warning: {path} has no <!-- {marker}:start --> marker: not updated", flush=True)
+        return
+    atomic_write_text(path, replace_marked(text, marker, body))
+    print(f"wrote {path}", flush=True)
+
+
 def replace_marked(text: str, marker: str, body: str, before: str | None = None) -> str:
     """``text`` with the block of ``marker`` (:func:`marked_blocks`) holding ``body``: in place
     of the old block, or else inserted before the first line that starts with ``before``, or

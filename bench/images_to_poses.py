@@ -25,15 +25,12 @@ Measured per image size, interleaved, the median of ``--repeats`` after one warm
    essential_matrix_motion` with MAGSAC++, as ``mfg_lightning.analysis.scoring`` scores it),
    composed the same way.
 
-The classical method is MAGSAC++ (OpenCV's essential matrix): of the classical rows of
-``bench/results/accuracy.md``'s DIS-flow table and ``reproduction.md``'s method comparison it
-has the lowest ATE on both test sequences (and the lowest RPE translation); an image pipeline
-feeds it DIS flow.
+The classical method is MAGSAC++ (OpenCV's essential matrix), the classical row with the lowest
+ATE on both test sequences in ``accuracy.md``'s DIS-flow table and ``reproduction.md``.
 
-Written as one section of ``<out>/throughput.md`` between ``<!-- images-to-poses:start -->`` and
-``<!-- images-to-poses:end -->`` (the rest of the file is left as it is; ``bench/throughput.py``
-keeps the section when it rewrites the file), and, when a full run writes into ``bench/results``,
-one line into README.md between the same markers.
+Written as the section between ``<!-- images-to-poses:start/end -->`` of ``<out>/throughput.md``
+(which ``bench/throughput.py`` keeps), and by a full run into ``bench/results`` as one line of
+README.md between the same markers.
 
 ``python bench/images_to_poses.py`` (about 4 minutes on 2 quiet CPU cores); ``--tiny`` for a
 smoke run.
@@ -59,7 +56,7 @@ from _common import (
     add_common_arguments,
     fmt,
     markdown_table,
-    replace_marked,
+    write_marked,
 )
 
 #: The marker of this script's section in throughput.md and of its line in README.md.
@@ -89,8 +86,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--train-steps", type=int, default=20, help="the checkpoint's training")
     p.add_argument("--preset", default="medium", help="DIS preset (the image folder's default)")
     p.add_argument("--learned-sizes", nargs="*", default=["192x512"],
-                   help="image sizes at which flow=learned (the shipped weights) is measured "
-                   "too, HxW (none: DIS only)")  # fmt: skip
+                   help="image sizes at which flow=learned (the shipped weights) and an "
+                   "end-to-end checkpoint's network run, HxW (none: DIS only)")  # fmt: skip
     p.add_argument("--readme", type=Path, default=None, help="README to update (default: the "
                    "repository's when writing into bench/results, else none)")  # fmt: skip
     add_common_arguments(p, "torch and OpenCV threads (default: all)")
@@ -114,13 +111,11 @@ def parse_size(text: str) -> tuple[int, int]:
     return h, w
 
 
-def model_overrides(tiny: bool) -> list[str]:
-    return list(TINY_OVERRIDES) if tiny else []
-
-
-def make_checkpoint(path: Path, tiny: bool, steps: int) -> Path:
+def make_checkpoint(path: Path, tiny: bool, steps: int, end_to_end: bool = False) -> Path:
     """The default config's MFG (the tiny one with ``tiny``) trained ``steps`` steps on the
-    synthetic exact flow, in 32-bit, saved as a checkpoint ``predict`` reads."""
+    synthetic exact flow, in 32-bit, saved as a checkpoint ``predict`` reads; ``end_to_end``:
+    ``experiment=end_to_end`` (the flow network from its shipped weights and MFG together, no
+    frozen warm-up) on rendered frame pairs."""
     import lightning as L
     import torch
     from hydra.utils import instantiate
@@ -128,9 +123,11 @@ def make_checkpoint(path: Path, tiny: bool, steps: int) -> Path:
     from mfg_lightning.core.config import compose
     from mfg_lightning.run.runs import build_model
 
-    overrides = [f"paths.output_dir={path.parent}", "dataset.train_sequences=1",
-                 "dataset.test_sequences=1", "dataset.sequence_length=64",
-                 *model_overrides(tiny)]  # fmt: skip
+    e2e = ["experiment=end_to_end", "model.freeze_flow_steps=0",
+           f"paths.cache_dir={path.parent / 'e2e-cache'}"] if end_to_end else []  # fmt: skip
+    overrides = [*e2e, f"paths.output_dir={path.parent}", "dataset.train_sequences=1",
+                 "dataset.test_sequences=1", f"dataset.sequence_length={16 if e2e else 64}",
+                 *(TINY_OVERRIDES if tiny else ())]  # fmt: skip
     cfg = compose("train", overrides)
     torch.manual_seed(0)
     model = build_model(cfg)
@@ -156,7 +153,7 @@ def render_folder(folder: Path, height: int, width: int, frames: int, tiny: bool
         "flow=dis", f"flow.height={height}", f"flow.width={width}", "dataset.train_sequences=1",
         "dataset.test_sequences=1", f"dataset.sequence_length={frames}",
         f"paths.output_dir={folder.parent}", f"paths.cache_dir={folder.parent / 'render-cache'}",
-        *model_overrides(tiny),
+        *(TINY_OVERRIDES if tiny else ()),
     ])  # fmt: skip
     dataset = instantiate(cfg.dataset).dataset("test")
     seq = next(iter(dataset.trajectories))
@@ -172,8 +169,9 @@ def predict_config(
     ckpt: Path, folder: Path, camera: list[float], work: Path, args, flow: str = "dis"
 ) -> Any:
     """The config of ``python -m mfg_lightning.predict`` on ``folder`` (``dataset=image_folder``),
-    its outputs and an empty flow cache under ``work``; ``flow``: ``dis`` (at ``args.preset``)
-    or ``learned`` (the shipped weights)."""
+    its outputs and an empty flow cache under ``work``; ``flow``: ``dis`` (at ``args.preset``),
+    ``learned`` (the shipped weights) or ``end_to_end`` (``ckpt``'s own network, as ``predict``
+    reads an end-to-end checkpoint under ``flow=learned``)."""
     from mfg_lightning.core.config import compose
 
     fx, fy, cx, cy = camera
@@ -181,7 +179,8 @@ def predict_config(
     return compose("predict", [
         f"ckpt_path={ckpt}", "dataset=image_folder", f"dataset.data_root={folder}",
         f"dataset.fx={fx}", f"dataset.fy={fy}", f"dataset.cx={cx}", f"dataset.cy={cy}",
-        *input_hw, *([f"flow.preset={args.preset}"] if flow == "dis" else [f"flow={flow}"]),
+        *input_hw, *{"dis": [f"flow.preset={args.preset}"], "learned": ["flow=learned"],
+                     "end_to_end": ["flow=learned", f"flow.weights={ckpt}"]}[flow],
         f"paths.output_dir={work / 'run'}",
         f"paths.cache_dir={work / 'cache'}", "trainer.accelerator=cpu",
         "++trainer.enable_progress_bar=false", "trainer.enable_model_summary=false",
@@ -289,7 +288,7 @@ class SizeResult:
     height: int
     width: int
     pairs: int
-    flow: str  # dis or learned
+    flow: str  # dis, learned or end_to_end
     predict_s: float  # the whole folder
     startup_s: float  # the first two frames (start-up and one pair)
     mfg: dict[str, float]  # seconds per pass, per stage
@@ -353,7 +352,8 @@ def share(part: float, whole: float) -> str:
 
 
 #: How the tables name each flow.
-FLOW_NAMES = {"dis": "DIS", "learned": "learned (`flow=learned`)"}
+FLOW_NAMES = {"dis": "DIS", "learned": "learned (`flow=learned`)",
+              "end_to_end": "end-to-end (`experiment=end_to_end`'s network)"}  # fmt: skip
 
 
 def rates_table(results: list[SizeResult], kind: str) -> str:
@@ -401,28 +401,17 @@ def readme_line(results: list[SizeResult], kind: str, cores: int) -> str:
     the learned flow's at that size, when measured)."""
     r = results[0]
     classical_ms = sum(r.ms(r.classical).values())
-    learned = [
-        x for x in results if x.flow == "learned" and (x.height, x.width) == (r.height, r.width)
-    ]
-    also = f"; with `flow=learned` {rate(learned[0].marginal_ms())} frames/s" if learned else ""
+    also = "".join(
+        f"; {('with `flow=learned`', 'end to end')[x.flow != 'learned']} "
+        f"{rate(x.marginal_ms())} frames/s"
+        for x in results if x.flow != "dis" and (x.height, x.width) == (r.height, r.width)
+    )  # fmt: skip
     return (
         f"Images to poses: `predict` on a folder of {r.height} × {r.width} PNG frames runs at "
         f"{rate(r.marginal_ms())} frames/s after a {r.startup_s:.1f} s start-up (DIS + "
         f"MAGSAC++: {rate(classical_ms)} frames/s{also}) on {cores} {kind} CPU cores "
         "([bench/results/throughput.md](bench/results/throughput.md)).\n"
     )
-
-
-def write_readme(readme: Path, line: str) -> None:
-    """Replace the README's block between this script's markers (none: left alone)."""
-    from mfg_lightning.core.atomic import atomic_write_text
-
-    text = readme.read_text()
-    if f"<!-- {MARKER}:start -->" not in text:
-        print(f"warning: {readme} has no <!-- {MARKER}:start --> marker: not updated", flush=True)
-        return
-    atomic_write_text(readme, replace_marked(text, MARKER, line))
-    print(f"wrote {readme}", flush=True)
 
 
 def main(argv: list[str] | None = None) -> Path:
@@ -446,7 +435,8 @@ def main(argv: list[str] | None = None) -> Path:
         tmp = Path(tmp_name)
         start = time.perf_counter()
         ckpt = make_checkpoint(tmp / "mfg.ckpt", args.tiny, args.train_steps)
-        print(f"checkpoint: {time.perf_counter() - start:.1f} s", flush=True)
+        e2e = make_checkpoint(tmp / "e2e" / "e2e.ckpt", args.tiny, 2, end_to_end=True)
+        print(f"checkpoints: {time.perf_counter() - start:.1f} s", flush=True)
         for h, w in args.sizes:
             start = time.perf_counter()
             folder = tmp / f"{h}x{w}"
@@ -455,8 +445,8 @@ def main(argv: list[str] | None = None) -> Path:
                   f"{time.perf_counter() - start:.1f} s", flush=True)  # fmt: skip
             results.append(measure_size(ckpt, folder, camera, tmp / f"work-{h}x{w}", args))
             if (h, w) in args.learned_sizes:
-                results.append(measure_size(ckpt, folder, camera, tmp / f"work-{h}x{w}-learned",
-                                            args, "learned"))  # fmt: skip
+                results += [measure_size(c, folder, camera, tmp / f"work-{h}x{w}-{f}", args, f)
+                            for c, f in ((ckpt, "learned"), (e2e, "end_to_end"))]  # fmt: skip
     model = "the tiny test model (32 × 64 input)" if args.tiny else "the default MFG (48 × 128"
     model += "" if args.tiny else " input, M = 1000)"
     report.add(
@@ -464,7 +454,8 @@ def main(argv: list[str] | None = None) -> Path:
         f"(the renderer of `flow=dis`), written as PNG files at each image size; {model} from "
         f"a checkpoint trained {args.train_steps} steps (its accuracy is not what is measured "
         f"here); DIS `{args.preset}` at the image size, and `flow=learned` (the shipped "
-        "weights of the framework's PWC-Net-design network, `docs/flow.md`) at "
+        "weights of the framework's PWC-Net-design network, `docs/flow.md`) and an end-to-end "
+        "checkpoint's network (`experiment=end_to_end`, 2 steps from those weights) at "
         + (", ".join(f"{h} × {w}" for h, w in args.learned_sizes) or "no size")
         + f"; CPU **{kind}** ({cores} cores, "
         f"{torch.get_num_threads()} torch threads). Medians of {args.repeats} interleaved rounds "
@@ -474,34 +465,30 @@ def main(argv: list[str] | None = None) -> Path:
     report.add(rates_table(results, kind))
     report.add(
         "*End to end*: `mfg_lightning.run.prediction.predict` in this process, what `python -m "
-        "mfg_lightning.predict dataset=image_folder` runs after its imports: the checkpoint, "
-        "the DataModule, Lightning's predict loop, DIS and its cache, the network, the "
-        "recovery, the composition and the output files (KITTI and TUM poses, motions CSV). "
-        "*After its start-up*: (the folder's time − the time on its first two frames) / (pairs "
-        "− 1), the rate a long sequence approaches; start-up "
-        + ", ".join(f"{r.startup_s:.2f} s at {r.height} × {r.width}" for r in results)
-        + ". *Stages*: each stage timed alone on the same frames with the functions the predict "
-        "path calls (the table below); the classical pipeline has no entry point, so its rate "
-        "is the sum of its stages, without a loader, caches or files. The classical method is "
-        f"{CLASSICAL[0]} on the same DIS flows at the model input (every 2nd pixel, as "
-        "`bench/accuracy.py` scores it), the lowest ATE of the classical methods on DIS flow in "
-        "`accuracy.md` and `reproduction.md`'s method comparison; without ground truth its "
-        "translation keeps unit length."
+        "mfg_lightning.predict dataset=image_folder` runs after its imports (checkpoint, "
+        "DataModule, Lightning's predict loop, the flow and its cache, network, recovery, "
+        "composition, the KITTI/TUM/CSV files). *After its start-up*: (the folder's time − the "
+        "time on its first two frames) / (pairs − 1), the rate a long sequence approaches; "
+        "start-up "
+        + ", ".join(f"{r.startup_s:.2f} s at {r.height} × {r.width} ({r.flow})" for r in results)
+        + ". *Stages*: each timed alone on the same frames with the functions the predict path "
+        "calls (below); the classical pipeline has no entry point: its rate is its stages' sum, "
+        f"without loader, caches or files. {CLASSICAL[0]} reads the same flows at the model "
+        "input (every 2nd pixel, as `bench/accuracy.py` scores it), the lowest ATE of the "
+        "classical methods on DIS flow (`accuracy.md`, `reproduction.md`); without ground "
+        "truth its translation keeps unit length."
     )
     for r in results:
         report.add(f"### Where the time goes, {r.height} × {r.width}, {FLOW_NAMES[r.flow]} flow"
                    f"\n\n{stages_table(r)}")  # fmt: skip
-    report.add(
-        "Shares: of `predict` after its start-up (MFG) and of the stages' sum (classical). "
-        "*The rest of `predict`*: its time after start-up less its stages, what the loop "
-        "around the stages costs. Read and flow are one measurement shared by both pipelines "
-        "(the same frames through the same functions)."
-    )
+    report.add("Shares: of `predict` after its start-up (MFG) and of the stages' sum "
+               "(classical). *The rest of `predict`*: its time after start-up less its stages. "
+               "Read and flow are one measurement shared by both pipelines.")  # fmt: skip
     path = report.write_section(MARKER, HEADING)
     # The README's line only from a real run into bench/results (or a README named).
     readme = args.readme or (REPO / "README.md" if args.out is None and not args.tiny else None)
     if readme is not None:
-        write_readme(readme, readme_line(results, kind, cores))
+        write_marked(readme, MARKER, readme_line(results, kind, cores))
     return path
 
 

@@ -50,10 +50,13 @@ def test_images_to_poses_writes_its_section(
     assert f"## {bench.HEADING}" in section and "### Environment of this section" in section
     assert "bench/images_to_poses.py" in section  # the command that wrote it
     rates = _rows(section, bench.HEADING)
-    # DIS's rows, then the learned flow's (the shipped weights) at the same size
+    # DIS's rows, then the learned flow's (the shipped weights) and an end-to-end checkpoint's
+    # network at the same size
+    flows = (("DIS", "DIS"), ("learned (`flow=learned`)", "learned"),
+             ("end-to-end (`experiment=end_to_end`'s network)", "end-to-end"))  # fmt: skip
     assert [(r[1], r[3]) for r in rates] == [
         (flow, pipeline)
-        for flow, first in (("DIS", "DIS"), ("learned (`flow=learned`)", "learned"))
+        for flow, first in flows
         for pipeline in (
             "MFG: `predict`, end to end (the whole call)",
             "MFG: `predict` after its start-up",
@@ -66,8 +69,9 @@ def test_images_to_poses_writes_its_section(
         if "after its start-up" in row[3]:
             continue  # a difference of two timings: on a loaded machine and 5 pairs, any sign
         assert float(row[4]) > 0 and float(row[5]) > 0, row
-    learned = {r[0]: r for r in _rows(section, "### Where the time goes, 48 × 128, learned")}
-    assert float(learned["flow"][2]) > 0 and float(learned["network"][2]) > 0
+    for flow in ("learned", "end-to-end"):
+        net = {r[0]: r for r in _rows(section, f"### Where the time goes, 48 × 128, {flow}")}
+        assert float(net["flow"][2]) > 0 and float(net["network"][2]) > 0
     stages = {r[0]: r for r in _rows(section, "### Where the time goes, 48 × 128, DIS flow")}
     assert list(stages) == ["read", "flow", "network", "recovery", "composition", "method",
                             "the rest of `predict`", "total"]  # fmt: skip
@@ -81,7 +85,7 @@ def test_images_to_poses_writes_its_section(
     lines = readme.read_text().splitlines()
     assert lines[:3] == ["# x", "", "<!-- images-to-poses:start -->"]
     assert lines[3].startswith("Images to poses: `predict` on a folder of 48 × 128 PNG frames")
-    assert "with `flow=learned`" in lines[3]
+    assert "with `flow=learned`" in lines[3] and "; end to end " in lines[3]
     assert lines[4:] == ["<!-- images-to-poses:end -->", "", "end"]
     # bench/throughput.py rewriting the file keeps the section
     common = bench_module("_common")

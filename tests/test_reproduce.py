@@ -152,6 +152,45 @@ def test_tiny_study_runs_resumes_and_rebuilds_from_committed_results(tmp_path: P
     assert cpu["same_as"] == "main"
     assert (cpu["val_ate"], cpu["test_ate"]) == (t1["val"]["1"]["ate"], t1["test"]["1"]["ate"])
 
+    # Results whose classical rows predate a fix of the baselines: the report marks them stale;
+    # refresh_classical computes those rows again (no model, no training), keeps the MFG rows
+    # as they were, and the report no longer marks them
+    old = tmp_path / "old"
+    shutil.copytree(results, old)
+    for name, key in (("methods", "rows"), ("table2", "classical")):
+        r = json.loads((old / f"{name}.json").read_text())
+        r["baselines_version"] = 1
+        for row in r[key]:
+            row["metrics"]["rpe_rot"] = 9.5  # a row this result's data could not have given
+        (old / f"{name}.json").write_text(json.dumps(r))
+    stale_args = ("reproduce=tiny", f"poses_dir={POSES}", f"results_dir={old}", "stages=[]",
+                  f"report={tmp_path / 'old.md'}", f"work_dir={tmp_path / 'old_work'}")  # fmt: skip
+    fifth = _run(tmp_path, *stale_args)
+    assert fifth.returncode == 0, fifth.stderr[-3000:]
+    stale_note = "were computed at a commit without the cheirality fix"
+    assert stale_note not in text
+    marked = (tmp_path / "old.md").read_text()
+    assert all(f"rows of `{n}` {stale_note}" in marked for n in ("methods", "table2"))
+    sixth = _run(tmp_path, *stale_args, "refresh_classical=[methods,table2,twin]")
+    assert sixth.returncode == 0, sixth.stderr[-3000:]
+    assert "refreshed: methods" in sixth.stdout and "refreshed: table2" in sixth.stdout
+    assert "refreshed: twin" not in sixth.stdout  # already current
+    assert not (tmp_path / "old_work" / "models").exists()  # nothing trained
+    assert stale_note not in (tmp_path / "old.md").read_text()
+    for name, key in (("methods", "rows"), ("table2", "classical")):
+        rows = json.loads((results / f"{name}.json").read_text())[key]
+        before = {r["name"]: r["metrics"] for r in rows}
+        after = json.loads((old / f"{name}.json").read_text())
+        assert after["baselines_version"] >= 2 and after["classical_refresh"]["from_version"] == 1
+        for row in after[key]:
+            m = row["metrics"]
+            if row["name"].startswith("MFG"):
+                assert m["rpe_rot"] == 9.5  # the model's rows are not recomputed
+            elif "essential" not in row["name"]:  # deterministic: the same numbers as before
+                assert m == pytest.approx(before[row["name"]], rel=1e-6, nan_ok=True), row["name"]
+            else:
+                assert m["rpe_rot"] < 9.5
+
 
 def test_a_run_whose_val_ate_was_never_defined_is_evaluated_at_its_last_checkpoint(
     tmp_path: Path,

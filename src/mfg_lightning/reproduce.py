@@ -2,7 +2,8 @@
 
 Runs the stages (:mod:`mfg_lightning.study.run`; each cached as JSON under ``results_dir``,
 committed with the repository, and skipped when cached; the trained models under ``work_dir``;
-``fresh=true`` starts over, ``stages=[...]`` selects) and, after every stage,
+``fresh=true`` starts over, ``stages=[...]`` selects, ``refresh_classical=[...]`` computes
+the classical rows of cached results again) and, after every stage,
 rewrites ``report`` with one row per claim (:mod:`mfg_lightning.study.claims`) and the PNG of its
 evidence beside it. ``reproduce=tiny`` runs the whole study in seconds (the test suite).
 """
@@ -19,6 +20,7 @@ from omegaconf import DictConfig
 from mfg_lightning.core.config import CONFIG_DIR
 from mfg_lightning.core.errors import exit_on_unknown_choice, exit_on_user_error
 from mfg_lightning.study import stages as S
+from mfg_lightning.study.classical_refresh import refresh_classical
 from mfg_lightning.study.plan import check
 from mfg_lightning.study.run import run
 
@@ -34,6 +36,8 @@ def reproduce(cfg: DictConfig, trainer_choice: str = "default") -> Path:
                 shutil.rmtree(d)
     for group in ("sparsity", "seeds"):
         (study.results / group).mkdir(parents=True, exist_ok=True)
+    for name in cfg.refresh_classical:
+        refresh_classical(study, name)
     return run(study, Path(cfg.report))
 
 

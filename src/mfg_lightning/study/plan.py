@@ -57,6 +57,11 @@ def check(cfg: DictConfig) -> None:
     unknown = [s for s in cfg.stages if s not in known]
     if unknown:
         raise ValueError(f"stages: unknown {unknown}; known: {', '.join(known)}")
+    from mfg_lightning.study.classical_refresh import REFRESHABLE
+
+    odd = [s for s in cfg.get("refresh_classical") or [] if s not in REFRESHABLE]
+    if odd:
+        raise ValueError(f"refresh_classical: unknown {odd}; known: {', '.join(REFRESHABLE)}")
     budget = ("main_steps", "other_steps", "val_every", "batch_size", "eval_batch_size")
     for key in (*budget, "main_frame_stride"):
         if int(cfg.budget[key]) <= 0:

@@ -341,8 +341,24 @@ def stage_methods(
     if classical:
         rows += classical_methods(ds.height, ds.width)
     score_methods(rows, study.loader(central, "test"))
-    forward = [t == s + 1 for _, s, t in ds.samples]
     edges = [float(e) for e in cfg.robustness.coverage_bins]
+    bins = coverage_bins(rows, ds.samples, edges)
+    return {
+        "test_pairs": len(ds),
+        "forward_pairs": sum(t == s + 1 for _, s, t in ds.samples),
+        "rows": scored_rows(rows),
+        "edges": edges,
+        "counts": [b["n"] for b in bins[rows[0].name]["rot_bins"]],
+        "bins": bins,
+    }
+
+
+def coverage_bins(rows: list[Any], samples: list[tuple], edges: list[float]) -> dict[str, dict]:
+    """Per scored method (``analysis.scoring.Method``), its +1 pairs' rotation and translation
+    errors binned by the image fraction moving objects cover (``edges``), and the rotation
+    error's growth over the bins; ``samples``: the test split's ``(sequence, source, target)``
+    in the order the methods were scored."""
+    forward = [t == s + 1 for _, s, t in samples]
     bins = {}
     for m in rows:
         pick = [i for i, f in enumerate(forward[: len(m.rot_err)]) if f]
@@ -353,14 +369,7 @@ def stage_methods(
             "trans_bins": S.bin_errors(cov, [m.trans_err[i] for i in pick], edges),
             "growth": growth(rot),
         }
-    return {
-        "test_pairs": len(ds),
-        "forward_pairs": sum(forward),
-        "rows": scored_rows(rows),
-        "edges": edges,
-        "counts": [b["n"] for b in bins[rows[0].name]["rot_bins"]],
-        "bins": bins,
-    }
+    return bins
 
 
 def stage_basis(study: S.Study, main: dict, main_extra: list[str]) -> dict:
