@@ -38,7 +38,6 @@ def _methods(study: S.Study, result: dict, extra: list[str]) -> None:
     """A ``methods`` table (the central test of the main setting, ``extra`` its overrides):
     the classical rows and their coverage bins."""
     from mfg_lightning.analysis.scoring import classical_methods, score_methods, scored_rows
-    from mfg_lightning.study.run import coverage_bins
 
     central = study.test_datamodule(extra)
     ds = central.dataset("test")
@@ -49,7 +48,7 @@ def _methods(study: S.Study, result: dict, extra: list[str]) -> None:
         )
     rows = score_methods(classical_methods(ds.height, ds.width), study.loader(central, "test"))
     result["rows"] = _merged(result["rows"], scored_rows(rows))
-    result["bins"] = {**result["bins"], **coverage_bins(rows, ds.samples, result["edges"])}
+    result["bins"] = {**result["bins"], **S.coverage_bins(rows, ds.samples, result["edges"])}
 
 
 def _table2(study: S.Study, result: dict, exact: bool) -> None:
@@ -100,7 +99,7 @@ def refresh_classical(study: S.Study, name: str) -> bool:
     result["classical_refresh"] = {
         "from_version": result.get("baselines_version", 1),
         "seconds": time.perf_counter() - start,
-        "commit": S._commit(),
+        "commit": S.checkout_commit(),
     }
     result["baselines_version"] = S.BASELINES_VERSION
     atomic_write_text(study.path(name), json.dumps(result, indent=1) + "\n")

@@ -20,7 +20,7 @@ from mfg_lightning.study import plan
 from mfg_lightning.study import settle as T
 from mfg_lightning.study import stages as S
 from mfg_lightning.study.report import write_report
-from mfg_lightning.study.rules import growth, smallest_k
+from mfg_lightning.study.rules import smallest_k
 
 
 def _runners(study: S.Study) -> dict[str, Callable[[Any], dict | None]]:
@@ -342,7 +342,7 @@ def stage_methods(
         rows += classical_methods(ds.height, ds.width)
     score_methods(rows, study.loader(central, "test"))
     edges = [float(e) for e in cfg.robustness.coverage_bins]
-    bins = coverage_bins(rows, ds.samples, edges)
+    bins = S.coverage_bins(rows, ds.samples, edges)
     return {
         "test_pairs": len(ds),
         "forward_pairs": sum(t == s + 1 for _, s, t in ds.samples),
@@ -351,25 +351,6 @@ def stage_methods(
         "counts": [b["n"] for b in bins[rows[0].name]["rot_bins"]],
         "bins": bins,
     }
-
-
-def coverage_bins(rows: list[Any], samples: list[tuple], edges: list[float]) -> dict[str, dict]:
-    """Per scored method (``analysis.scoring.Method``), its +1 pairs' rotation and translation
-    errors binned by the image fraction moving objects cover (``edges``), and the rotation
-    error's growth over the bins; ``samples``: the test split's ``(sequence, source, target)``
-    in the order the methods were scored."""
-    forward = [t == s + 1 for _, s, t in samples]
-    bins = {}
-    for m in rows:
-        pick = [i for i, f in enumerate(forward[: len(m.rot_err)]) if f]
-        cov = [m.coverage[i] for i in pick]
-        rot = S.bin_errors(cov, [m.rot_err[i] for i in pick], edges)
-        bins[m.name] = {
-            "rot_bins": rot,
-            "trans_bins": S.bin_errors(cov, [m.trans_err[i] for i in pick], edges),
-            "growth": growth(rot),
-        }
-    return bins
 
 
 def stage_basis(study: S.Study, main: dict, main_extra: list[str]) -> dict:

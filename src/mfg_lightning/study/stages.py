@@ -29,6 +29,7 @@ from torch.utils.data import DataLoader, Subset
 
 from mfg_lightning.core.atomic import atomic_write_text
 from mfg_lightning.motion.baselines import VERSION as BASELINES_VERSION
+from mfg_lightning.study.rules import growth
 
 log = logging.getLogger("mfg_lightning.study")
 
@@ -79,7 +80,7 @@ class Study:
         if result is None:
             return None
         result["seconds"] = time.perf_counter() - start
-        result["commit"] = _commit()
+        result["commit"] = checkout_commit()
         # the classical methods' version: a later report tells a result that predates a fix of
         # theirs from the result itself, with or without git history
         result["baselines_version"] = BASELINES_VERSION
@@ -355,7 +356,7 @@ def logged_curve(run_dir: Path) -> list[dict[str, float]]:
     return [rows[s] for s in sorted(rows)]
 
 
-def _commit() -> str | None:
+def checkout_commit() -> str | None:
     from mfg_lightning.run.runs import git_commit
 
     c = git_commit()
@@ -375,6 +376,25 @@ def bin_errors(
         n = int(sel.sum())
         out.append({"lo": lo, "hi": hi, "n": n, "mean": float(err[sel].mean()) if n else None})
     return out
+
+
+def coverage_bins(rows: list[Any], samples: list[tuple], edges: list[float]) -> dict[str, dict]:
+    """Per scored method (``analysis.scoring.Method``), its +1 pairs' rotation and translation
+    errors binned by the image fraction moving objects cover (``edges``), and the rotation
+    error's growth over the bins; ``samples``: the test split's ``(sequence, source, target)``
+    in the order the methods were scored."""
+    forward = [t == s + 1 for _, s, t in samples]
+    bins = {}
+    for m in rows:
+        pick = [i for i, f in enumerate(forward[: len(m.rot_err)]) if f]
+        cov = [m.coverage[i] for i in pick]
+        rot = bin_errors(cov, [m.rot_err[i] for i in pick], edges)
+        bins[m.name] = {
+            "rot_bins": rot,
+            "trans_bins": bin_errors(cov, [m.trans_err[i] for i in pick], edges),
+            "growth": growth(rot),
+        }
+    return bins
 
 
 def object_motion_scores(
