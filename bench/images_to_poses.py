@@ -66,6 +66,7 @@ HEADING = "Images to poses: `predict` on a folder of PNG frames, against DIS + M
 CLASSICAL = ("essential matrix + MAGSAC++ (OpenCV)", "USAC_MAGSAC")
 MFG_STAGES = ("read", "flow", "network", "recovery", "composition")
 CLASSICAL_STAGES = ("read", "flow", "method", "composition")
+E2E_STEPS = 2  # training steps of the end-to-end checkpoint (its cost is measured, not accuracy)
 STAGE_NOTES = {
     "read": "PNG decode, resize to the input (its cache written once), grey; each frame twice, "
     "as the loader decodes it (source of one pair, target of the other)",
@@ -398,13 +399,13 @@ def stages_table(r: SizeResult) -> str:
 
 def readme_line(results: list[SizeResult], kind: str, cores: int) -> str:
     """The README's one line: the first size's end-to-end rate beside the classical one (and
-    the learned flow's at that size, when measured)."""
+    the learned flow's and the end-to-end network's at that size, when measured)."""
     r = results[0]
     classical_ms = sum(r.ms(r.classical).values())
+    words = {"learned": "with `flow=learned`", "end_to_end": "end to end"}
     also = "".join(
-        f"; {('with `flow=learned`', 'end to end')[x.flow != 'learned']} "
-        f"{rate(x.marginal_ms())} frames/s"
-        for x in results if x.flow != "dis" and (x.height, x.width) == (r.height, r.width)
+        f"; {words[x.flow]} {rate(x.marginal_ms())} frames/s"
+        for x in results if x.flow in words and (x.height, x.width) == (r.height, r.width)
     )  # fmt: skip
     return (
         f"Images to poses: `predict` on a folder of {r.height} × {r.width} PNG frames runs at "
@@ -435,7 +436,8 @@ def main(argv: list[str] | None = None) -> Path:
         tmp = Path(tmp_name)
         start = time.perf_counter()
         ckpt = make_checkpoint(tmp / "mfg.ckpt", args.tiny, args.train_steps)
-        e2e = make_checkpoint(tmp / "e2e" / "e2e.ckpt", args.tiny, 2, end_to_end=True)
+        e2e = args.learned_sizes and make_checkpoint(tmp / "e2e" / "e.ckpt", args.tiny, E2E_STEPS,
+                                                     end_to_end=True)  # fmt: skip
         print(f"checkpoints: {time.perf_counter() - start:.1f} s", flush=True)
         for h, w in args.sizes:
             start = time.perf_counter()
@@ -455,7 +457,7 @@ def main(argv: list[str] | None = None) -> Path:
         f"a checkpoint trained {args.train_steps} steps (its accuracy is not what is measured "
         f"here); DIS `{args.preset}` at the image size, and `flow=learned` (the shipped "
         "weights of the framework's PWC-Net-design network, `docs/flow.md`) and an end-to-end "
-        "checkpoint's network (`experiment=end_to_end`, 2 steps from those weights) at "
+        f"checkpoint's network (`experiment=end_to_end`, {E2E_STEPS} steps from those weights) at "
         + (", ".join(f"{h} × {w}" for h, w in args.learned_sizes) or "no size")
         + f"; CPU **{kind}** ({cores} cores, "
         f"{torch.get_num_threads()} torch threads). Medians of {args.repeats} interleaved rounds "
