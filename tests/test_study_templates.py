@@ -6,6 +6,7 @@ the stage table of ``conf/reproduce.yaml`` is the one list the study runs and th
 from __future__ import annotations
 
 import re
+from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
@@ -14,7 +15,7 @@ from mfg_lightning.core.config import compose
 from mfg_lightning.study import findings as F
 from mfg_lightning.study import plan
 from mfg_lightning.study.noise import Spread
-from mfg_lightning.study.quotes import SENTENCES
+from mfg_lightning.study.quotes import SENTENCES, load_sentences
 from mfg_lightning.study.render import TEMPLATES, lines, paragraph, unwrap
 from mfg_lightning.study.run import _runners
 from mfg_lightning.study.stages import Study
@@ -103,13 +104,14 @@ def test_the_size_curve_words_follow_irls_over_mfgs_lowest() -> None:
     assert "below IRLS's at 6\u202f400 pairs" in curve(0.0012)
 
 
-def test_the_essential_matrix_explanation_follows_their_growths() -> None:
+def test_the_essential_matrix_reading_follows_their_growths() -> None:
     def robust(g: float) -> str:
         f = F.Robustness([0.0, 0.1, 1.0], [10, 5], 1.2, 0.9, {"RANSAC": g}, [g])
         return _reading("robustness", f=f)
 
-    assert "fall because their least covered bin" in robust(0.2)
-    assert "fall because" not in robust(1.2) and robust(1.2).endswith("RANSAC ×1.20.")
+    falls = "errors are lower where moving objects cover more"
+    assert falls in robust(0.2)
+    assert falls not in robust(1.2) and robust(1.2).endswith("RANSAC ×1.20.")
 
 
 def test_the_input_scale_words_follow_where_it_falls_against_the_band() -> None:
@@ -180,3 +182,11 @@ def test_the_stage_table_is_the_one_list_the_study_runs() -> None:
     assert "seeds/seed1" in results and "settle/strided_seed0" in results
     read = {k for stage in cfg.stage_table.values() for k in stage.read_by}
     assert set(SENTENCES) <= read  # every sentence names the stages it reads
+
+
+def test_the_sentences_file_names_a_misspelt_field(tmp_path: Path) -> None:
+    bad = tmp_path / "sentences.yaml"
+    bad.write_text("S1:\n  where: Abstract\n  quote: q\n  measured: m\n  shrot: s\n", "utf-8")
+    with pytest.raises(ValueError, match=r"sentences.yaml: sentence S1: unknown field.*shrot"):
+        load_sentences(bad)
+    assert load_sentences() == SENTENCES and list(SENTENCES) == [f"S{i}" for i in range(1, 11)]

@@ -3,7 +3,8 @@ stages' cached results, each with its figure and its deviations from the paper, 
 verdicts (the verdicts are per sentence of the paper: :mod:`mfg_lightning.study.sentences`).
 
 Every ``claim_*`` function takes the stage results it needs (None when not run yet) and returns a
-:class:`Row` and the figure of its evidence (None when not run). The paper's figures are quoted
+:class:`Row` and the figure of its evidence (None when not run); the rows' words are
+``templates/diagnostics.yaml`` and ``templates/diagnostics/*.md.j2``. The paper's figures are quoted
 from its Tables 1 and 2, section 5 and the supplement. Convergence is not a claim of the paper:
 :func:`mfg_lightning.study.figures.convergence_rows` reports it for every trained model.
 """
@@ -19,7 +20,7 @@ from omegaconf import OmegaConf
 from mfg_lightning.core.tables import fmt
 from mfg_lightning.pictures import plots
 from mfg_lightning.study.noise import ratio
-from mfg_lightning.study.render import TEMPLATES
+from mfg_lightning.study.render import TEMPLATES, paragraph
 from mfg_lightning.study.rules import smallest_k
 from mfg_lightning.study.verdicts import NOT_RUN, relative_deviation
 
@@ -254,11 +255,13 @@ def claim_robustness(mt: dict | None) -> tuple[Row, Any]:
     ours_abs = last_mean(bins[mfg_name])
     best_name = min(classical, key=lambda n: last_mean(classical[n]) or math.inf, default=None)
     best_abs = last_mean(classical[best_name]) if best_name else None
-    row.ours = (
-        f"rotation error in the most covered bin: {mfg_name} {fmt(ours_abs, 5)}, best classical "
-        f"{fmt(best_abs, 5)} ({best_name}); growth (most / least covered): "
-        + "; ".join(f"{n} ×{fmt(b['growth'], 2)}" for n, b in bins.items())
-        + f" (bins {mt['edges']}, +1 pairs per bin {mt['counts']})"
+    row.ours = paragraph(
+        "diagnostics/robustness.md.j2",
+        mt=mt,
+        mfg=mfg_name,
+        ours=ours_abs,
+        best=best_name,
+        best_abs=best_abs,
     )
     centres = [
         (lo + hi) / 2 * 100 for lo, hi in zip(mt["edges"][:-1], mt["edges"][1:], strict=True)
@@ -293,23 +296,11 @@ def claim_basis(bs: dict | None, residual: float) -> tuple[Row, Any]:
     row = Row.of("5")
     if bs is None:
         return row, None
-    per, summ = bs["per_decoder"], bs["summary"]
     explained = one_motion_fractions(bs, residual)
-    data = bs["data"]
-    row.ours = (
-        f"top {len(per['t']['units'])} units per decoder: one motion fits "
-        f"{fmt(100 * explained['t'], 0)} % (t) and {fmt(100 * explained['omega'], 0)} % (ω); "
-        f"resultant length t {fmt(summ['t']['resultant'], 2)}, ω "
-        f"{fmt(summ['omega']['resultant'], 2)}; median |t| {fmt(summ['t']['motion_at_1'])} at "
-        f"activation 1, {fmt(summ['t']['motion_typical'])} at its typical activation; median |ω| "
-        f"{fmt(summ['omega']['motion_at_1'])}, {fmt(summ['omega']['motion_typical'])}; |ω| / |t| "
-        f"{fmt(bs.get('ratio_at_1'), 3)} at 1, {fmt(bs.get('ratio_typical'), 3)} typical "
-        f"(supplement ≈ {PAPER_UNIT_RATIO:g}); the data's own |ω| / |t| (validation motions) "
-        f"{fmt(data['omega_over_t_median'], 4)}; the rotational weight clamped at "
-        f"{fmt(data['balance_max'], 0)} on {fmt(None if data['omega_weight_clamped'] is None else 100 * data['omega_weight_clamped'], 1)} % "  # noqa: E501
-        "of the validation samples"
+    row.ours = paragraph(
+        "diagnostics/basis.md.j2", bs=bs, explained=explained, paper_ratio=PAPER_UNIT_RATIO
     )
-    return row, _basis_figure(per)
+    return row, _basis_figure(bs["per_decoder"])
 
 
 def _basis_figure(per: dict[str, dict]) -> Any:
@@ -357,21 +348,7 @@ def claim_object_motion(om: dict | None) -> tuple[Row, Any]:
         return scores[method].get(group, {}).get(key)
 
     om = {k: v for k, v in om.items() if isinstance(v, dict) and "scores" in v}
-    texts = []
-    for name, r in om.items():
-        sc = r["scores"]
-        fc = r.get("filters_choice")
-        filters = f"filters θ_d {fc['theta_d']:g}, θ_p {fc['theta_p']:g}, " if fc else ""
-        texts.append(
-            f"main model (DIS-trained) on {name} test flow ({filters}threshold "
-            f"{r['threshold']['threshold']:g} px, chosen on validation), filters / threshold: "
-            + "; ".join(
-                f"{_label(g, k)} {fmt(get(sc, 'filters', g, k), 3)} / "
-                f"{fmt(get(sc, 'threshold', g, k), 3)}"
-                for g, k in cats
-            )
-        )
-    row.ours = " — ".join(texts)
+    row.ours = paragraph("diagnostics/object_motion.md.j2", om=om, cats=cats, label=_label)
     names = [_label(g, k) for g, k in cats]
     panels = [
         (
@@ -401,14 +378,7 @@ def claim_recipe(rc: dict | None) -> tuple[Row, Any]:
     a, b = rc["cpu"], rc["paper"]
     long_enough = min(a.get("epochs", 0.0), b.get("epochs", 0.0)) >= 1.0 - 1e-9
     dev = _dev(b["val_ate"], a["val_ate"]) if long_enough else None
-    row.ours = (
-        f"{fmt(a.get('epochs'), 2)} / {fmt(b.get('epochs'), 2)} epochs: CPU recipe "
-        f"({'the main model: ' if a.get('same_as') else ''}batch {a['recipe']['batch_size']}, "
-        f"lr {a['recipe']['lr']:g}) val ATE † {fmt(a['val_ate'])}, "
-        f"test {fmt(a['test_ate'])}; paper recipe val ATE † {fmt(b['val_ate'])}, test "
-        f"{fmt(b['test_ate'])}"
-        + (f" (paper recipe {dev} on validation)" if dev else " (shorter than one epoch)")
-    )
+    row.ours = paragraph("diagnostics/recipe.md.j2", a=a, b=b, dev=dev)
     panels = [
         (
             "val ATE † (m)",

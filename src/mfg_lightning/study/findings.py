@@ -156,7 +156,7 @@ class SizeCurve:
 @dataclass
 class Robustness:
     """MFG's error growth from the least to the most covered bin (seed means), every classical
-    method's, and the essential-matrix methods' (whose fall the failures explain)."""
+    method's, and the essential-matrix methods' (whether theirs falls is said apart)."""
 
     edges: list[float]
     counts: list[int]
