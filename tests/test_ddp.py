@@ -81,6 +81,8 @@ def test_a_ddp_multirun_runs_each_job_once_in_its_own_directory(tmp_path: Path) 
     )  # fmt: skip
     out = proc.stdout + proc.stderr
     assert out.count("Launching 2 jobs locally") == 1, out[-3000:]
+    # the evaluation's values are gathered already: Lightning's sync_dist advice is silenced
+    assert "sync_dist=True" not in out
     jobs = sorted(p.name for p in sweep.iterdir() if p.is_dir() and not p.name.startswith("."))
     assert jobs == ["0", "1"]
     seeds = [json.loads((sweep / j / "run_info.json").read_text())["seed"] for j in jobs]

@@ -162,3 +162,31 @@ def test_the_experiment_runs_and_predict_reads_its_checkpoints_flow_network(
     assert json.loads((out / "predict.json").read_text())["sequences"]
     key = json.loads(next((tmp_path / "cache" / "synthetic_flow").glob("*/meta.json")).read_text())
     assert key["flow"]["estimator"] == "learned"  # the checkpoint's network, by its digest
+
+
+@pytest.mark.slow
+def test_two_ddp_processes_train_end_to_end_after_a_frozen_warm_up(tmp_path: Path) -> None:
+    """``trainer=ddp`` (2 CPU processes) with the frozen warm-up and the setting it needs: the
+    run finishes, the network past its warm-up leaves the shipped weights in every tensor, one
+    kernel set is logged for both processes, and Lightning's ``sync_dist`` advice, wrong for
+    values the evaluation has already gathered, is not printed."""
+    from mfg_lightning.flow.learned import DEFAULT_WEIGHTS, load_weights
+
+    run = tmp_path / "run"
+    proc = run_module("mfg_lightning.train", "experiment=end_to_end", "debug=tiny",
+                      "trainer=ddp", "trainer.strategy.find_unused_parameters=true",
+                      "model.freeze_flow_steps=2", "trainer.max_steps=6", "logger=none",
+                      f"hydra.run.dir={run}", cwd=tmp_path, timeout=600)  # fmt: skip
+    out = proc.stdout + proc.stderr
+    assert "sync_dist=True" not in out
+    assert out.count("kernels of all 2 processes") == 1, out[-3000:]
+    ckpt = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+    assert ckpt["global_step"] == 6
+    shipped = load_weights(DEFAULT_WEIGHTS)[0].state_dict()
+    trained = {k.removeprefix(ckpt["flow_net_prefix"]): v for k, v in ckpt["state_dict"].items()
+               if k.startswith(ckpt["flow_net_prefix"])}  # fmt: skip
+    assert trained.keys() == shipped.keys()
+    unchanged = [k for k, v in shipped.items() if torch.equal(v, trained[k])]
+    assert not unchanged, unchanged
+    metrics = json.loads((run / "metrics.json").read_text())["metrics"]
+    assert np.isfinite(metrics["test/flow_epe"]) and np.isfinite(metrics["test/ate"])

@@ -37,10 +37,13 @@ and stops Lightning after the agreed step; ``BatchChecks`` hands it a refused ba
 from __future__ import annotations
 
 import logging
+import re
+import warnings
 from typing import Any
 
 import torch
 import torch.distributed as dist
+from lightning.fabric.utilities.warnings import PossibleUserWarning
 from torch import Tensor
 
 from mfg_lightning.core.errors import UserError
@@ -48,7 +51,7 @@ from mfg_lightning.models.nonfinite import NonFiniteLosses
 
 log = logging.getLogger(__name__)
 
-__all__ = ["AgreedSteps", "Agreement", "PeerFailedError", "logging_step"]
+__all__ = ["AgreedSteps", "Agreement", "PeerFailedError", "logging_step", "reduced_epoch_logs"]
 
 
 def logging_step(trainer: Any, done: bool = False) -> bool:
@@ -64,6 +67,20 @@ def logging_step(trainer: Any, done: bool = False) -> bool:
     """
     every = int(trainer.log_every_n_steps) or Agreement.READ_EVERY
     return (trainer.global_step + (0 if done else 1)) % every == 0
+
+
+def reduced_epoch_logs(*prefixes: str) -> None:
+    """Declare the epoch-level values a module logs under ``prefixes`` (``"val/"``) already
+    reduced over every process (the evaluator's gather, a torchmetrics ``compute``). Lightning
+    advises ``sync_dist=True`` for each of them under DDP (about a hundred lines a run); for these
+    values it would only average identical numbers again, so its advice is silenced for these
+    names only (a process-wide warning filter; installing it twice keeps one)."""
+    names = "|".join(re.escape(p) for p in prefixes)
+    warnings.filterwarnings(
+        "ignore",
+        message=rf"It is recommended to use `self\.log\('({names})",
+        category=PossibleUserWarning,
+    )
 
 
 class PeerFailedError(UserError):

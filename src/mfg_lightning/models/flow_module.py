@@ -41,7 +41,7 @@ from mfg_lightning.metrics.flow_quality import (
     PooledFlowQuality,
     region_codes,
 )
-from mfg_lightning.models.agreement import AgreedSteps
+from mfg_lightning.models.agreement import AgreedSteps, reduced_epoch_logs
 
 __all__ = [
     "MAX_OFFSET",
@@ -249,6 +249,10 @@ class FlowLitModule(AgreedSteps, L.LightningModule):
     def on_validation_epoch_end(self) -> None:
         for name, value in flow_quality_metrics(self.val_quality, "val/").items():
             self.log(name, value, prog_bar=name == "val/epe")
+
+    def setup(self, stage: str) -> None:
+        super().setup(stage)
+        reduced_epoch_logs("val/")  # the pooled quality adds up every process's sums
 
     # -- optimisation and checkpoints ---------------------------------------------------------
 

@@ -36,7 +36,7 @@ from mfg_lightning.data import sample as keys
 from mfg_lightning.data.sample import INTRINSICS_HOST, model_inputs
 from mfg_lightning.metrics.evaluator import EvaluationResult
 from mfg_lightning.metrics.motion_eval import MotionEvaluation, ObjectInputs
-from mfg_lightning.models.agreement import AgreedSteps, logging_step
+from mfg_lightning.models.agreement import AgreedSteps, logging_step, reduced_epoch_logs
 from mfg_lightning.models.losses import LossTerms, MFGLoss
 from mfg_lightning.models.mfg import MFGOutput, MotionFieldNetwork, StepFields, validate_top_k
 from mfg_lightning.models.nonfinite import DeferredCounts, NonFiniteLossError, StepCount
@@ -313,6 +313,11 @@ class MFGLitModule(AgreedSteps, L.LightningModule):
 
     def on_test_epoch_end(self) -> None:
         self._log_eval("test")
+
+    def setup(self, stage: str) -> None:
+        super().setup(stage)
+        # the evaluation's values are every process's already (MotionEvaluation gathers them)
+        reduced_epoch_logs("val/", "test/")
 
     # -- optimisation and checkpoints --------------------------------------------------------
 
