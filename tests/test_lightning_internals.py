@@ -102,3 +102,31 @@ def test_last_checkpoint_can_ask_lightning_whether_a_validation_follows_a_step()
     trainer.fit(small_module(), datamodule=small_datamodule())  # 3 batches an epoch
     assert None not in ask.answers.values() and len(ask.answers) == 6
     assert [step for step, follows in ask.answers.items() if follows] == ask.validated != []
+
+
+def test_reduced_epoch_logs_silences_lightnings_sync_dist_advice_for_its_names_only() -> None:
+    """``models.agreement.reduced_epoch_logs`` matches the advice's text as Lightning words it
+    (read from its source here, so that a rewording fails this test, not the filter silently)."""
+    import re
+    import warnings
+
+    from lightning.fabric.utilities.warnings import PossibleUserWarning
+    from lightning.pytorch.trainer.connectors.logger_connector import result
+
+    from mfg_lightning.models.agreement import reduced_epoch_logs
+
+    src = _source(result._ResultCollection._get_cache)
+    template = re.search(r'f"(It is recommended to use `self\.log\(\{[^"]*)"', src)
+    assert template, "Lightning no longer words its sync_dist advice as reduced_epoch_logs expects"
+
+    def advice(name: str) -> str:
+        return template.group(1).replace("{result_metric.meta.name!r}", repr(name))
+
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        reduced_epoch_logs("val/", "test/")
+        for name in ("val/ate", "test/flow_epe", "train/loss"):
+            warnings.warn(advice(name), PossibleUserWarning, stacklevel=1)
+    assert [str(w.message) for w in seen] == [advice("train/loss")]
+    with pytest.raises(ValueError, match="at least one name prefix"):
+        reduced_epoch_logs()

@@ -10,6 +10,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
+import yaml
 
 from mfg_lightning.core.config import compose
 from mfg_lightning.study import findings as F
@@ -109,7 +110,7 @@ def test_the_essential_matrix_reading_follows_their_growths() -> None:
         f = F.Robustness([0.0, 0.1, 1.0], [10, 5], 1.2, 0.9, {"RANSAC": g}, [g])
         return _reading("robustness", f=f)
 
-    falls = "errors are lower where moving objects cover more"
+    falls = "rotation errors are lower where moving objects cover more"
     assert falls in robust(0.2)
     assert falls not in robust(1.2) and robust(1.2).endswith("RANSAC ×1.20.")
 
@@ -184,9 +185,16 @@ def test_the_stage_table_is_the_one_list_the_study_runs() -> None:
     assert set(SENTENCES) <= read  # every sentence names the stages it reads
 
 
-def test_the_sentences_file_names_a_misspelt_field(tmp_path: Path) -> None:
+def test_the_sentences_file_names_a_misspelt_missing_or_repeated_field(tmp_path: Path) -> None:
     bad = tmp_path / "sentences.yaml"
-    bad.write_text("S1:\n  where: Abstract\n  quote: q\n  measured: m\n  shrot: s\n", "utf-8")
-    with pytest.raises(ValueError, match=r"sentences.yaml: sentence S1: unknown field.*shrot"):
+    entry = "  where: Abstract\n  quote: q\n  measured: m\n"
+    bad.write_text(f"S1:\n{entry}  shrot: s\n", "utf-8")
+    with pytest.raises(ValueError, match=r"sentences.yaml: sentence S1: unknown.*shrot.*short"):
+        load_sentences(bad)
+    bad.write_text(f"S1:\n{entry}  short: s\nS1:\n{entry}  short: t\n", "utf-8")
+    with pytest.raises(yaml.YAMLError, match=r"\['S1'\] given twice"):
+        load_sentences(bad)
+    bad.write_text("S1:\n", "utf-8")
+    with pytest.raises(ValueError, match="sentence S1: expected its fields"):
         load_sentences(bad)
     assert load_sentences() == SENTENCES and list(SENTENCES) == [f"S{i}" for i in range(1, 11)]

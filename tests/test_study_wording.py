@@ -140,7 +140,7 @@ def test_the_robustness_reading_follows_the_essential_matrix_growths() -> None:
         mt = {"edges": [0.0, 0.1, 1.0], "counts": [10, 5], "bins": bins}
         return prose.para_robustness({"methods": mt}.get, views)
 
-    falls = "the essential-matrix methods' errors are lower where moving objects cover more"
+    falls = "the essential-matrix methods' rotation errors are lower where moving objects cover"
     assert falls in robust(0.3)
     assert falls not in robust(1.4) and robust(1.4).endswith("×5.00.")
 

@@ -1,4 +1,5 @@
-"""Where the Hydra configs live, and composing them outside a Hydra app (tests, notebooks).
+"""Where the Hydra configs live, and composing them outside a Hydra app (tests, notebooks);
+reading a hand-edited YAML file of the package (:func:`load_yaml_mapping`).
 
 ``conf/`` sits at the top level of the repository. A wheel ships it inside the package as
 ``mfg_lightning/conf`` (pyproject's ``force-include``); an editable install reads the
@@ -10,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
+import yaml
 from omegaconf import DictConfig, OmegaConf
 
 
@@ -78,3 +80,24 @@ def compose(config_name: str = "train", overrides: Sequence[str] = ()) -> DictCo
         return hydra_compose(
             config_name=config_name, overrides=list(overrides), return_hydra_config=False
         )
+
+
+class _UniqueKeys(yaml.SafeLoader):
+    """PyYAML's safe loader, refusing a key given twice in one mapping (it keeps the last)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        keys = [str(self.construct_object(k, deep=deep)) for k, _ in node.value]
+        if twice := sorted({k for k in keys if keys.count(k) > 1}):
+            raise yaml.constructor.ConstructorError(
+                None, None, f"key(s) {twice} given twice", node.start_mark
+            )
+        return super().construct_mapping(node, deep=deep)
+
+
+def load_yaml_mapping(path: Path) -> dict:
+    """A YAML file holding one mapping (UTF-8, safe types only), its keys as written; a key given
+    twice or a file that is not a mapping is refused, naming the file and the line."""
+    data = yaml.load(path.read_text(encoding="utf-8"), Loader=_UniqueKeys)  # a SafeLoader
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a mapping, got {type(data).__name__}")
+    return data

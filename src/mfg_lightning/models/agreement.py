@@ -75,6 +75,8 @@ def reduced_epoch_logs(*prefixes: str) -> None:
     advises ``sync_dist=True`` for each of them under DDP (about a hundred lines a run); for these
     values it would only average identical numbers again, so its advice is silenced for these
     names only (a process-wide warning filter; installing it twice keeps one)."""
+    if not prefixes:  # an empty alternation would silence the advice for every name
+        raise ValueError("reduced_epoch_logs needs at least one name prefix")
     names = "|".join(re.escape(p) for p in prefixes)
     warnings.filterwarnings(
         "ignore",

@@ -15,8 +15,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from omegaconf import OmegaConf
-
+from mfg_lightning.core.config import load_yaml_mapping
 from mfg_lightning.core.tables import fmt
 from mfg_lightning.pictures import plots
 from mfg_lightning.study.noise import ratio
@@ -67,7 +66,7 @@ class Rule:
 #: The diagnostics' rows, by number, from ``templates/diagnostics.yaml`` (the words).
 RULES: dict[str, Rule] = {
     str(k): Rule(str(k), r["claim"], r["paper"], tuple(r["parts"]))
-    for k, r in OmegaConf.to_container(OmegaConf.load(TEMPLATES / "diagnostics.yaml")).items()  # type: ignore[union-attr]
+    for k, r in load_yaml_mapping(TEMPLATES / "diagnostics.yaml").items()
 }
 
 

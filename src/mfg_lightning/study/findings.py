@@ -156,7 +156,7 @@ class SizeCurve:
 @dataclass
 class Robustness:
     """MFG's error growth from the least to the most covered bin (seed means), every classical
-    method's, and the essential-matrix methods' (whether theirs falls is said apart)."""
+    method's, and the essential-matrix methods' (their fall, if any, is stated, not explained)."""
 
     edges: list[float]
     counts: list[int]

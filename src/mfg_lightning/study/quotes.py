@@ -8,8 +8,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-import yaml
-
+from mfg_lightning.core.config import load_yaml_mapping
 from mfg_lightning.study.render import TEMPLATES
 
 __all__ = ["SENTENCES", "Sentence", "load_sentences"]
@@ -30,15 +29,20 @@ class Sentence:
 
 def load_sentences(path: Path = TEMPLATES / "sentences.yaml") -> dict[str, Sentence]:
     """A sentences file (``templates/sentences.yaml``) as sentences by key (S1, S2, …), in the
-    file's order."""
-    rows = yaml.safe_load(path.read_text(encoding="utf-8"))
-    fields = {"where", "quote", "measured", "short", "flow"}
-    for key, row in rows.items():
+    file's order. A key given twice, a missing or unknown field is refused with the file and the
+    sentence named."""
+    required, optional = {"where", "quote", "measured", "short"}, {"flow"}
+    out = {}
+    for key, row in load_yaml_mapping(path).items():
+        if not isinstance(row, dict):
+            raise ValueError(f"{path}: sentence {key}: expected its fields, got {row!r}")
         # a misspelt field would silently fall back to a default: name it instead
-        unknown = set(row) - fields
-        if unknown:
-            raise ValueError(f"{path}: sentence {key}: unknown field(s) {sorted(unknown)}")
-    return {str(k): Sentence(str(k), **r) for k, r in rows.items()}
+        unknown, missing = set(row) - required - optional, required - set(row)
+        if unknown or missing:
+            raise ValueError(f"{path}: sentence {key}: unknown field(s) {sorted(unknown)}, "
+                             f"missing field(s) {sorted(missing)}")  # fmt: skip
+        out[str(key)] = Sentence(str(key), **{k: str(v) for k, v in row.items()})
+    return out
 
 
 #: The judged sentences, by key.
