@@ -300,12 +300,14 @@ def _flow_error_section(fe: dict | None, link: Any) -> list[str]:
     if fe is None:
         return []
     test = dict(sorted(fe["test"].items(), key=lambda kv: int(kv[0])))
-    rows = [
-        [f"{int(o):+d}", str(q["pairs"]),
-         *(f"{fmt(q['regions'][r]['epe'], 2)} / {fmt(q['regions'][r]['fl'], 1)}"
-           for r in QUALITY_REGIONS)]
-        for o, q in test.items()
-    ]  # fmt: skip
+
+    def cells(regions: dict | None) -> list[str]:  # "–": a result from before noc was scored
+        return [f"{fmt(regions[r]['epe'], 2)} / {fmt(regions[r]['fl'], 1)}" if regions else "–"
+                for r in QUALITY_REGIONS]  # fmt: skip
+
+    rows = [[f"{int(o):+d}", pixels, str(q["pairs"]), *cells(q.get(key))]
+            for o, q in test.items()
+            for pixels, key in (("noc", "regions_noc"), ("all", "regions"))]  # fmt: skip
     fig = bar_figure(
         [("mean end-point error (px)",
           {f"offset {int(o):+d}": [q["regions"][r]["epe"] for r in QUALITY_REGIONS]
@@ -313,7 +315,7 @@ def _flow_error_section(fe: dict | None, link: Any) -> list[str]:
         list(QUALITY_REGIONS),
         "DIS's error by frame offset (test pairs)",
     )  # fmt: skip
-    heads = ("offset", "pairs", *(f"{r}: EPE (px) / Fl (%)" for r in QUALITY_REGIONS))
+    heads = ("offset", "pixels", "pairs", *(f"{r}: EPE (px) / Fl (%)" for r in QUALITY_REGIONS))
     return lines("report/flow_error.md.j2", figure=link("flow_error.png", fig),
                  table=table(heads, rows))  # fmt: skip
 
