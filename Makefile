@@ -41,7 +41,7 @@ endif
 LINT_IMPORTS = $(PYTHON) -c "from importlinter.cli import lint_imports_command; lint_imports_command()"
 
 test:
-	$(PYTHON) -m ruff check src tests bench
+	$(PYTHON) -m ruff check src tests bench notebooks
 	$(LINT_IMPORTS)
 	$(PYTHON) -m pytest -n 2 $(PYTEST_ARGS)
 
@@ -51,13 +51,13 @@ test-fast:
 	$(PYTHON) -m pytest -n 2 -m "not slow" $(PYTEST_ARGS)
 
 lint:
-	$(PYTHON) -m ruff check src tests bench
+	$(PYTHON) -m ruff check src tests bench notebooks
 	$(LINT_IMPORTS)
-	$(PYTHON) -m ruff format --check src tests bench
+	$(PYTHON) -m ruff format --check src tests bench notebooks
 
 format:
-	$(PYTHON) -m ruff check --fix src tests bench
-	$(PYTHON) -m ruff format src tests bench
+	$(PYTHON) -m ruff check --fix src tests bench notebooks
+	$(PYTHON) -m ruff format src tests bench notebooks
 
 train:
 	$(PYTHON) -m mfg_lightning.train
