@@ -192,8 +192,9 @@ def test_the_sentences_file_names_a_misspelt_missing_or_repeated_field(tmp_path:
     with pytest.raises(ValueError, match=r"sentences.yaml: sentence S1: unknown.*shrot.*short"):
         load_sentences(bad)
     bad.write_text(f"S1:\n{entry}  short: s\nS1:\n{entry}  short: t\n", "utf-8")
-    with pytest.raises(yaml.YAMLError, match=r"\['S1'\] given twice"):
+    with pytest.raises(yaml.YAMLError, match="key 'S1' given twice") as twice:
         load_sentences(bad)
+    assert f'"{bad}", line 6' in str(twice.value)  # the file and the second key's line
     bad.write_text("S1:\n", "utf-8")
     with pytest.raises(ValueError, match="sentence S1: expected its fields"):
         load_sentences(bad)

@@ -86,18 +86,22 @@ class _UniqueKeys(yaml.SafeLoader):
     """PyYAML's safe loader, refusing a key given twice in one mapping (it keeps the last)."""
 
     def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
-        keys = [str(self.construct_object(k, deep=deep)) for k, _ in node.value]
-        if twice := sorted({k for k in keys if keys.count(k) > 1}):
-            raise yaml.constructor.ConstructorError(
-                None, None, f"key(s) {twice} given twice", node.start_mark
-            )
+        seen: set[str] = set()
+        for key_node, _ in node.value:
+            key = str(self.construct_object(key_node, deep=deep))
+            if key in seen:  # the mark of the repeated key: its file and line
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"key {key!r} given twice", key_node.start_mark
+                )
+            seen.add(key)
         return super().construct_mapping(node, deep=deep)
 
 
 def load_yaml_mapping(path: Path) -> dict:
     """A YAML file holding one mapping (UTF-8, safe types only), its keys as written; a key given
     twice or a file that is not a mapping is refused, naming the file and the line."""
-    data = yaml.load(path.read_text(encoding="utf-8"), Loader=_UniqueKeys)  # a SafeLoader
+    with path.open(encoding="utf-8") as fh:  # a stream: YAML's errors name the file
+        data = yaml.load(fh, Loader=_UniqueKeys)  # a SafeLoader
     if not isinstance(data, dict):
         raise ValueError(f"{path}: expected a mapping, got {type(data).__name__}")
     return data

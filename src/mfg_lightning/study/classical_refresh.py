@@ -58,7 +58,7 @@ def _table2(study: S.Study, result: dict, exact: bool) -> None:
     cfg = study.cfg
     name = "table2_exact" if exact else "table2"
     extra = [*cfg.table2.overrides, *(cfg.table2.exact if exact else [])]
-    dm = study.datamodule(study.train_config(name, extra, 1))
+    dm = study.datamodule(study.train_config(name, extra, 1), splits=("test",))
     ds = dm.dataset("test")
     if len(ds) != result["test_pairs"]:
         raise ValueError(

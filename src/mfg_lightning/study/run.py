@@ -106,17 +106,12 @@ def stage_flow_error(study: S.Study, main_extra: list[str]) -> dict | None:
     """``flow_error``: the estimated flow's error against the rendered worlds' exact flow, per
     frame offset, on the central test pairs and on validation (from the flow cache: no model).
     None when the study's flow is exact (there is no estimate to measure)."""
-    from hydra.utils import instantiate
-
     central = study.test_datamodule(main_extra)
     test = central.dataset("test")
     if not hasattr(test, "quality_by_offset"):
         return None
-    # only the validation pairs' flow is computed (not the training split's, which it never reads)
-    cfg = study.train_config("main", [*main_extra, "dataset.precompute_flow=false"], 1)
-    val = instantiate(cfg.dataset).dataset("val")
-    val.precompute_flow(progress=False, workers=int(study.cfg.budget.workers))
-    return {"test": test.quality_by_offset(), "val": val.quality_by_offset()}
+    dm = study.datamodule(study.train_config("main", main_extra, 1), splits=("val",))
+    return {"test": test.quality_by_offset(), "val": dm.dataset("val").quality_by_offset()}
 
 
 def stage_seed(study: S.Study, seed: int, main_extra: list[str]) -> dict:

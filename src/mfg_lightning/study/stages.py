@@ -131,27 +131,29 @@ class Study:
             ov.append(f"++trainer.max_time={max_time}")
         return compose("train", ov)
 
-    def datamodule(self, cfg: DictConfig) -> Any:
+    def datamodule(self, cfg: DictConfig, splits: tuple[str, ...] | None = None) -> Any:
+        """The DataModule of the ``train`` config ``cfg`` with its missing flow computed: every
+        split's (its ``prepare_data``), or only ``splits``' (a stage that reads no training pair
+        renders none)."""
         from hydra.utils import instantiate
 
-        dm = instantiate(cfg.dataset)
-        dm.prepare_data()
+        if splits is None:
+            dm = instantiate(cfg.dataset)
+            dm.prepare_data()
+            return dm
+        dm = instantiate(cfg.dataset, precompute_flow=False)
+        for split in splits:
+            ds = dm.dataset(split)
+            if hasattr(ds, "precompute_flow"):
+                ds.precompute_flow(progress=False, workers=int(self.cfg.budget.workers))
         return dm
 
     def test_datamodule(self, extra: list[str]) -> Any:
         """A DataModule whose test split has Table 1's * samples (every centre frame to its
         :data:`CENTRAL_OFFSETS`, the +1 pairs giving †), whatever offsets the model trained
         on; only the test split's missing flow is computed."""
-        from hydra.utils import instantiate
-
-        cfg = self.train_config(
-            "main", [*extra, CENTRAL_OFFSETS, "dataset.precompute_flow=false"], 1
-        )
-        dm = instantiate(cfg.dataset)
-        ds = dm.dataset("test")
-        if hasattr(ds, "precompute_flow"):
-            ds.precompute_flow(progress=False, workers=int(self.cfg.budget.workers))
-        return dm
+        cfg = self.train_config("main", [*extra, CENTRAL_OFFSETS], 1)
+        return self.datamodule(cfg, splits=("test",))
 
     def train(self, name: str, extra: list[str], steps: int, max_time: str | None = None) -> Result:
         """Train (or resume) model ``name`` under the convergence rule, capped at ``steps`` and
