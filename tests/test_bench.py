@@ -106,11 +106,14 @@ def test_throughput_benchmark(tmp_path: Path) -> None:
         (b, p) for b in ("1", "2", "4") for p in ("float32", "bf16-mixed")
     }
     for row in training:
-        # Rates, "ratio (min–max)", ms/step; then the difference in ms/step (either sign).
-        assert all(_number(c.split()[0]) > 0 for c in row[2:6]), row
-        assert math.isfinite(float(row[6])), row
+        # Rates, "ratio (min–max)", the step-paired "ratio (q1–q3)", ms/step; then the
+        # difference in ms/step (either sign).
+        assert all(_number(c.split()[0]) > 0 for c in row[2:7]), row
+        q1, q3 = (float(x) for x in row[5].split("(")[1].rstrip(")").split("–"))
+        assert q1 <= float(row[5].split()[0]) <= q3, row
+        assert math.isfinite(float(row[7])), row
         # Each rate as a fraction of its own dtype's GEMM peak.
-        assert all(_number(c) > 0 for c in row[7:9]), row
+        assert all(_number(c) > 0 for c in row[8:10]), row
     ratios = _table_rows(text, "## bf16-mixed against float32")
     assert [r[0] for r in ratios] == ["1", "2", "4"]
     assert all(_number(r[1].split()[0]) > 0 and _number(r[2].split()[0]) > 0 for r in ratios)
@@ -134,6 +137,10 @@ def test_throughput_benchmark(tmp_path: Path) -> None:
     assert "## Profile of the bare training step, batch 4, bf16-mixed" in text
     kernels = _table_rows(text, "## Per-layer kernels")
     assert kernels[0][0].startswith("`encoder.0 Conv2d") and "decoder_omega" in kernels[-1][0]
+    # each convolution with the implementation each precision computes it with
+    impls = {"native", "im2col", "channels_last"}
+    assert all(set(r[1].split(" / ")) <= impls for r in kernels[:-2]), kernels
+    assert kernels[-1][1] == "- / -"
     candidates = {r[1] for r in _table_rows(text, "## Candidate speed-ups")}
     assert {
         "float32 + channels-last",

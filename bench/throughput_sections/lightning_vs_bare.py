@@ -1,6 +1,7 @@
 """1. Training samples per second through the Lightning Trainer against the bare PyTorch loop,
-under ``32-true`` and ``bf16-mixed``, all four interleaved at every batch size; then
-bf16-mixed against float32 from the same repeats."""
+under ``32-true`` and ``bf16-mixed``, all four interleaved at every batch size, and the two
+alternated step by step in one process (the ratio the target is judged on); then bf16-mixed
+against float32 from the same repeats."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ from _common import NOISY, fmt, markdown_table, ratio_cell
 
 from .gemm_peak import Peaks
 from .measure import PRECISIONS, Run, interleaved, make_batches, with_overrides
-from .training import bare_rate, lightning_rate
+from .training import bare_rate, lightning_rate, paired_steps
 
 #: (batch size, precision label) → the repeats' rates (samples/s): Lightning's, the bare loop's.
 TrainingRates = dict[tuple[int, str], tuple[list[float], list[float]]]
@@ -22,6 +23,7 @@ HEADER = [
     "Lightning (samples/s)",
     "bare loop (samples/s)",
     "ratio (range)",
+    "step-paired ratio (quartiles)",
     "Lightning ms/step",
     "Lightning − bare (ms/step)",
     "Lightning, of GEMM peak",
@@ -46,6 +48,32 @@ def default_kernels(run: Run, batch_size: int) -> dict[str, list[str]]:
     return {"float32": profile.kernels("float32"), "bf16-mixed": profile.kernels(bf16)}
 
 
+def kernel_overrides(run: Run, kernels: dict[str, list[str]], name: str) -> list[str]:
+    """The run's overrides with precision ``name``'s convolutions of ``kernels``."""
+    return with_overrides(run.base, [f"model.net.conv_impl=[{','.join(kernels[name])}]"])
+
+
+def step_paired_ratios(run: Run) -> dict[tuple[int, str], list[float]]:
+    """Every batch size's and precision's Lightning / bare ratio of each step pair
+    (:func:`~throughput_sections.training.paired_steps`: bare time over Lightning time), on
+    the convolutions a training run chooses."""
+    args, ratios = run.args, {}
+    for batch_size, steps in run.sizes:
+        batches = make_batches(run.samples, batch_size)
+        kernels = default_kernels(run, batch_size)
+        for name, precision in PRECISIONS.items():
+            pairs = paired_steps(kernel_overrides(run, kernels, name), batches, args.warmup,
+                                 steps * args.repeats, precision)  # fmt: skip
+            ratios[(batch_size, name)] = [b / lit for lit, b in pairs]
+    return ratios
+
+
+def quartile_cell(ratios: list[float], digits: int = 3) -> str:
+    """``median (first–third quartile)`` of per-step ratios."""
+    q1, mid, q3 = statistics.quantiles(ratios, n=4)
+    return f"{mid:.{digits}f} ({q1:.{digits}f}–{q3:.{digits}f})"
+
+
 def training_rates(run: Run) -> TrainingRates:
     """Every batch size's four rates (Lightning and bare, float32 and bf16-mixed), interleaved
     ``--repeats`` times, each precision on the convolutions a training run chooses for it."""
@@ -55,7 +83,7 @@ def training_rates(run: Run) -> TrainingRates:
         kernels = default_kernels(run, batch_size)
         fns = {}
         for name, precision in PRECISIONS.items():
-            base = with_overrides(run.base, [f"model.net.conv_impl=[{','.join(kernels[name])}]"])
+            base = kernel_overrides(run, kernels, name)
             fns[(name, "lightning")] = partial(
                 lightning_rate, base, batches, args.warmup, steps, precision
             )
@@ -71,6 +99,7 @@ def training_rates(run: Run) -> TrainingRates:
 def section(run: Run, peaks: Peaks) -> TrainingRates:
     """Measure :func:`training_rates` and add both tables; returns the rates."""
     rates, rows = training_rates(run), []
+    paired = step_paired_ratios(run)
     for (batch_size, name), (lit, bare) in rates.items():
         r_lit, r_bare = statistics.median(lit), statistics.median(bare)
         # The ratio of each back-to-back pair, then their median: a change of the machine's
@@ -78,6 +107,7 @@ def section(run: Run, peaks: Peaks) -> TrainingRates:
         pairs = [a / b for a, b in zip(lit, bare, strict=True)]
         rows.append(
             [batch_size, name, fmt(r_lit, 1), fmt(r_bare, 1), ratio_cell(pairs),
+             quartile_cell(paired[(batch_size, name)]),
              fmt(1e3 * batch_size / r_lit, 1),
              fmt(1e3 * batch_size / r_lit - 1e3 * batch_size / r_bare, 2),
              peaks.fraction(r_lit, name), peaks.fraction(r_bare, name)]
@@ -97,7 +127,11 @@ def section(run: Run, peaks: Peaks) -> TrainingRates:
         "batch 1 that fixed cost is what separates the ratio from 1. *Ratio*: that of each "
         f"back-to-back pair of {run.args.repeats} interleaved repeats, their median (range); "
         f"*noisy*: the range leaves ±{100 * NOISY:.0f} % of the median, here and in every "
-        "ratio below."
+        "ratio below. *Step-paired ratio*: the two loops alternated step by step in one "
+        "process (after each Lightning step one bare step of a twin model on the same batch; "
+        f"{run.args.repeats} × the steps above after the warm-up), the bare step's time over the "
+        "Lightning step's of each pair, their median (quartiles): a pair ran milliseconds apart, "
+        "so a change of load reaches both. The target is judged on it."
     )
     ratio_rows = []
     for batch_size, _ in run.sizes:

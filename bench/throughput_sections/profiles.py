@@ -12,12 +12,13 @@ import torch
 from _common import fmt, markdown_table
 
 from .gemm_peak import Peaks
-from .lightning_vs_bare import TrainingRates
+from .lightning_vs_bare import TrainingRates, default_kernels, kernel_overrides
 from .measure import PRECISIONS, Run, build_model, make_batches
 from .training import InMemory, bare_step_fn
 
-#: A per-layer row: (label, forward ms, backward ms, GFLOP/s of forward + backward).
-KernelRow = tuple[str, float, float, float]
+#: A per-layer row: (label, implementation, forward ms, backward ms, GFLOP/s of forward +
+#: backward); the implementation is ``model.net.conv_impl``'s for a convolution, "" otherwise.
+KernelRow = tuple[str, str, float, float, float]
 
 
 def profile_step(
@@ -84,10 +85,11 @@ def layer_kernels(overrides: list[str], batch: dict, bf16: bool, repeats: int) -
             t_fwd.append(mid - start)
             t_bwd.append(time.perf_counter() - mid)
         f, b = statistics.median(t_fwd), statistics.median(t_bwd)
-        # Conv2d for every convolution, SwitchableConv2d included (its native path here)
+        # Conv2d for every convolution, SwitchableConv2d included
         kind = "Conv2d" if isinstance(m, nn.Conv2d) else type(m).__name__
         label = f"{name} {kind} {tuple(m.weight.shape)} in {tuple(x.shape[1:])}"
-        rows.append((label, 1e3 * f, 1e3 * b, flops / (f + b) / 1e9))
+        impl = str(getattr(m, "impl", "")) if isinstance(m, nn.Conv2d) else ""
+        rows.append((label, impl, 1e3 * f, 1e3 * b, flops / (f + b) / 1e9))
     return rows
 
 
@@ -104,8 +106,8 @@ def bf16_bound(
     """
     parts = {}
     for name, rows in kernels.items():
-        conv = sum(f + b for label, f, b, _ in rows if "Conv2d" in label)
-        dec = sum(f + b for label, f, b, _ in rows if "Linear" in label)
+        conv = sum(f + b for label, _, f, b, _ in rows if "Conv2d" in label)
+        dec = sum(f + b for label, _, f, b, _ in rows if "Linear" in label)
         parts[name] = (conv, dec, step_ms[name] - conv - dec)
     conv32, dec32, rest32 = parts["float32"]
     conv16, dec16, rest16 = parts["bf16-mixed"]
@@ -122,9 +124,17 @@ def bf16_bound(
             "negative: the per-layer table and the step were timed under different load."
         )
     at_peak = 1e3 * conv_flops * batch_size / 1e9 / bf16_peak
+    if at_peak >= conv16:
+        # The convolutions ran at or above the measured peak: that peak is no ceiling, and a
+        # bound built on it would be below what was measured.
+        return title + (
+            f"Not computed in this run: the bf16 convolutions took {fmt(conv16, 1)} ms, no more "
+            f"than their FLOPs at the measured bfloat16 GEMM peak ({fmt(bf16_peak, 0)} GFLOP/s: "
+            f"{fmt(at_peak, 1)} ms), so that peak is not this machine's ceiling."
+        )
     bound = step_ms["float32"] / (at_peak + dec16 + rest16)
-    worst = max(kernels["bf16-mixed"], key=lambda r: r[1] + r[2])
-    share = (worst[1] + worst[2]) / step_ms["bf16-mixed"]
+    worst = max(kernels["bf16-mixed"], key=lambda r: r[2] + r[3])
+    share = (worst[2] + worst[3]) / step_ms["bf16-mixed"]
     rows = [
         ["convolutions", fmt(conv32, 1), fmt(conv16, 1), fmt(at_peak, 1)],
         ["the two decoders (float32 in both)", fmt(dec32, 1), fmt(dec16, 1), fmt(dec16, 1)],
@@ -143,8 +153,8 @@ def bf16_bound(
         f"the rest as measured, bf16-mixed would be at most **{bound:.2f}×** float32 at batch "
         f"{batch_size}; measured, its convolutions run at "
         f"{100 * at_peak / conv16:.0f} % of that peak on average. The most expensive kernel is "
-        f"`{worst[0]}` ({100 * share:.0f} % of the bf16 step, at "
-        f"{100 * worst[3] / bf16_peak:.0f} % of the bf16 peak). The decoders stay float32 by "
+        f"`{worst[0]}` as {worst[1]} ({100 * share:.0f} % of the bf16 step, at "
+        f"{100 * worst[4] / bf16_peak:.0f} % of the bf16 peak). The decoders stay float32 by "
         "design (the fields must come out in float32: recovery from bf16-rounded fields errs "
         "up to 5e-4 m)."
     )
@@ -154,10 +164,10 @@ def kernel_rows(kernels: dict[str, list[KernelRow]], peaks: Peaks) -> list[list[
     """The per-layer table: float32 and bf16-mixed side by side, each against its own peak."""
     f32_peak, bf16_peak = peaks.gflops["float32"], peaks.gflops["bf16-mixed"]
     return [
-        [f"`{label}`", f"{fmt(f32, 2)} / {fmt(b32, 2)}",
+        [f"`{label}`", f"{i32 or '-'} / {i16 or '-'}", f"{fmt(f32, 2)} / {fmt(b32, 2)}",
          f"{fmt(g32, 0)} ({100 * g32 / f32_peak:.0f} %)", f"{fmt(f16, 2)} / {fmt(b16, 2)}",
          f"{fmt(g16, 0)} ({100 * g16 / bf16_peak:.0f} %)", fmt((f32 + b32) / (f16 + b16), 2)]
-        for (label, f32, b32, g32), (_, f16, b16, g16) in zip(
+        for (label, i32, f32, b32, g32), (_, i16, f16, b16, g16) in zip(
             kernels["float32"], kernels["bf16-mixed"], strict=True
         )
     ]  # fmt: skip
@@ -169,9 +179,12 @@ def section(run: Run, peaks: Peaks, rates: TrainingRates) -> None:
     largest, report = run.largest, run.report
     batches = make_batches(run.samples, largest)
     steps = dict(run.sizes)[largest]
+    # each precision on the convolutions a training run computes with (as section 1's steps)
+    chosen = default_kernels(run, largest)
+    base = {name: kernel_overrides(run, chosen, name) for name in PRECISIONS}
     for name, precision in PRECISIONS.items():
         prof = profile_step(
-            run.base, batches, max(3, steps // 3), rows=12, autocast=precision != "32-true"
+            base[name], batches, max(3, steps // 3), rows=12, autocast=precision != "32-true"
         )
         report.add(
             f"## Profile of the bare training step, batch {largest}, {name}\n\n"
@@ -180,8 +193,9 @@ def section(run: Run, peaks: Peaks, rates: TrainingRates) -> None:
                 [[op, fmt(ms, 2), f"{100 * share:.0f} %"] for op, ms, share in prof],
             )
         )
+    repeats = max(3, run.args.repeats)
     kernels = {
-        name: layer_kernels(run.base, batches[0], precision != "32-true", max(3, run.args.repeats))
+        name: layer_kernels(base[name], batches[0], precision != "32-true", repeats)
         for name, precision in PRECISIONS.items()
     }
     report.add(
@@ -189,6 +203,7 @@ def section(run: Run, peaks: Peaks, rates: TrainingRates) -> None:
         + markdown_table(
             [
                 "layer (weight, input C × H × W)",
+                "kernel fp32 / bf16",
                 "fp32 fwd / bwd (ms)",
                 "fp32 GFLOP/s (of fp32 peak)",
                 "bf16 fwd / bwd (ms)",
@@ -199,9 +214,11 @@ def section(run: Run, peaks: Peaks, rates: TrainingRates) -> None:
         )
         + "\nEach layer alone on the input it gets in the step (captured by a forward hook), "
         "its forward and its backward (input and weight gradients; the first layer's input, "
-        "the flow, needs none) timed separately, medians; bf16: the convolutions under bf16 "
-        "autocast (including the casts autocast inserts), the decoders in float32 as in the "
-        "module. GFLOP/s: FlopCounterMode's count of forward + backward over their time."
+        "the flow, needs none) timed separately, medians; each precision on the convolutions a "
+        "training run computes with (*kernel*: this machine's measurement, as in section 1); "
+        "bf16: the convolutions under bf16 autocast (including the casts autocast inserts), the "
+        "decoders in float32 as in the module. GFLOP/s: FlopCounterMode's count of forward + "
+        "backward over their time. *bf16 speed-up*: of the layer as each precision computes it."
     )
     step_ms = {
         name: 1e3 * largest / statistics.median(rates[(largest, name)][0]) for name in PRECISIONS

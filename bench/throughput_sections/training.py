@@ -1,6 +1,7 @@
 """Training rates, the measurement under most sections: samples per second through the Lightning
 Trainer (:func:`lightning_rate`, :func:`training_epochs`) and through a bare PyTorch loop written
-here (:func:`bare_step_fn`, :func:`bare_rate`) whose options are the candidate speed-ups."""
+here (:func:`bare_step_fn`, :func:`bare_rate`) whose options are the candidate speed-ups, and
+the two step by step in one process (:func:`paired_steps`)."""
 
 from __future__ import annotations
 
@@ -191,3 +192,42 @@ def bare_rate(
         step(batch)
         stamps.append(time.perf_counter())
     return steady_rate(stamps, warmup, batches[0]["flow"].shape[0])
+
+
+def paired_steps(
+    overrides: list[str], batches: list[dict], warmup: int, steps: int, precision: str
+) -> list[tuple[float, float]]:
+    """Lightning's step and the bare loop's, alternated step by step in one process: after each
+    Lightning step (``on_train_batch_end``) one bare step of a twin model (same build and seed)
+    on the same batch. Returns ``(Lightning s, bare s)`` of every step after ``warmup``.
+
+    A Lightning step's time runs from the end of the bare step before it to its own
+    ``on_train_batch_end``: Lightning's loop, hooks, closure and batch fetch included. The two
+    of a pair ran milliseconds apart, so a change of the machine's load reaches both: their
+    ratio is steady where rates taken whole runs apart are not (on 2 shared cores the
+    run-by-run ratio ranged 0.63-1.24 at batch 32). Each model's step starts on caches the
+    other's step filled: both pay that alike."""
+    import lightning as L
+
+    model, _ = build_model(overrides)
+    twin, _ = build_model(overrides)
+    bare = bare_step_fn(twin, autocast=precision != "32-true")
+    pairs: list[tuple[float, float]] = []
+    resumed = [0.0]
+
+    class Alternate(L.Callback):
+        def on_train_batch_start(self, trainer, module, batch, batch_idx) -> None:
+            if batch_idx == 0:
+                resumed[0] = time.perf_counter()
+
+        def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx) -> None:
+            ended = time.perf_counter()
+            bare(batch)
+            done = time.perf_counter()
+            if batch_idx > 0 and batch_idx >= warmup:
+                pairs.append((ended - resumed[0], done - ended))
+            resumed[0] = done
+
+    trainer = quiet_trainer(Alternate(), max_steps=warmup + steps, precision=precision)
+    trainer.fit(model, train_dataloaders=InMemory(batches, warmup + steps))
+    return pairs

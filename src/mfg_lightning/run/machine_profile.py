@@ -15,8 +15,9 @@ input, the batch). A training run measures only where no such file exists;
 How, so that a loaded machine cannot pick a slow kernel (:func:`time_interleaved`,
 :func:`clearly_faster`): the candidates are timed in interleaved rounds (the order rotated each
 round) after a warm-up; a candidate replaces the default (``native``, ``32-true``) only if its
-best time beats the default's best by a margin *and* it is faster than the default in every
-round, each against the default's time of the same round. Load that comes and goes hits the
+best time beats the default's best by a margin (with steady rounds, or all its rounds but one
+beating that best) *and* it is faster than the default in every round, each against the
+default's time of the same round. Load that comes and goes hits the
 candidates of a round alike, or makes the rounds disagree, and the default stays. If the
 process got less than :data:`BUSY_CPU_SHARE` of its threads' CPU time while timing, other work
 had the cores: every choice is the default and the file says the measurement was disturbed
@@ -54,7 +55,7 @@ from mfg_lightning.run.precision import cpu_has_native_bf16
 log = logging.getLogger(__name__)
 
 #: Bumped when what is measured or how it is decided changes: older files are measured again.
-PROFILE_VERSION = 5  # 5: im2col gathers with F.unfold (faster: measure it again)
+PROFILE_VERSION = 6  # 6: a dominant candidate wins over unsteady rounds (clearly_faster)
 #: Timed rounds per candidate, after one warm-up round.
 ROUNDS = 5
 #: A convolution replaces ``native`` only this much faster (fraction of native's best time).
@@ -157,23 +158,35 @@ def clearly_faster(
     max_spread: float = MAX_SPREAD,
 ) -> str:
     """The choice among timed candidates (:func:`time_interleaved`): the fastest by its best
-    round among those whose best beats ``default``'s best by more than ``margin`` of it and that
-    were faster than ``default`` in every round they ran, each against ``default``'s time of the
-    same round (a candidate given up after one round is slower); ``default`` where none is, and
-    where the default's or the candidate's rounds spread over more than ``max_spread``
-    (:func:`spread`: the machine's load changed while it was timed, its times say little)."""
+    round among those that were faster than ``default`` in every round they ran, each against
+    ``default``'s time of the same round (a candidate given up after one round is slower), and
+    that beat ``default`` by more than ``margin`` in one of two ways:
+
+    * *steady*: its best beats the default's best, and neither's rounds spread over more than
+      ``max_spread`` (:func:`spread`);
+    * *dominant*: its second-slowest round beats the default's best, however the rounds spread.
+
+    ``default`` where none does. Load only ever adds time, so a default's best is at most its
+    quiet time, and a candidate whose rounds but one beat that best by the margin is faster
+    whatever the load did: unsteady rounds stop a close call (the load may have hit the default
+    in its best round too), not a clear one. (On 2 loaded cores the deepest layer's im2col ran
+    18.2 ms at batch 16 in bfloat16 against native's best of 41.9, faster in every round, and
+    the spread rule alone kept native: native's rounds spread 1.53.)"""
     base = times[default]
 
     def steady(t: Sequence[float]) -> bool:
         return spread(t) <= max_spread
 
+    def second_slowest(t: Sequence[float]) -> float:
+        return sorted(t)[-2] if len(t) >= 3 else max(t)
+
+    bound = (1.0 - margin) * min(base)
     winners = [
         name for name, t in times.items()
         if name != default
         and len(t) == len(base)
-        and min(t) < (1.0 - margin) * min(base)
         and all(a < b for a, b in zip(t, base, strict=True))
-        and steady(t) and steady(base)
+        and ((min(t) < bound and steady(t) and steady(base)) or second_slowest(t) < bound)
     ]  # fmt: skip
     return min(winners, key=lambda name: min(times[name])) if winners else default
 

@@ -25,6 +25,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 
 from mfg_lightning.core.atomic import atomic_write_text
+from mfg_lightning.core.denormals import flush_denormals
 from mfg_lightning.core.host_memory import keep_freed_memory
 from mfg_lightning.data.resumable_loader import refuse_other_batches, restarting_epochs
 from mfg_lightning.run.callbacks import LastCheckpoint
@@ -184,6 +185,10 @@ def ddp_job_in_multirun(trainer: L.Trainer) -> Iterator[None]:
 
 def train(cfg: DictConfig) -> dict[str, Any]:
     """Fit and test as configured. Returns the final metrics (``val/*`` and ``test/*``)."""
+    if cfg.get("flush_denormals", True):
+        # first, before torch's thread pool starts: its threads copy the flags when they start
+        # (mfg_lightning.core.denormals)
+        flush_denormals()
     if cfg.get("keep_freed_memory", True):
         # every step's freed tensors reused, not page-faulted back (mfg_lightning.core.host_memory)
         keep_freed_memory()
