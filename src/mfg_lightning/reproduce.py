@@ -47,6 +47,11 @@ def reproduce(cfg: DictConfig, trainer_choice: str = "default") -> Path:
 def main(cfg: DictConfig) -> Any:
     from hydra.core.hydra_config import HydraConfig
 
+    from mfg_lightning.core.denormals import flush_denormals
+
+    # the study trains in this process after computing its data: flushed before torch's thread
+    # pool starts, as every training's first step does (flush_denormals in the train config)
+    flush_denormals()
     choice = HydraConfig.get().runtime.choices.get("trainer") or "default"
     reproduce(cfg, choice)
 
