@@ -6,8 +6,7 @@ from __future__ import annotations
 import subprocess
 import sys
 import textwrap
-
-import torch
+from functools import cache
 
 
 def _python(code: str) -> str:
@@ -18,11 +17,11 @@ def _python(code: str) -> str:
     return done.stdout.strip()
 
 
+@cache
 def _has_flags() -> bool:
-    """Whether this CPU has FTZ/DAZ (left off again in this process)."""
-    has = torch.set_flush_denormal(True)
-    torch.set_flush_denormal(False)
-    return has
+    """Whether this CPU has FTZ/DAZ (asked in a process of its own: this one's flags stay as
+    they are)."""
+    return _python("import torch; print(torch.set_flush_denormal(True))") == "True"
 
 
 def test_flushed_before_the_pool_starts_every_thread_reads_subnormals_as_zero() -> None:

@@ -27,11 +27,13 @@ from mfg_lightning.models.mfg import MFG
 from mfg_lightning.run import machine_profile
 from mfg_lightning.run.machine_profile import (
     CONV_MARGIN,
+    MAX_SPREAD,
     clearly_faster,
     measure,
     measure_convolutions,
     profile_key,
     profile_path,
+    spread,
     time_interleaved,
 )
 from mfg_lightning.run.run_choices import resolve_run_choices
@@ -59,7 +61,8 @@ def test_a_candidate_replaces_the_default_only_if_faster_in_every_round_by_the_m
     assert clearly_faster({"native": jitter, "im2col": close}, "native", 0.05) == "im2col"
     # A clear call over unsteady rounds: all the candidate's rounds but one beat the default's
     # best (load only adds time), as the deepest layer's im2col did at batch 16 in bfloat16.
-    loaded = [41.9, 64.1, 45.0, 60.3, 44.2]
+    loaded = [41.9, 64.1, 45.0, 63.5, 44.2]
+    assert spread(loaded) > MAX_SPREAD  # unsteady: the best-against-best test alone keeps native
     clear = [18.2, 18.9, 24.9, 19.5, 33.0]
     assert clearly_faster({"native": loaded, "im2col": clear}, "native", 0.05) == "im2col"
     # ... but not one slower than the default in any round.

@@ -216,11 +216,18 @@ def paired_steps(
     resumed = [0.0]
 
     class Alternate(L.Callback):
-        def on_train_batch_start(self, trainer, module, batch, batch_idx) -> None:
+        """Stamps each Lightning step's end and runs the bare step after it."""
+
+        def on_train_batch_start(
+            self, trainer: L.Trainer, module: L.LightningModule, batch: dict, batch_idx: int
+        ) -> None:
             if batch_idx == 0:
                 resumed[0] = time.perf_counter()
 
-        def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx) -> None:
+        def on_train_batch_end(
+            self, trainer: L.Trainer, module: L.LightningModule, outputs: Any, batch: dict,
+            batch_idx: int,
+        ) -> None:  # fmt: skip
             ended = time.perf_counter()
             bare(batch)
             done = time.perf_counter()

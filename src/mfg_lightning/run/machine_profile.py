@@ -67,8 +67,9 @@ PRECISION_MARGIN = 0.10
 #: (seen on 2 cores: a nice-19 run beside a 2-thread job got 4 %, a quiet benchmark 88 %).
 BUSY_CPU_SHARE = 0.3
 #: Rounds whose second-slowest is over this many times their best (:func:`spread`) are unsteady:
-#: a candidate wins only where its rounds and the default's are steady, so a change of load while
-#: timing keeps the default. Short timings are unsteady on a quiet machine too: there (2 cores,
+#: a close call (best against best) counts only where the candidate's and the default's rounds
+#: are steady, so a change of load while timing keeps the default unless the candidate dominates
+#: (:func:`clearly_faster`). Short timings are unsteady on a quiet machine too: there (2 cores,
 #: bench/results/throughput.md) 7 of 144 timings of the quick start's network at batches 1, 16
 #: and 32 were, all under 8 ms; those layers keep the default, which costs little.
 MAX_SPREAD = 1.5
