@@ -121,7 +121,8 @@ def bf16_bound(
             f"{fmt(conv32 + dec32, 1)} ms (float32) and {fmt(conv16 + dec16, 1)} ms (bf16-mixed), "
             f"against whole Lightning steps of {fmt(step_ms['float32'], 1)} and "
             f"{fmt(step_ms['bf16-mixed'], 1)} ms, so the rest of the step would come out "
-            "negative: the per-layer table and the step were timed under different load."
+            "negative: the layers timed one by one do not add up to the step they are part of "
+            "(each alone pays its own cache misses and the load of its moment)."
         )
     at_peak = 1e3 * conv_flops * batch_size / 1e9 / bf16_peak
     if at_peak >= conv16:

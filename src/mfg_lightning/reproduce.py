@@ -49,8 +49,8 @@ def main(cfg: DictConfig) -> Any:
 
     from mfg_lightning.core.denormals import flush_denormals
 
-    # the study trains in this process after computing its data: flushed before torch's thread
-    # pool starts, as every training's first step does (flush_denormals in the train config)
+    # the study trains in this process after computing its data, so subnormals are flushed here,
+    # before torch's thread pool starts (mfg_lightning.core.denormals; train() does the same)
     flush_denormals()
     choice = HydraConfig.get().runtime.choices.get("trainer") or "default"
     reproduce(cfg, choice)
