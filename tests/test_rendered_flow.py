@@ -328,6 +328,27 @@ def test_render_sizes_and_world_settings_the_scene_cannot_take_are_refused(tmp_p
     assert not any(tmp_path.joinpath("synthetic_flow").rglob("*.npz"))
 
 
+def test_crossing_objects_are_rendered_and_keyed_only_where_a_world_has_them(
+    tmp_path: Path,
+) -> None:
+    """A world without crossings keeps its renderer key whatever the crossings' module holds; a
+    world with them (given as a range on the command line would be: a list) renders them as
+    moving objects of their own instance ids."""
+    plain = _dm(tmp_path, test_sequences=1, sequence_length=6).build_dataset("test")
+    none = _dm(tmp_path, test_sequences=1, sequence_length=6, world={"crossing_per_100m": 0.0})
+    assert none.build_dataset("test").cache_key()["renderer"] == plain.cache_key()["renderer"]
+    crossing = {"crossing_per_100m": 60.0, "crossing_speed": [0.5, 1.0]}
+    ds = _dm(tmp_path, test_sequences=1, sequence_length=6, world=crossing).build_dataset("test")
+    assert ds.cache_key()["renderer"] != plain.cache_key()["renderer"]
+    assert ds.cache_key()["world"] == {"crossing_per_100m": 60.0, "crossing_speed": [0.5, 1.0]}
+    world = ds.world(ds.samples[0][0])
+    first = len(plain.world(plain.samples[0][0]).moving)
+    assert world.first == first and len(world.moving) > first
+    frame = render.render_frame(world, 2, ds.image_intrinsics, *ds.image_hw)
+    seen = set(frame.instance.unique().tolist())
+    assert any(i >= first for i in seen), seen  # crossing objects in view
+
+
 @pytest.mark.slow
 def test_training_on_dis_flow_end_to_end_logs_quality_and_pictures(tmp_path: Path) -> None:
     run = tmp_path / "run"

@@ -79,7 +79,9 @@ def test_tiny_study_runs_resumes_and_rebuilds_from_committed_results(tmp_path: P
     conv = text.split("## Did it converge")[1].split("## ")[0]
     for name in ("main", "main, seed 1", "exact-flow twin", "learned", "table2", "table2_exact",
                  "size stride4", "size stride2", "balance_squared", "sparsity w_s=0",
-                 "recipe paper", "table2 exact, seed 1", "table2 strided, seed 0"):  # fmt: skip
+                 "recipe paper", "table2 exact, seed 1", "table2 strided, seed 0",
+                 "rotation rule, exact, seed 1", "rotation rule, unclamped, seed 0",
+                 "rotation rule, largest, seed 1"):  # fmt: skip
         assert f"| {name} |" in conv, name
     assert str(tmp_path) not in text
     # the causes separated: the exact-flow twin, Table 2 on exact flow beside the study's flow,
@@ -88,11 +90,15 @@ def test_tiny_study_runs_resumes_and_rebuilds_from_committed_results(tmp_path: P
                       ("## Table 2's setting on exact flow", None),
                       ("## The learned flow: the main setting on flow=learned", None),
                       ("## Table 2's setting at every seed", "settle.png"),
+                      ("## Table 2's setting trained until validation rotation", None),
                       ("## Claim 3's data size", "size.png")):  # fmt: skip
         section = text.split(head)[1].split("\n## ")[0]
         assert "|---" in section, head
         assert png is None or f"(reproduction/{png})" in section, head
     assert "S9: The exact-flow Table-2-sized models (2 seeds)" in text
+    # the 2 × 2's verdicts read the converged models, S9 and S10 on the object test set
+    assert "(S4–S6, S9, S10) read these converged models" in text
+    assert "They are tested on the object test set" in text
     assert "S4: Table 2's setting (" in text and "training pairs) at 2 seeds on exact flow" in text
     checkpoints = {p: p.stat().st_mtime_ns for p in work.glob("models/*/checkpoints/*.ckpt")}
     # main, its second seed, its exact-flow twin, its learned-flow run, table2 on both flows,
@@ -103,14 +109,16 @@ def test_tiny_study_runs_resumes_and_rebuilds_from_committed_results(tmp_path: P
         "main", "seed1", "twin", "learned", "table2", "table2_exact", "size_stride4",
         "size_stride2", "ws0", "ws100", "ws100_scale0.2", "ws100_lr0.0001", "balance_squared",
         "recipe_cpu", "recipe_paper", "settle_exact_seed0", "settle_exact_seed1",
-        "settle_strided_seed0",
+        "settle_strided_seed0", *(f"converge_{v}_seed{s}" for v in ("exact", "unclamped",
+        "largest") for s in (0, 1)),
     }  # fmt: skip
     recipe = json.loads((results / "recipe.json").read_text())
     assert "same_as" not in recipe["cpu"] and recipe["cpu"]["epochs"] >= 0.5
     assert recipe["paper"]["epochs"] >= 0.5 and recipe["paper"]["batch_size"] == 1
     stage_files = sorted(p.relative_to(results) for p in results.glob("**/*.json"))
-    # 20, and the 2 × 2's: the classical methods, two seeds and one strided seed
-    assert len(stage_files) == 24
+    # 20, and the 2 × 2's: the classical methods, two seeds and one strided seed; the rotation
+    # rule's 3 variants at 2 seeds and the object test set's 2 evaluations
+    assert len(stage_files) == 32
     for f in stage_files:
         assert str(tmp_path) not in (results / f).read_text(), f
 

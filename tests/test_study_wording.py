@@ -167,7 +167,8 @@ def _settled(mfg: float, strided: float) -> Settled:
     contiguous = {s: _run(mfg * (1 + 0.05 * s), s, "[0,1,2,3,4,5,6,7]") for s in range(3)}
     irls = [{"name": IRLS, "rot_err": [0.001] * 60}]
     strided_runs = {s: _run(strided * (1 + 0.05 * s), 10 + s) for s in range(3)}
-    return Settled({"exact": contiguous}, {"exact": {"classical": irls}}, strided_runs)
+    return Settled({"exact": contiguous}, {"exact": {"classical": irls}}, strided_runs,
+                   budget={"exact": contiguous})  # fmt: skip
 
 
 def test_the_two_by_two_reads_its_intervals_and_the_sequences_from_the_runs() -> None:

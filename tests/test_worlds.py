@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from mfg_lightning.scene import camera, seeding
+from mfg_lightning.scene.crossing import CrossingConfig, split_world_fields, with_crossings
 from mfg_lightning.scene.worlds import (
     CAR,
     FACADE,
@@ -69,6 +70,40 @@ def test_moving_objects_follow_continuous_paths_at_their_own_speed(world):
     assert (a[:, :3, 2] * b[:, :3, 2]).sum(1).min() > 0.99
     cars = world.moving.boxes.kind == CAR
     assert set(world.moving.direction[cars].tolist()) == {-1.0, 1.0}
+
+
+def test_crossing_objects_cross_the_road_and_leave_the_others_as_they_were(poses, world):
+    """with_crossings adds objects that move across the road, back and forth between the
+    building lines at their own speed, facing across it; the other objects do not change."""
+    crossed = with_crossings(world, CrossingConfig(per_100m=8.0))
+    n, m = len(world.moving), crossed.moving
+    assert len(m) > n and not crossed.crosses[:n].any() and crossed.crosses[n:].all()
+    assert torch.equal(crossed.object_poses(40)[:n], world.object_poses(40))
+    assert np.array_equal(crossed.object_arc(40)[:n], world.object_arc(40))
+    assert torch.equal(world.object_poses(40), World.generate(poses, 3, "w").object_poses(40))
+    frames = np.arange(0.0, 120.0)
+    lateral = np.stack([crossed.object_lateral(f) for f in frames])
+    # within the building lines, moving at their speed except across a turn
+    assert np.abs(lateral).max() <= world.config.building_line + 1e-9
+    step = np.abs(np.diff(lateral, axis=0))
+    assert (step > 0.999 * m.speed[n:]).mean() > 0.9 and np.all(step <= m.speed[n:] + 1e-9)
+    # the same arc length at every frame; facing across the road, horizontally
+    assert np.array_equal(crossed.object_arc(0)[n:], crossed.object_arc(99)[n:])
+    a, b = crossed.object_poses(40)[n:], crossed.object_poses(41)[n:]
+    move = (b[:, :3, 3] - a[:, :3, 3])[:, [0, 2]]
+    across = move / move.norm(dim=1, keepdim=True)
+    assert (across * a[:, :3, 2][:, [0, 2]]).sum(1).abs().min() > 0.98
+    # a size factor of crossing_scale (0.2-1.2) on a car's or a pedestrian's
+    assert m.boxes.half[n:, 1].min() < m.boxes.half[:n, 1].min()
+
+
+def test_crossings_are_dataset_world_keys_checked_like_the_worlds_own() -> None:
+    own, crossing = split_world_fields({"lanes_per_side": 2, "crossing_per_100m": 4,
+                                        "crossing_speed": [0.1, 1.0]})  # fmt: skip
+    assert own == {"lanes_per_side": 2} and crossing == CrossingConfig(4, (0.1, 1.0))
+    assert split_world_fields({"lanes_per_side": 2})[1] is None
+    with pytest.raises(ValueError, match=r"crossing_scale must be a range 0 < lo <= hi"):
+        split_world_fields({"crossing_per_100m": 4, "crossing_scale": [0.0, 1.0]})
 
 
 def test_objects_stand_on_the_ground(world):

@@ -335,11 +335,10 @@ def export(cfg: DictConfig, progress: bool = True) -> dict[str, Any]:
     from hydra.utils import get_class, instantiate
     from tqdm.auto import tqdm
 
-    from mfg_lightning.data.rendered import world_config
+    from mfg_lightning.data.rendered import crossing_config, generate_world, world_config
     from mfg_lightning.data.synthetic import SyntheticDataModule
     from mfg_lightning.data.vkitti_files import normalize_version
     from mfg_lightning.scene.render import render_frame
-    from mfg_lightning.scene.worlds import World
 
     layout = cfg.get("layout")
     if layout not in LAYOUTS:
@@ -369,6 +368,7 @@ def export(cfg: DictConfig, progress: bool = True) -> dict[str, Any]:
     )
     sequences = synthetic_sequences(datamodule, layout)
     worlds_config = world_config(datamodule.world)
+    crossing = crossing_config(datamodule.world)
 
     _prepare_out(out, bool(cfg.get("overwrite")))
     out.mkdir(parents=True, exist_ok=True)
@@ -379,7 +379,7 @@ def export(cfg: DictConfig, progress: bool = True) -> dict[str, Any]:
     start = time.perf_counter()
     try:
         for seq in sequences:
-            world = World.generate(seq.poses, seed=seq.seed, name=seq.world, config=worlds_config)
+            world = generate_world(seq.poses, seq.seed, seq.world, worlds_config, crossing)
             for k in range(len(seq.poses)):
                 frame = render_frame(world, k, tree.intrinsics, height, width)
                 tree.write_frame(seq, world, k, frame)

@@ -151,8 +151,14 @@ class RenderedDrivingDataset(TrajectoryDataset):
         self.estimator = flow.estimator
         self.image_hw = flow_render_size(flow, (self.height, self.width))
         self.image_intrinsics = kitti_like_intrinsics(*self.image_hw)
-        self.world_fields = dict(world or {})
+        # plain lists: a range given on the command line arrives as a ListConfig, which the
+        # cache key (JSON) cannot hold
+        self.world_fields = {
+            k: [*v] if isinstance(v, Sequence) and not isinstance(v, str) else v
+            for k, v in (world or {}).items()
+        }
         self.world_config = world_config(self.world_fields)
+        self.crossing = crossing_config(self.world_fields)
         self._worlds: dict[str, Any] = {}
         self.span = max(abs(o) for o in self.offsets)
         if cache_dir is None:
@@ -185,7 +191,9 @@ class RenderedDrivingDataset(TrajectoryDataset):
                 ).hexdigest()[:16]
                 for seq, poses in sorted(self.trajectories.items())
             },
-            "renderer": source_digest(worlds, render),
+            # the crossings' module only where there are crossings: a world without them does
+            # not depend on it
+            "renderer": source_digest(worlds, render, *_crossing_module(self.crossing)),
             "torch": torch.__version__,
             "numpy": np.__version__,
         }
@@ -211,9 +219,8 @@ class RenderedDrivingDataset(TrajectoryDataset):
     def world(self, seq: str) -> Any:
         """The persistent world of trajectory ``seq`` (generated on first use)."""
         if seq not in self._worlds:
-            worlds, _ = _renderer()
-            self._worlds[seq] = worlds.World.generate(
-                self.trajectories[seq], seed=self.seed, name=seq, config=self.world_config
+            self._worlds[seq] = generate_world(
+                self.trajectories[seq], self.seed, seq, self.world_config, self.crossing
             )
         return self._worlds[seq]
 
@@ -484,16 +491,53 @@ def flow_render_size(flow: EstimatedFlow, model_hw: tuple[int, int]) -> tuple[in
 
 
 def world_config(fields: dict[str, Any]) -> Any:
-    """``dataset.world`` → :class:`~mfg_lightning.scene.worlds.WorldConfig` (None: defaults)."""
-    if not fields:
-        return None
+    """``dataset.world`` → :class:`~mfg_lightning.scene.worlds.WorldConfig` (None: defaults),
+    the crossings' keys (:data:`mfg_lightning.scene.crossing.KEYS`) left to
+    :func:`crossing_config`."""
     worlds, _ = _renderer()
     import dataclasses
 
+    from mfg_lightning.scene.crossing import KEYS
+
     known = {f.name for f in dataclasses.fields(worlds.WorldConfig)}
-    unknown = sorted(set(fields) - known)
+    unknown = sorted(set(fields) - known - set(KEYS))
     if unknown:
-        raise ValueError(f"unknown dataset.world setting(s) {unknown}; known: {sorted(known)}")
-    return worlds.WorldConfig(
-        **{k: tuple(v) if isinstance(v, list) else v for k, v in fields.items()}
-    )
+        raise ValueError(
+            f"unknown dataset.world setting(s) {unknown}; known: {sorted(known | set(KEYS))}"
+        )
+    own = {k: tuple(v) if isinstance(v, list) else v for k, v in fields.items() if k in known}
+    return worlds.WorldConfig(**own) if own else None
+
+
+def crossing_config(fields: dict[str, Any]) -> Any:
+    """The crossing objects of ``dataset.world``
+    (:class:`~mfg_lightning.scene.crossing.CrossingConfig`; None: none)."""
+    if not fields:
+        return None
+    from mfg_lightning.scene.crossing import split_world_fields
+
+    return split_world_fields(fields)[1]
+
+
+def _crossing_module(crossing: Any) -> tuple[Any, ...]:
+    """The crossings' module where a dataset has crossings (part of its cache key), else ()."""
+    if crossing is None:
+        return ()
+    from mfg_lightning.scene import crossing as module
+
+    return (module,)
+
+
+def generate_world(
+    poses: torch.Tensor, seed: int, name: str, config: Any = None, crossing: Any = None
+) -> Any:
+    """The persistent world of one trajectory
+    (:meth:`mfg_lightning.scene.worlds.World.generate`), with ``crossing``'s objects crossing
+    the road added (:func:`mfg_lightning.scene.crossing.with_crossings`; None: none)."""
+    worlds, _ = _renderer()
+    world = worlds.World.generate(poses, seed=seed, name=name, config=config)
+    if crossing is None:
+        return world
+    from mfg_lightning.scene.crossing import with_crossings
+
+    return with_crossings(world, crossing)

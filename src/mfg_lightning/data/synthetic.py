@@ -40,6 +40,7 @@ from mfg_lightning.data.driving import SyntheticDrivingDataset
 from mfg_lightning.data.prefetch import Prefetcher, check_prefetch
 from mfg_lightning.data.rendered import (
     RenderedDrivingDataset,
+    crossing_config,
     flow_render_size,
     world_config,
 )
@@ -197,7 +198,9 @@ class SyntheticDataModule(MFGDataModule):
             )
         if isinstance(self.flow, EstimatedFlow):
             flow_render_size(self.flow, (self.height, self.width))
-            world_config(dict(world or {}))  # a bad world setting fails here, not later
+            # a bad world setting fails here, not later
+            world_config(dict(world or {}))
+            crossing_config(dict(world or {}))
         self.trajectory = trajectory
         self.poses_dir = poses_dir
         self.train_sequences = train_sequences

@@ -15,11 +15,7 @@ from mfg_lightning.study.claims import PAPER_CENTRAL_OVER_FRAME
 from mfg_lightning.study.findings import LearnedFlow
 from mfg_lightning.study.noise import ratio, spread_of
 from mfg_lightning.study.render import lines, table
-from mfg_lightning.study.sentences import PRINTED_TABLE2_ROT
-
-SEQS = ("09", "10")
-#: The paper's robust continuous baseline's name stem among the classical rows.
-IRLS = "IRLS"
+from mfg_lightning.study.sentences import IRLS, PRINTED_TABLE2_ROT, SEQS
 
 Lines = list[str]
 Metrics = Mapping[str, float]
@@ -34,6 +30,11 @@ def classical_metrics(rows: list[dict]) -> dict[str, Metrics]:
     }
 
 
+def irls_rotation(rows: list[dict]) -> float | None:
+    """The robust continuous method's (IRLS's) RPE rotation (rad) among the classical ``rows``."""
+    return next((m.get("rpe_rot") for n, m in classical_metrics(rows).items() if IRLS in n), None)
+
+
 #: Short names for the figure's axis.
 SHORT = {"essential matrix + RANSAC": "RANSAC", "essential matrix + MAGSAC++": "MAGSAC++",
          "continuous least squares": "least squares", "continuous LS + IRLS": "IRLS",
@@ -45,17 +46,21 @@ def _short(label: str) -> str:
     return next((v for k, v in SHORT.items() if label.startswith(k)), label)
 
 
+def _main_seeds(views: Mapping[int, Any]) -> tuple[dict, str, Callable[[str], float | None]]:
+    """The main model's seeds (the views with ``table1``), their row's label and their mean of a
+    test metric (all units)."""
+    main = {s: v for s, v in views.items() if v.get("table1")}
+
+    def seeds_mean(key: str) -> float | None:
+        return spread_of(main, lambda v: v["table1"]["test"]["1"].get(key)).mean
+
+    return main, f"MFG, main model ({len(main)} seed{'s' * (len(main) > 1)})", seeds_mean
+
+
 def _twin_rows(views: Mapping[int, Any], twin: dict, methods: dict | None) -> list[tuple]:
     """(label, flow trained on, flow tested on, metrics or per-key mean over seeds)."""
-    rows: list[tuple[str, str, str, Callable[[str], float | None]]] = []
-    main = {s: v for s, v in views.items() if v.get("table1")}
-    if main:
-        n = len(main)
-
-        def seeds_mean(key: str) -> float | None:
-            return spread_of(main, lambda v: v["table1"]["test"]["1"].get(key)).mean
-
-        rows.append((f"MFG, main model ({n} seed{'s' * (n > 1)})", "DIS", "DIS", seeds_mean))
+    main, label, seeds_mean = _main_seeds(views)
+    rows = [(label, "DIS", "DIS", seeds_mean)] if main else []
     exact = twin["table1"]["test"]["1"]
     rows.append(("MFG, exact-flow twin", "exact", "exact", exact.get))
     rows.append(("MFG, exact-flow twin", "exact", "DIS", twin["dis_test"].get))
@@ -91,20 +96,16 @@ def twin_section(
     # one bar group per method, one colour per test flow: the flow's part is the step between
     # a method's two bars, the method's its exact bar
     names = list(dict.fromkeys(_short(lab) for lab, _, _, _ in rows))
-    flows = ("exact", "DIS")
     panels = []
     for s in SEQS:
-        series = {f"{f} test flow": [None] * len(names) for f in flows}
+        series = {f"{f} test flow": [None] * len(names) for f in ("exact", "DIS")}
         for lab, _, tested, get in rows:
             value = ratio(get(f"{s}/ate_central"), get(f"{s}/ate"))
             series[f"{tested} test flow"][names.index(_short(lab))] = value
         panels.append((f"ATE * / ATE † ({s})", series))
-    fig = bar_figure(
-        panels,
-        names,
-        "ATE * / ATE †: the method (exact flow) and the flow (DIS)",
-        references=[("the paper's MFG", PAPER_CENTRAL_OVER_FRAME[s]) for s in SEQS],
-    )
+    title = "ATE * / ATE †: the method (exact flow) and the flow (DIS)"
+    refs = [("the paper's MFG", PAPER_CENTRAL_OVER_FRAME[s]) for s in SEQS]
+    fig = bar_figure(panels, names, title, references=refs)
     table_md = table([*heads, "RPE rotation (rad)"], table_rows)
     return lines("report/twin.md.j2", twin=twin, methods=methods, table=table_md), fig
 
@@ -131,36 +132,14 @@ def learned_section(
     rotation, and the test flow's EPE at +1 and +2. Nothing before the stage has run."""
     if learned is None:
         return []
-    rows: list[tuple[str, str, str, Callable[[str], float | None], dict | None]] = []
-    main = {s: v for s, v in views.items() if v.get("table1")}
-    if main:
-        n = len(main)
-
-        def seeds_mean(key: str) -> float | None:
-            return spread_of(main, lambda v: v["table1"]["test"]["1"].get(key)).mean
-
-        label = f"MFG, main model ({n} seed{'s' * (n > 1)})"
-        rows.append((label, flow_name, flow_name, seeds_mean, study_flow))
+    main, label, seeds_mean = _main_seeds(views)
+    rows = [(label, flow_name, flow_name, seeds_mean, study_flow)] if main else []
     if twin is not None:
         exact = {region: {"epe": 0.0} for region in ("all", "road", "far")}
-        rows.append(
-            (
-                "MFG, exact-flow twin",
-                "exact",
-                "exact",
-                twin["table1"]["test"]["1"].get,
-                {"test": {o: {"regions": exact} for o in ("1", "2")}},
-            )
-        )
-    rows.append(
-        (
-            "MFG on the learned flow",
-            "learned",
-            "learned",
-            learned["table1"]["test"]["1"].get,
-            learned.get("flow_error"),
-        )
-    )
+        fe = {"test": {o: {"regions": exact} for o in ("1", "2")}}
+        rows.append(("MFG, exact-flow twin", "exact", "exact", twin["table1"]["test"]["1"].get, fe))
+    ours, fe = learned["table1"]["test"]["1"].get, learned.get("flow_error")
+    rows.append(("MFG on the learned flow", "learned", "learned", ours, fe))
     rows.append(("MFG on the learned flow", "learned", flow_name, learned["dis_test"].get,
                  study_flow))  # fmt: skip
     table_rows = []
@@ -251,34 +230,26 @@ def size_section(size: Mapping[str, dict]) -> tuple[Lines, Any]:
     if not points:
         return [], None
     classical = classical_metrics(size["classical"]["classical"]) if "classical" in size else {}
-    rows, xs, rot, trans, rot_sd, trans_sd = [], [], [], [], [], []
+    rows, xs, sps = [], [], []
     for stride, runs in points.items():
-        sp_r = spread_of(dict(enumerate(runs)), lambda r: r["test"].get("rpe_rot"))
-        sp_t = spread_of(dict(enumerate(runs)), lambda r: r["test"].get("rpe_trans"))
-        pairs = runs[0]["train_pairs"]
+        sp = {k: spread_of(dict(enumerate(runs)), lambda r, k=k: r["test"].get(k))
+              for k in ("rpe_rot", "rpe_trans")}  # fmt: skip
         conv = sum(bool((r.get("convergence") or {}).get("converged")) for r in runs)
         # where the seeds trained: the curve's points may come from more than one machine
         where = sorted({f"{r.get('precision', '?')} on {r.get('cpu_kind', '?')}" for r in runs})
-        rows.append([str(stride), str(pairs), sp_r.text(5), sp_t.text(4),
+        xs.append(runs[0]["train_pairs"])
+        rows.append([str(stride), str(xs[-1]), sp["rpe_rot"].text(5), sp["rpe_trans"].text(4),
                      f"{conv} of {len(runs)}", ", ".join(where)])  # fmt: skip
-        xs.append(pairs)
-        rot.append(sp_r.mean)
-        trans.append(sp_t.mean)
-        rot_sd.append(sp_r.std)
-        trans_sd.append(sp_t.std)
-    label = "MFG (seed mean ± sd)" if any(v is not None for v in rot_sd) else "MFG"
-    lines_r: dict[str, tuple] = {label: (xs, rot, rot_sd)}
-    lines_t: dict[str, tuple] = {label: (xs, trans, trans_sd)}
-    for name, m in classical.items():
-        lines_r[_short(name)] = (xs, [m.get("rpe_rot")] * len(xs))
-        lines_t[_short(name)] = (xs, [m.get("rpe_trans")] * len(xs))
-    fig = line_figure(
-        [("RPE rotation (rad)", lines_r), ("RPE translation (m)", lines_t)],
-        "training pairs",
-        "Table 2's setting (exact flow) against the training set's size",
-        log_x=True,
-        log_y=True,
-    )
+        sps.append(sp)
+    label = "MFG (seed mean ± sd)" if any(sp["rpe_rot"].std is not None for sp in sps) else "MFG"
+    panels = []
+    for key, title in (("rpe_rot", "RPE rotation (rad)"), ("rpe_trans", "RPE translation (m)")):
+        curves = {label: (xs, [sp[key].mean for sp in sps], [sp[key].std for sp in sps])}
+        curves.update({_short(n): (xs, [m.get(key)] * len(xs)) for n, m in classical.items()})
+        panels.append((title, curves))
+    fig = line_figure(panels, "training pairs",
+                      "Table 2's setting (exact flow) against the training set's size",
+                      log_x=True, log_y=True)  # fmt: skip
     crows = [
         [n, fmt(m.get("rpe_rot"), 5), fmt(m.get("rpe_trans"), 4)] for n, m in classical.items()
     ]

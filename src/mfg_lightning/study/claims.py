@@ -11,6 +11,7 @@ from its Tables 1 and 2, section 5 and the supplement. Convergence is not a clai
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -95,6 +96,16 @@ def _dev(ours: float | None, paper: float) -> str:
     return f"{sign}{100 * d:.1f} %"
 
 
+def _vs(ours: float | None, paper: float) -> str:
+    """Our ratio beside the paper's and the deviation, e.g. ``×1.05 (1.00, +5.0 %)``."""
+    return f"×{fmt(ours, 2)} ({paper:.2f}, {_dev(ours, paper)})"
+
+
+def _pct(x: float | None) -> float | None:
+    """A fraction in percent (None stays None)."""
+    return None if x is None else 100 * x
+
+
 # --------------------------------------------------------------------------------------------
 # The claims
 # --------------------------------------------------------------------------------------------
@@ -110,20 +121,13 @@ def claim_table1(t1: dict | None) -> tuple[Row, Any]:
     ks = sorted((float(k) for k in test), reverse=True)
     texts = []
     for i, s in enumerate(SEQS):
-        full = test["1"].get(f"{s}/ate")
-        at = []
-        for k in ks:
-            if k >= 1 or k not in PAPER_TABLE1:
-                continue
-            ours = ratio(test[f"{k:g}"].get(f"{s}/ate"), full)
-            paper = PAPER_TABLE1[k][i] / PAPER_TABLE1[1.0][i]
-            at.append(f"{100 * k:g} % ×{fmt(ours, 2)} ({paper:.2f}, {_dev(ours, paper)})")
-        c = test["1"].get(f"{s}/ate_central")
-        c_ratio = ratio(c, full)
-        paper_c = PAPER_CENTRAL_OVER_FRAME[s]
+        full, c = test["1"].get(f"{s}/ate"), test["1"].get(f"{s}/ate_central")
+        at = [f"{100 * k:g} % " + _vs(ratio(test[f"{k:g}"].get(f"{s}/ate"), full),
+                                      PAPER_TABLE1[k][i] / PAPER_TABLE1[1.0][i])
+              for k in ks if k < 1 and k in PAPER_TABLE1]  # fmt: skip
         texts.append(
             f"{s}: † {fmt(full)} at 100 %, ratios (paper's, deviation) " + ", ".join(at)
-            + f"; * {fmt(c)}, * / † ×{fmt(c_ratio, 2)} ({paper_c:.2f}, {_dev(c_ratio, paper_c)})"
+            + f"; * {fmt(c)}, * / † {_vs(ratio(c, full), PAPER_CENTRAL_OVER_FRAME[s])}"
         )  # fmt: skip
     row.ours = "; ".join(texts)
     panels = []
@@ -137,10 +141,9 @@ def claim_table1(t1: dict | None) -> tuple[Row, Any]:
             for i, s in enumerate(SEQS):
                 lines[f"paper {s}"] = ([100 * k for k in pk], [PAPER_TABLE1[k][i] for k in pk])
         panels.append((label, lines))
-    fig = plots.line_figure(
+    return row, plots.line_figure(
         panels, "hidden units kept, k (%)", "ATE against k (test)", log_x=True, log_y=True
     )
-    return row, fig
 
 
 def claim_sparsity(
@@ -148,18 +151,15 @@ def claim_sparsity(
 ) -> tuple[Row, Any, list[str]]:
     """The main model's validation ATE † against k; the w_s sweep (this project's extension)
     as extra lines, each labelled with the input scale it was trained at."""
-
     row = Row.of("2")
     sweep = []
     for name, m in models.items():
-        af = m.get("active_fraction")
-        state = "collapsed (no unit active on the average input)" if m.get("collapsed") else ""
         scale = "" if "input_scale" in name else " (input_scale=1)"
         sweep.append(
-            f"{name}{scale}: active {fmt(None if af is None else 100 * af, 2)} %, smallest k "
-            f"{fmt(None if m['k_star'] is None else 100 * m['k_star'], 1)} % (val), test ATE "
+            f"{name}{scale}: active {fmt(_pct(m.get('active_fraction')), 2)} %, smallest k "
+            f"{fmt(_pct(m['k_star']), 1)} % (val), test ATE "
             f"{fmt(m['test_full'])} → {fmt(m['test_k_star'])} at that k"
-            + (f"; {state}" if state else "")
+            + ("; collapsed (no unit active on the average input)" if m.get("collapsed") else "")
         )
     if t1 is None:
         return row, _sweep_figure(models, None), sweep
@@ -168,8 +168,7 @@ def claim_sparsity(
     at = t1["val"].get(f"{k_star:g}", {}).get("ate") if k_star is not None else None
     row.ours = (
         f"main model: the smallest k within {100 * tol:g} % of all units' validation ATE † "
-        f"({fmt(full)}) is {fmt(None if k_star is None else 100 * k_star, 1)} % "
-        f"(ATE † {fmt(at)})"
+        f"({fmt(full)}) is {fmt(_pct(k_star), 1)} % (ATE † {fmt(at)})"
     )
     return row, _sweep_figure(models, t1["val"]), sweep
 
@@ -186,20 +185,13 @@ def _sweep_figure(models: dict[str, dict], main_val: dict | None) -> Any:
             [("val ATE † (m)", lines)], "hidden units kept, k (%)",
             "Main model (w_s = 100): validation ATE against k", log_x=True, log_y=True,
         )  # fmt: skip
-    names = list(models)
-    af = [models[n].get("active_fraction") for n in names]
-    ks = [models[n].get("k_star") for n in names]
-    return plots.bar_figure(
-        [
-            ("active fraction (%)", {"ours": [None if a is None else 100 * a for a in af]}),
-            (
-                "smallest k within tolerance (%)",
-                {"ours": [None if k is None else 100 * k for k in ks]},
-            ),
-        ],
-        names,
-        "Sparsity against w_s (validation; this project's extension)",
-    )
+    panels = [
+        (label, {"ours": [_pct(m.get(key)) for m in models.values()]})
+        for key, label in (("active_fraction", "active fraction (%)"),
+                           ("k_star", "smallest k within tolerance (%)"))
+    ]  # fmt: skip
+    title = "Sparsity against w_s (validation; this project's extension)"
+    return plots.bar_figure(panels, list(models), title)
 
 
 def claim_table2(t2: dict | None, offsets: list[int] | None = None) -> tuple[Row, Any]:
@@ -209,12 +201,12 @@ def claim_table2(t2: dict | None, offsets: list[int] | None = None) -> tuple[Row
     if t2 is None:
         return row, None
     mfg, classical = t2["mfg"], t2["classical"]
-    full = mfg["1"]
-    ratios = []
-    for k in (0.2, 0.15, 0.1, 0.05):
-        ours = ratio(mfg.get(f"{k:g}", {}).get("rpe_trans"), full.get("rpe_trans"))
-        paper = PAPER_TABLE2[k][0] / PAPER_TABLE2[1.0][0]
-        ratios.append(f"{100 * k:g} % ×{fmt(ours, 2)} ({paper:.2f}, {_dev(ours, paper)})")
+    full, paper = mfg["1"], PAPER_TABLE2[1.0][0]
+    ratios = [
+        f"{100 * k:g} % " + _vs(ratio(mfg.get(f"{k:g}", {}).get("rpe_trans"),
+                                      full.get("rpe_trans")), PAPER_TABLE2[k][0] / paper)
+        for k in (0.2, 0.15, 0.1, 0.05)
+    ]  # fmt: skip
     others = [c for c in classical if "oracle" not in c["name"]]
     rots = "; ".join(f"{c['name']} {fmt(c['metrics'].get('rpe_rot'), 5)}" for c in others)
     row.ours = (
@@ -225,17 +217,11 @@ def claim_table2(t2: dict | None, offsets: list[int] | None = None) -> tuple[Row
         + f"; RPE rot MFG {fmt(full.get('rpe_rot'), 5)}, {rots}"
     )  # fmt: skip
     names = [f"MFG {100 * float(k):g} %" for k in mfg] + [c["name"] for c in classical]
-    trans = [m["rpe_trans"] for m in mfg.values()] + [
-        c["metrics"].get("rpe_trans") for c in classical
-    ]
-    rots = [m["rpe_rot"] for m in mfg.values()] + [c["metrics"].get("rpe_rot") for c in classical]
-    fig = plots.bar_figure(
-        [("RPE translation (m)", {"ours": trans}), ("RPE rotation (rad)", {"ours": rots})],
-        names,
-        "Table 2's shape (test)",
-        log_y=True,
-    )
-    return row, fig
+    panels = []
+    for key, label in (("rpe_trans", "RPE translation (m)"), ("rpe_rot", "RPE rotation (rad)")):
+        ours = [m[key] for m in mfg.values()] + [c["metrics"].get(key) for c in classical]
+        panels.append((label, {"ours": ours}))
+    return row, plots.bar_figure(panels, names, "Table 2's shape (test)", log_y=True)
 
 
 def claim_robustness(mt: dict | None) -> tuple[Row, Any]:
@@ -251,34 +237,20 @@ def claim_robustness(mt: dict | None) -> tuple[Row, Any]:
         filled = [x for x in b["rot_bins"] if x["n"] and x["mean"] is not None]
         return filled[-1]["mean"] if filled else None
 
-    ours_abs = last_mean(bins[mfg_name])
-    best_name = min(classical, key=lambda n: last_mean(classical[n]) or math.inf, default=None)
-    best_abs = last_mean(classical[best_name]) if best_name else None
-    row.ours = paragraph(
-        "diagnostics/robustness.md.j2",
-        mt=mt,
-        mfg=mfg_name,
-        ours=ours_abs,
-        best=best_name,
-        best_abs=best_abs,
-    )
-    centres = [
-        (lo + hi) / 2 * 100 for lo, hi in zip(mt["edges"][:-1], mt["edges"][1:], strict=True)
-    ]
+    best = min(classical, key=lambda n: last_mean(classical[n]) or math.inf, default=None)
+    row.ours = paragraph("diagnostics/robustness.md.j2", mt=mt, mfg=mfg_name,
+                         ours=last_mean(bins[mfg_name]), best=best,
+                         best_abs=last_mean(classical[best]) if best else None)  # fmt: skip
+    centres = [(lo + hi) / 2 * 100 for lo, hi in itertools.pairwise(mt["edges"])]
     panels = [
         (label, {n: (centres, [b["mean"] for b in r[key]]) for n, r in bins.items()})
-        for key, label in (
-            ("rot_bins", "rotation error (rad)"),
-            ("trans_bins", "translation error (m)"),
-        )
-    ]
-    fig = plots.line_figure(
-        panels,
-        "image covered by moving objects (%, bin centre)",
-        "Error against moving-object coverage (test, +1 pairs)",
-        log_y=True,
-    )
-    return row, fig
+        for key, label in (("rot_bins", "rotation error (rad)"),
+                           ("trans_bins", "translation error (m)"))
+    ]  # fmt: skip
+    return row, plots.line_figure(
+        panels, "image covered by moving objects (%, bin centre)",
+        "Error against moving-object coverage (test, +1 pairs)", log_y=True,
+    )  # fmt: skip
 
 
 def one_motion_fractions(bs: dict, residual: float) -> dict[str, float]:
@@ -306,23 +278,13 @@ def _basis_figure(per: dict[str, dict]) -> Any:
     """Each decoder's top units in rank order: the motion at activation 1 and at the unit's
     typical activation (the scale-free one)."""
     panels = []
-    for key, label in (
-        ("t", "translational units: |t| (m)"),
-        ("omega", "rotational units: |ω| (rad)"),
-    ):
+    for key, label in (("t", "translational units: |t| (m)"),
+                       ("omega", "rotational units: |ω| (rad)")):  # fmt: skip
         d = per[key]
         rank = list(range(1, len(d["units"]) + 1))
-        panels.append(
-            (
-                label,
-                {
-                    "at activation 1": (rank, d["motion_at_1"]),
-                    "at its typical activation": (
-                        rank, [m if m > 0 else None for m in d["motion_typical"]]
-                    ),
-                },
-            )
-        )  # fmt: skip
+        typical = [m if m > 0 else None for m in d["motion_typical"]]
+        panels.append((label, {"at activation 1": (rank, d["motion_at_1"]),
+                               "at its typical activation": (rank, typical)}))  # fmt: skip
     return plots.line_figure(
         panels, "rank by the decoder's own column norm", "Basis units (validation)", log_y=True
     )
@@ -333,34 +295,18 @@ def claim_object_motion(om: dict | None) -> tuple[Row, Any]:
     row = Row.of("6")
     if om is None:
         return row, None
-    cats = [
-        ("all", "iou"),
-        ("all", "precision"),
-        ("all", "recall"),
-        ("all", "near/recall"),
-        ("all", "far/recall"),
-        ("slow", "recall"),
-        ("fast", "recall"),
-    ]
-
-    def get(scores: dict, method: str, group: str, key: str) -> float | None:
-        return scores[method].get(group, {}).get(key)
-
+    cats = [("all", "iou"), ("all", "precision"), ("all", "recall"), ("all", "near/recall"),
+            ("all", "far/recall"), ("slow", "recall"), ("fast", "recall")]  # fmt: skip
     om = {k: v for k, v in om.items() if isinstance(v, dict) and "scores" in v}
     row.ours = paragraph("diagnostics/object_motion.md.j2", om=om, cats=cats, label=_label)
-    names = [_label(g, k) for g, k in cats]
     panels = [
-        (
-            f"{name} flow (threshold {r['threshold']['threshold']:g} px)",
-            {
-                "filters (§4)": [get(r["scores"], "filters", g, k) for g, k in cats],
-                "threshold (chosen on validation)": [
-                    get(r["scores"], "threshold", g, k) for g, k in cats
-                ],
-            },
-        )
+        (f"{name} flow (threshold {r['threshold']['threshold']:g} px)",
+         {label: [r["scores"][method].get(g, {}).get(k) for g, k in cats]
+          for method, label in (("filters", "filters (§4)"),
+                                ("threshold", "threshold (chosen on validation)"))})
         for name, r in om.items()
-    ]
+    ]  # fmt: skip
+    names = [_label(g, k) for g, k in cats]
     return row, plots.bar_figure(panels, names, "Object masks (test, +1 pairs)")
 
 
@@ -378,17 +324,12 @@ def claim_recipe(rc: dict | None) -> tuple[Row, Any]:
     long_enough = min(a.get("epochs", 0.0), b.get("epochs", 0.0)) >= 1.0 - 1e-9
     dev = _dev(b["val_ate"], a["val_ate"]) if long_enough else None
     row.ours = paragraph("diagnostics/recipe.md.j2", a=a, b=b, dev=dev)
-    panels = [
-        (
-            "val ATE † (m)",
-            {
-                n: ([p["samples"] for p in r["curve"]], [p.get("val/ate") for p in r["curve"]])
-                for n, r in (("CPU recipe", a), ("paper recipe", b))
-            },
-        )
-    ]
+    curves = {
+        n: ([p["samples"] for p in r["curve"]], [p.get("val/ate") for p in r["curve"]])
+        for n, r in (("CPU recipe", a), ("paper recipe", b))
+    }
     return row, plots.line_figure(
-        panels, "training samples seen", "Recipes (validation)", log_y=True
+        [("val ATE † (m)", curves)], "training samples seen", "Recipes (validation)", log_y=True
     )
 
 

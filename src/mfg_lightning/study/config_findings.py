@@ -11,17 +11,15 @@ the default, beside the default the config has (``model.net.input_scale`` of the
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from typing import Any
 
-from mfg_lightning.study.findings import InputScale, RuleWeakness
+from mfg_lightning.study.findings import Cached, InputScale, RuleWeakness
 from mfg_lightning.study.noise import spread_of
 from mfg_lightning.study.render import paragraph
 from mfg_lightning.study.sentences import View
 
 __all__ = ["config_default", "input_scale_finding", "para_recipe", "para_rule"]
-
-Cached = Callable[[str], Any]
 
 
 def config_default(key: str, config_name: str = "train") -> Any:

@@ -29,28 +29,17 @@ def convergence_rows(models: dict[str, dict]) -> tuple[list[list[str]], Any]:
             state = f"equal budget (decay from {c.get('decay_start')} to {c.get('decay_end')})"
         else:
             state = f"not converged at {m.get('steps')} steps ({c.get('reason') or 'no rule'})"
-        rows.append(
-            [
-                name,
-                str(m.get("steps")),
-                str(m.get("samples_seen")),
-                state,
-                fmt(min(finite) if finite else None),
-                f"{m.get('train_seconds', 0.0) / 60:.0f}",
-            ]
-        )
+        best, minutes = fmt(min(finite) if finite else None), m.get("train_seconds", 0.0) / 60
+        rows.append([name, str(m.get("steps")), str(m.get("samples_seen")), state, best,
+                     f"{minutes:.0f}"])  # fmt: skip
         if curve:
             lines[name] = ([p["samples"] for p in curve], ates)
-    fig = None
-    if lines:
-        fig = plots.curve_groups_figure(
-            _curve_panels(lines),
-            "training samples seen",
-            "val ATE † (m)",
-            "Validation curves",
-            log_y=True,
-        )
-    return rows, fig
+    if not lines:
+        return rows, None
+    panels = _curve_panels(lines)
+    return rows, plots.curve_groups_figure(
+        panels, "training samples seen", "val ATE † (m)", "Validation curves", log_y=True
+    )
 
 
 #: The convergence figure's panels: a model goes to the first whose prefix its name has.

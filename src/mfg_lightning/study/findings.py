@@ -18,10 +18,11 @@ from typing import Any
 from mfg_lightning.core.tables import fmt
 from mfg_lightning.study.intervals import t_quantile
 from mfg_lightning.study.noise import Spread, Tolerance, ratio, tolerance
+from mfg_lightning.study.parts import SEQS
 from mfg_lightning.study.wording import SAME, position
 
 __all__ = [
-    "SEQS",
+    "Cached",
     "Central",
     "FlowGain",
     "InputScale",
@@ -34,7 +35,7 @@ __all__ = [
     "verdict_count",
 ]
 
-SEQS = ("09", "10")
+#: A stage's cached result by name (None where it has not run).
 Cached = Callable[[str], Any]
 
 

@@ -36,11 +36,8 @@ the rest are inconclusive) or **inconclusive** (none holds) (:func:`combine`).
 A sentence judged in several parts makes several claims at once: at 95 % each, one of ``m``
 independent parts would be decided wrongly by chance far more often than one time in twenty
 (S10's 18 parts: 1 − 0.95¹⁸ = 60 %). The parts of one sentence are therefore a family, decided
-by Holm's step-down procedure at a family level of 95 % (:func:`holm`): the most decisive part
-is judged at ``1 − 0.05 / m``, the next at ``1 − 0.05 / (m − 1)``…, and the first part not
-decided at its level leaves itself and every later part inconclusive. An interval keeps its
-ingredients (:attr:`Interval.terms`) so that it can be rebuilt at any level
-(:meth:`Interval.at`).
+by Holm's step-down procedure at a family level of 95 % (:func:`holm`), which rebuilds each
+interval at its own level from the ingredients it keeps (:attr:`Interval.terms`).
 
 Holm's procedure and the bootstrap are this module's own: Holm's reads intervals (a bound's
 print precision, a domain, a strict bound), which a p-value does not carry, and the bootstrap

@@ -103,14 +103,6 @@ def basis_measurements(model: Any, val: DataLoader, intrinsics: torch.Tensor, un
     }
 
 
-def _inputs(batch: dict, flow_key: str) -> tuple[torch.Tensor, torch.Tensor]:
-    """The flow the model sees and its valid pixels (as :func:`object_motion_scores`)."""
-    from mfg_lightning.data.sample import model_inputs
-
-    flow, valid, _ = model_inputs(batch, flow_key)
-    return flow, valid
-
-
 @torch.no_grad()
 def _pooled_iou(
     model: Any,
@@ -121,7 +113,9 @@ def _pooled_iou(
 ) -> torch.Tensor:
     """The pooled mask IoU of ``n`` candidate masks over ``loader``: the model runs once per
     batch, and ``masks(flow, out, batch, valid)`` yields each candidate's ``(B, H, W)`` mask
-    (pixels outside the object-motion validity already dropped); ``(n,)`` float64."""
+    (pixels outside the object-motion validity already dropped); ``(n,)`` float64. The model
+    sees the flow and the valid pixels that :func:`object_motion_scores` gives it."""
+    from mfg_lightning.data.sample import model_inputs
     from mfg_lightning.motion.object_motion import depth_validity
 
     tp = torch.zeros(n, dtype=torch.float64)
@@ -129,7 +123,7 @@ def _pooled_iou(
     for batch in loader:
         if batch is None or "object_mask" not in batch:
             continue
-        flow, valid = _inputs(batch, flow_key)
+        flow, valid, _ = model_inputs(batch, flow_key)
         out = model(flow)
         gt = batch["object_mask"].bool() & valid & depth_validity(batch["depth"])
         for i, pred in enumerate(masks(flow, out, batch, valid)):
@@ -182,9 +176,7 @@ def choose_filters(
     def masks(flow: torch.Tensor, out: Any, batch: dict, valid: torch.Tensor) -> Iterable:
         for d, p in pairs:
             c = dataclasses.replace(cfg, theta_d=d, theta_p=p)
-            yield extract_object_motion(
-                flow, out.v_t, out.v_omega, batch["depth"], c, valid=valid
-            ).mask
+            yield extract_object_motion(flow, out.v_t, out.v_omega, batch["depth"], c, valid).mask
 
     iou = _pooled_iou(model, loader, flow_key, len(pairs), masks)
     best = int(torch.argmax(iou))
@@ -225,12 +217,8 @@ def object_motion_by_flow(
         filters = choose_filters(model, val, cfg, filter_grid or FILTER_GRID, key)
         paper = dataclasses.replace(cfg, baseline_threshold=chosen["threshold"])
         tuned = dataclasses.replace(paper, theta_d=filters["theta_d"], theta_p=filters["theta_p"])
-        out[name] = {
-            "threshold": chosen,
-            "filters_choice": filters,
-            "scores": object_motion_scores(model, test, tuned, slow_px, flow_key=key),
-            "scores_paper_filters": object_motion_scores(model, test, paper, slow_px, flow_key=key)[
-                "filters"
-            ],
-        }
+        scores = [object_motion_scores(model, test, c, slow_px, flow_key=key)
+                  for c in (tuned, paper)]  # fmt: skip
+        out[name] = {"threshold": chosen, "filters_choice": filters, "scores": scores[0],
+                     "scores_paper_filters": scores[1]["filters"]}  # fmt: skip
     return out

@@ -1,20 +1,15 @@
 """The seed spread of the study's measurements, and the print precision of the paper's numbers.
 
-The main model is trained at several seeds (seed 0 is stage ``main``, the others stage
-``seeds/seed<n>``: the same pairs, convergence rule and step cap; the seed sets the
-initialisation and the data order). Every measurement a verdict uses is taken from each seed's
-model, so each has a mean and a spread over seeds (:class:`Spread`); the verdicts' intervals are
-built from it by :mod:`mfg_lightning.study.intervals`.
+The main model is trained at several seeds (the same pairs, convergence rule and step cap; the
+seed sets the initialisation and the data order). Every measurement a verdict uses is taken from
+each seed's model, so each has a mean and a spread over seeds (:class:`Spread`); the verdicts'
+intervals are built from it by :mod:`mfg_lightning.study.intervals`. Nothing here reads files:
+the views of each seed's results are built by :func:`mfg_lightning.study.sentences.seed_views`.
 
-* :func:`print_precision`: a number printed as 0.012 stands for anything in [0.0115, 0.0125),
-  so a ratio of two printed numbers is known to within the sum of their relative half-units
-  (0.012 / 0.012 is known to ±8.3 %).
+* :func:`print_precision`: a number printed as 0.012 stands for anything in [0.0115, 0.0125);
 * :func:`tolerance` (:class:`Tolerance`): the larger of a print precision and two sample
   standard deviations of a spread, relative to its mean: the margin a configuration choice (the
   input scale) must beat on validation before the report says the evidence supports it.
-
-Nothing here reads files: the views of each seed's results are built by
-:func:`mfg_lightning.study.sentences.seed_views`.
 """
 
 from __future__ import annotations

@@ -137,6 +137,20 @@ def _grid_edges(seeds: Mapping[int, dict]) -> list[str]:
     return edge
 
 
+def _curve(seeds: Mapping[int, dict]) -> list[tuple[float, float]]:
+    """The filters' validation curve along θ_d: at each θ_d of the grid, the largest mask IoU
+    over θ_p, averaged over the seeds."""
+    by: dict[float, list[float]] = {}
+    for r in seeds.values():
+        best: dict[float, float] = {}
+        for key, iou in ((r["objects"].get("filters_choice") or {}).get("iou") or {}).items():
+            d = float(key.split(",")[0])
+            best[d] = max(best.get(d, -math.inf), float(iou))
+        for d, v in best.items():
+            by.setdefault(d, []).append(v)
+    return [(d, float(np.mean(v))) for d, v in sorted(by.items())]
+
+
 def object_sentences(settled: Settled) -> list[Judged]:
     """S9 and S10 on the exact-flow Table-2-sized models' object masks and velocities (every
     seed, per-pair counts: t over the seeds plus the paired bootstrap). Beside S10, its verdict
@@ -156,7 +170,8 @@ def object_sentences(settled: Settled) -> list[Judged]:
         j10.close()
         parts = [replace(p, strict=False) if p.strict else p for p in j10.parts]
         before = Judged(j10.sentence, parts).close()
-    found = {"n": len(seeds), "edges": _grid_edges(seeds)}
+    found = {"n": len(seeds), "edges": _grid_edges(seeds), "curve": _curve(seeds),
+             "world": (seeds[min(seeds)].get("object_set") or {}).get("world")}  # fmt: skip
     j9.beside = paragraph("beside/s9.md.j2", **found)
     j10.beside = paragraph("beside/s10.md.j2", **found, bins=bins, floor=int(FLOORS["pairs"]),
                            verdict=j10.verdict, before=before, changed=[

@@ -178,24 +178,48 @@ class Judged:
 @dataclass
 class Settled:
     """The 2 × 2's stage results (:mod:`mfg_lightning.study.settle`): per flow, every seed's
-    ``settle/<flow>_seed<n>`` and the classical methods' ``settle_classical/<flow>``; the
-    strided seeds' ``settle/strided_seed<n>``."""
+    model and the classical methods' ``settle_classical/<flow>``; the strided seeds'
+    ``settle/strided_seed<n>``; per variant, the models trained under the rotation rule
+    (``converge/<variant>_seed<n>``). ``seeds`` (what the verdicts read) holds the converged
+    models once every flow has all of ``converge.seeds`` (the exact ones' objects then those of
+    the object test set, ``objects/seed<n>``, once it has run at every seed), else the equal
+    budget's
+    (``settle/<flow>_seed<n>``, also in ``budget``); ``reads`` names which."""
 
     seeds: dict[str, dict[int, dict]] = field(default_factory=dict)
     classical: dict[str, dict] = field(default_factory=dict)
     strided: dict[int, dict] = field(default_factory=dict)
+    budget: dict[str, dict[int, dict]] = field(default_factory=dict)
+    converged: dict[str, dict[int, dict]] = field(default_factory=dict)
+    reads: str = "settle"
 
     @classmethod
     def load(cls, cached: Callable[[str], dict | None], cfg: Any) -> Settled:
         out = cls()
-        for flow in cfg.settle.flows:
-            got = {int(s): cached(f"settle/{flow}_seed{int(s)}") for s in cfg.settle.seeds}
-            out.seeds[str(flow)] = {s: r for s, r in got.items() if r is not None}
+
+        def runs(stem: str, seeds: Any) -> dict[int, dict]:
+            got = {int(s): cached(f"{stem}_seed{int(s)}") for s in seeds}
+            return {s: r for s, r in got.items() if r is not None}
+
+        conv = cfg.get("converge") or {"variants": [], "seeds": []}
+        variants = [v for group in conv["variants"] for v in group]
+        out.converged = {str(v): runs(f"converge/{v}", conv["seeds"]) for v in variants}
+        flows = [str(f) for f in cfg.settle.flows]
+        full = all(len(out.converged.get(f, {})) == len(conv["seeds"]) > 0 for f in flows)
+        out.reads = "converge" if full else "settle"
+        for flow in flows:
+            out.budget[flow] = runs(f"settle/{flow}", cfg.settle.seeds)
+            out.seeds[flow] = dict(out.converged[flow] if full else out.budget[flow])
             if (c := cached(f"settle_classical/{flow}")) is not None:
-                out.classical[str(flow)] = c
-        for s in cfg.settle.strided.seeds:
-            if (r := cached(f"settle/strided_seed{int(s)}")) is not None:
-                out.strided[int(s)] = r
+                out.classical[flow] = c
+        out.strided = runs("settle/strided", cfg.settle.strided.seeds)
+        # S9 and S10 read the converged exact-flow models on the object test set
+        # (objects/seed<n>) once every seed has been evaluated on it: one test set for all
+        objects = {s: cached(f"objects/seed{s}") for s in out.seeds.get("exact", {})}
+        if full and objects and None not in objects.values():
+            for s, o in objects.items():
+                r = out.seeds["exact"][s]
+                out.seeds["exact"][s] = {**r, "objects": o["objects"], "object_set": o}
         return out
 
     def flows(self) -> list[str]:

@@ -34,6 +34,10 @@ def _expand(cfg: DictConfig, stage: str) -> list[tuple[str, Any]]:
     if stage == "settle":
         runs = [(f"settle/{f}_seed{s}", (f, s)) for f, s in T.seed_runs(cfg)]
         return runs + [(f"settle/strided_seed{s}", ("strided", s)) for s in T.strided_runs(cfg)]
+    if stage == "converge":
+        return [(f"converge/{v}_seed{s}", (v, s)) for v, s in T.converge_runs(cfg)]
+    if stage == "objects":
+        return [(f"objects/seed{int(s)}", int(s)) for s in cfg.converge.seeds]
     if stage == "size":
         runs = [(f"size/{S.size_name(*p)}", p) for p in S.size_runs(cfg)]
         return [*runs, ("size/classical", None)]
@@ -53,6 +57,14 @@ def check(cfg: DictConfig) -> None:
         raise ValueError("poses_dir: set it to KITTI's poses/ directory (00.txt ... 10.txt)")
     if cfg.poses_dir and not Path(cfg.poses_dir).expanduser().is_dir():
         raise FileNotFoundError(f"poses_dir: no such directory: {cfg.poses_dir}")
+    variants = [str(v) for group in cfg.converge.variants for v in group]
+    odd = sorted(set(variants) - set(T.VARIANTS))
+    missing = [str(f) for f in cfg.settle.flows if str(f) not in variants]
+    if odd or missing:
+        # a flow of the 2 x 2 without its converged models would keep the verdicts on the equal
+        # budget's for ever
+        raise ValueError(f"converge.variants: unknown {odd} or missing the 2 × 2's flows "
+                         f"{missing}; known: {', '.join(T.VARIANTS)}")  # fmt: skip
     known = stage_names(cfg)
     unknown = [s for s in cfg.stages if s not in known]
     if unknown:

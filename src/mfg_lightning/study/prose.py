@@ -10,14 +10,15 @@ have not run. :func:`reading` assembles them in the report's order.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from mfg_lightning.core.tables import fmt
 from mfg_lightning.study import findings as F
-from mfg_lightning.study.causes import classical_metrics, size_points
+from mfg_lightning.study.causes import classical_metrics, irls_rotation, size_points
 from mfg_lightning.study.claims import PAPER_CENTRAL_OVER_FRAME
 from mfg_lightning.study.config_findings import para_recipe, para_rule
+from mfg_lightning.study.findings import Cached
 from mfg_lightning.study.intervals import t_quantile
 from mfg_lightning.study.noise import ratio, spread_of
 from mfg_lightning.study.render import paragraph
@@ -26,8 +27,6 @@ from mfg_lightning.study.sentences import test_at as at
 from mfg_lightning.study.settle_report import para_settle
 
 __all__ = ["reading"]
-
-Cached = Callable[[str], Any]
 
 
 def _render(name: str, **findings: Any) -> str:
@@ -123,10 +122,7 @@ def size_curve(size: Mapping[str, dict]) -> F.SizeCurve | None:
     points = size_points(size)
     if not points:
         return None
-    irls = None
-    if (cl := size.get("classical")) is not None:
-        irls = next((c["metrics"].get("rpe_rot") for c in cl["classical"] if "IRLS" in c["name"]),
-                    None)  # fmt: skip
+    irls = irls_rotation(cl["classical"]) if (cl := size.get("classical")) is not None else None
     spreads = [
         (int(runs[0]["train_pairs"]),
          spread_of(dict(enumerate(runs)), lambda r: r["test"].get("rpe_rot")))
@@ -141,17 +137,11 @@ def para_size(size: Mapping[str, dict]) -> str | None:
     return None if f is None else _render("size", f=f)
 
 
-def _irls_rotation(t2: dict) -> float | None:
-    """The robust continuous method's RPE rotation (rad) in one Table 2 run."""
-    rot = {n: m.get("rpe_rot") for n, m in classical_metrics(t2["classical"]).items()}
-    return next((v for n, v in rot.items() if "IRLS" in n), None)
-
-
 def flow_gain(exact: dict, dis: dict) -> F.FlowGain:
     """What the exact flow changes for each side (:class:`~mfg_lightning.study.findings.
     FlowGain`)."""
-    return F.FlowGain(exact["mfg"]["1"].get("rpe_rot"), dis["mfg"]["1"].get("rpe_rot"),
-                      _irls_rotation(exact), _irls_rotation(dis))  # fmt: skip
+    rot = [r["mfg"]["1"].get("rpe_rot") for r in (exact, dis)]
+    return F.FlowGain(*rot, irls_rotation(exact["classical"]), irls_rotation(dis["classical"]))
 
 
 def table2_contrast(cached: Cached, views: Mapping[int, View]) -> F.Table2Contrast | None:
@@ -161,10 +151,10 @@ def table2_contrast(cached: Cached, views: Mapping[int, View]) -> F.Table2Contra
         return None
     full = spread_of(views, lambda v: at(v, 1.0, "rpe_rot"))
     classical = {n: m.get("rpe_rot") for n, m in classical_metrics(mt["rows"]).items()}
-    irls = next((v for n, v in classical.items() if "IRLS" in n), None)
     best = min((v for v in classical.values() if v is not None), default=None)
-    small = ratio(t2["mfg"]["1"].get("rpe_rot"), _irls_rotation(t2)) if t2 is not None else None
-    return F.Table2Contrast(full, irls, best, small)
+    small = None if t2 is None else ratio(t2["mfg"]["1"].get("rpe_rot"),
+                                          irls_rotation(t2["classical"]))  # fmt: skip
+    return F.Table2Contrast(full, irls_rotation(mt["rows"]), best, small)
 
 
 def para_table2(cached: Cached, views: Mapping[int, View]) -> str | None:
@@ -174,7 +164,7 @@ def para_table2(cached: Cached, views: Mapping[int, View]) -> str | None:
     if t2 is None and exact is None:
         return None
     runs = [{"flow": f, "steps": r["steps"], "mfg": r["mfg"]["1"].get("rpe_rot"),
-             "irls": _irls_rotation(r)}
+             "irls": irls_rotation(r["classical"])}
             for r, f in ((exact, "exact"), (t2, "DIS")) if r is not None]  # fmt: skip
     c = table2_contrast(cached, views)
     return _render(

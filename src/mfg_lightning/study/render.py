@@ -7,8 +7,7 @@ describes (``{{ r | compare }}`` writes "several times worse than" at ×5 and "w
 ×1.2).
 
 A template is written in short lines for its reader; :func:`unwrap` joins a paragraph's lines
-into one Markdown line, as the report has always printed them. A line starting a table (``|``),
-a list item (``- ``) or a heading (``#``) starts a new line, and a blank line stays blank.
+into one Markdown line, as the report has always printed them.
 """
 
 from __future__ import annotations

@@ -29,7 +29,7 @@ from mfg_lightning.study.intervals import BLOCK_PAIRS, BOOTSTRAP_DRAWS, FLOORS
 from mfg_lightning.study.noise import spread_of
 from mfg_lightning.study.render import lines, table
 from mfg_lightning.study.sentences import Judged, Settled, judge_all, seed_views, test_at
-from mfg_lightning.study.settle_report import settle_section
+from mfg_lightning.study.settle_report import converge_section, settle_section
 
 #: The main model's headline numbers: label, measurement on a seed's view, decimals.
 HEADLINE = (
@@ -90,8 +90,10 @@ def _trained_models(
     for seed in study.cfg.seeds.extra:
         if (r := study.cached(f"seeds/seed{int(seed)}")) is not None:
             models[f"main, seed {int(seed)}"] = r
-    for flow, by in settled.seeds.items():
+    for flow, by in settled.budget.items():
         models.update({f"table2 {flow}, seed {s}": r for s, r in sorted(by.items())})
+    for variant, by in settled.converged.items():
+        models.update({f"rotation rule, {variant}, seed {s}": r for s, r in sorted(by.items())})
     models.update({f"table2 strided, seed {s}": r for s, r in sorted(settled.strided.items())})
     models.update({f"size {k}": v for k, v in size.items() if "steps" in v})
     # a run that is the main model's (``same_as``) has the main model's row
@@ -342,7 +344,8 @@ def _causes_sections(
     t2 = causes.table2_flow_section(cached("table2_exact"), cached("table2"))
     stale = {n: cached(n) for n in ("twin", "table2", "table2_exact", "size/classical")}
     twin_lines, size_lines, settle_lines = sections
-    return [*twin_lines, *learned, *settle_lines, *t2, *size_lines, *stale_essential(stale)]
+    rule = converge_section(settled, list(study.cfg.converge.rule))
+    return [*twin_lines, *learned, *settle_lines, *rule, *t2, *size_lines, *stale_essential(stale)]
 
 
 def study_flow_name(study: S.Study) -> str:

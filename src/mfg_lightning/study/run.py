@@ -49,6 +49,8 @@ def _runners(study: S.Study) -> dict[str, Callable[[Any], dict | None]]:
         "settle_classical": lambda flow: T.stage_classical(study, flow),
         "settle": lambda r: T.stage_strided(study, r[1]) if r[0] == "strided" else
         T.stage_seed(study, *r),
+        "converge": lambda r: T.stage_converge(study, *r),
+        "objects": lambda seed: T.stage_objects(study, seed),
         "size": lambda p: stage_size_classical(study) if p is None else stage_size(study, *p),
         "sparsity": lambda v: stage_sparsity(study, *v, study.cached("main")),
         "balance": lambda _: stage_balance(study),

@@ -3,12 +3,9 @@
 Each :class:`Sentence` quotes the paper (section, words) and states how it is measured: a
 quantity, the bound the sentence implies and the direction in which the sentence claims it (a
 sentence that says "without any drop" claims ``ATE(k) / ATE(100 %) ≤ 1``). A sentence is judged
-in parts (per test sequence, per decoder, per flow…); each part is a value with a 95 % interval
-(over seeds, over test pairs by the paired bootstrap, or both) that holds, does not hold or is
-inconclusive against its bound (:mod:`mfg_lightning.study.intervals` states the construction).
-
-What the paper's tables show beyond its sentences (Table 1's ratios at every k, ATE * / ATE †,
-Table 2's ratios, the recipes, the w_s sweep) is printed beside as diagnostics
+in parts (per test sequence, per decoder, per flow…), each a value with a 95 % interval against
+its bound (:mod:`mfg_lightning.study.intervals` states the construction and the outcomes). What
+the paper's tables show beyond its sentences is printed beside as diagnostics
 (:mod:`mfg_lightning.study.claims`), never turned into verdicts.
 
 Where the values come from:
@@ -29,7 +26,6 @@ from typing import Any
 
 import numpy as np
 
-from mfg_lightning.core.tables import fmt
 from mfg_lightning.study.intervals import FLOORS, difference, interval, median_interval
 from mfg_lightning.study.noise import print_precision, ratio, spread_of
 from mfg_lightning.study.objects import object_sentences
@@ -120,25 +116,16 @@ def _s1(views: Mapping[int, View]) -> Judged:
     j = Judged(SENTENCES["S1"])
     if not views:
         return j
-    margins = []
-    for i, s in enumerate(SEQS):
-        p = print_precision(PRINTED_TABLE1[0.05][i], PRINTED_TABLE1[1.0][i])
-        margins.append(p)
-        j.parts.append(
-            _over_seeds(views, f"ATE † {s}", lambda v, s=s: ratio_at(v, 0.05, f"{s}/ate"),
-                        1 + p, "<=")
-        )  # fmt: skip
-    margin = min(margins)
+    margins = [print_precision(PRINTED_TABLE1[0.05][i], PRINTED_TABLE1[1.0][i])
+               for i in range(len(SEQS))]  # fmt: skip
+    for s, p in zip(SEQS, margins, strict=True):
+        j.parts.append(_over_seeds(views, f"ATE † {s}",
+                                   lambda v, s=s: ratio_at(v, 0.05, f"{s}/ate"),
+                                   1 + p, "<="))  # fmt: skip
     for key, label in (("rpe_trans", "RPE translation"), ("rpe_rot", "RPE rotation")):
-        j.parts.append(
-            _over_seeds(views, label, lambda v, key=key: ratio_at(v, 0.05, key), 1 + margin, "<=")
-        )
-    j.beside = (
-        "'Without any drop' is read at the paper's resolution: Table 1 prints 0.012 / 0.012 on "
-        f"09 and 0.013 / 0.013 on 10, which cannot show a drop below {100 * margins[0]:.1f} % "
-        f"and {100 * margins[1]:.1f} %; the bound is 1 plus that (the RPE parts, which Table 1 "
-        "does not print, take the smaller)."
-    )
+        j.parts.append(_over_seeds(views, label, lambda v, key=key: ratio_at(v, 0.05, key),
+                                   1 + min(margins), "<="))  # fmt: skip
+    j.beside = paragraph("beside/s1.md.j2", margins=margins)
     return j
 
 
@@ -179,18 +166,13 @@ def _best_classical(rot: Mapping[str, np.ndarray]) -> str | None:
     return min(rot, key=lambda n: float(rot[n].mean()), default=None)
 
 
-def _table2_beside(settled: Settled) -> str:
-    n = {f: len(settled.seeds[f]) for f in settled.flows()}
-    pairs = sorted(
-        {int(r.get("train_pairs", 0)) for by in settled.seeds.values() for r in by.values()}
-    )
-    return (
-        f"Table 2's setting ({', '.join(f'{p:,}' for p in pairs)} training pairs) at "
-        + ", ".join(f"{n[f]} seeds on {_FLOW_NAME[f]}" for f in n)
-        + ", each trained for the same budget; the classical methods on the same flow and pairs. "
-        "The exact flow is the paper's protocol (its Table 2 used Virtual KITTI's ground-truth "
-        "flow); DIS is the estimated flow the main model reads."
-    )
+def _table2_beside(settled: Settled, same: list[str] | None = None) -> str:
+    """S4's and S6's beside: the 2 × 2's training pairs and seeds per flow (``same``: S6's flows
+    on which k = 15 % keeps every unit)."""
+    pairs = {int(r.get("train_pairs", 0)) for by in settled.seeds.values() for r in by.values()}
+    seeds = {_FLOW_NAME[f]: len(settled.seeds[f]) for f in settled.flows()}
+    return paragraph("beside/table2.md.j2", pairs=sorted(pairs), seeds=seeds, same=same,
+                     reads=settled.reads)  # fmt: skip
 
 
 _FLOW_NAME = {"exact": "exact flow", "dis": "DIS flow"}
@@ -225,18 +207,11 @@ def _s6(settled: Settled) -> Judged:
         best = _best_classical(rot)
         ours = settled.mfg_rot(flow, "0.15")
         if best and ours:
-            j.parts.append(
-                log_ratio_part(f"{_FLOW_NAME[flow]}, MFG at k = 15 % over the best ({best})",
-                               ours, rot[best])
-            )  # fmt: skip
+            label = f"{_FLOW_NAME[flow]}, MFG at k = 15 % over the best ({best})"
+            j.parts.append(log_ratio_part(label, ours, rot[best]))
     if j.parts:
-        j.beside = _table2_beside(settled)
         same = [f for f in settled.flows() if _k_changes_nothing(settled, f, "0.15")]
-        if same:
-            j.beside += (
-                f" On {', '.join(same)} flow k = 15 % keeps every unit that fires (its errors "
-                "are all units' to the last digit), so S6 measures what S4 measures there."
-            )
+        j.beside = _table2_beside(settled, same)
     return j
 
 
@@ -278,20 +253,11 @@ def _s5(settled: Settled, main: Mapping[int, View]) -> Judged:
                for ks in (small, symmetric))  # fmt: skip
     # one tolerance on both sides, beside: the verdict is the rule stated before the 2 × 2 ran
     sym = Part("", sym, step / 2, ">=", scale="log")
-    j.parts.append(
-        Part("smallest k, Table-2-sized set over the main model's", iv, step / 2, ">=",
-             scale="log", note=f"per seed {', '.join(f'{100 * k:g} %' for k in small)} against "
-             f"{', '.join(f'{100 * k:g} %' for k in kitti)}, each within its table's print "
-             f"precision of all units' (Table 2's RPE translation ±{100 * tol2:.2f} %, Table "
-             f"1's ATE ±{100 * tol1:.1f} %); the bound is half the k grid's smallest step; read "
-             f"with Table 1's ±{100 * tol1:.1f} % on both sides (beside, not the verdict) the "
-             f"small set's k are {', '.join(f'{100 * k:g} %' for k in symmetric)} and the ratio "
-             f"{sym.interval_text()}: {sym.verdict} on that reading")
-    )  # fmt: skip
-    j.beside = (
-        "Its k on exact flow (the paper's protocol) against the DIS-trained main model's, as the "
-        "paper set its ground-truth-flow model's against its KITTI (PWC-Net flow) model's."
-    )
+    note = paragraph("beside/s5_note.md.j2", small=small, kitti=kitti, symmetric=symmetric,
+                     tol1=tol1, tol2=tol2, sym=sym)  # fmt: skip
+    j.parts.append(Part("smallest k, Table-2-sized set over the main model's", iv, step / 2, ">=",
+                        scale="log", note=note))  # fmt: skip
+    j.beside = paragraph("beside/s5.md.j2")
     return j
 
 
@@ -332,11 +298,7 @@ def _s7(views: Mapping[int, View]) -> Judged:
             theirs = math.log(ends[0] / ends[1])
             iv = interval([x - theirs for x in logs])
             if iv is not None:
-                beside.append(
-                    f"{kind}, MFG's growth over {found[0]}'s (×{fmt(math.exp(theirs), 2)}): "
-                    f"×{fmt(math.exp(iv.value), 2)} [×{fmt(math.exp(iv.lo), 2)}, "
-                    f"×{fmt(math.exp(iv.hi), 2)}]"
-                )
+                beside.append((kind, found[0], theirs, iv))
     j.beside = paragraph("beside/s7.md.j2", beside=beside)
     return j
 
@@ -355,11 +317,9 @@ def _s8(views: Mapping[int, View], residual: float, one_motion: float) -> Judged
         return j
     for dec, label in (("t", "translational units"), ("omega", "rotational units")):
         fired = spread_of(views, lambda v, dec=dec: v["basis"]["summary"][dec]["fired"])
-        firing = Part(
-            "firing", interval(spread_of(
-                views, lambda v, dec=dec: one_motion_fraction(v, dec, residual, True)).values),
-            one_motion, ">=", domain=(0.0, 1.0),
-        )  # fmt: skip
+        firing = _over_seeds(views, "firing",
+                             lambda v, dec=dec: one_motion_fraction(v, dec, residual, True),
+                             one_motion, ">=", domain=(0.0, 1.0))  # fmt: skip
         j.parts.append(
             _over_seeds(views, f"{label}, all top units",
                         lambda v, dec=dec: one_motion_fraction(v, dec, residual, False),

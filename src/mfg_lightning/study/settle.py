@@ -36,9 +36,12 @@ from torch.utils.data import DataLoader
 from mfg_lightning.study import stages as S
 
 __all__ = [
+    "converge_runs",
     "object_velocity_pairs",
     "seed_runs",
     "stage_classical",
+    "stage_converge",
+    "stage_objects",
     "stage_seed",
     "stage_strided",
     "strided_runs",
@@ -49,6 +52,17 @@ def seed_runs(cfg: DictConfig) -> list[tuple[str, int]]:
     """The 2 × 2's models, ``(flow, seed)``, seed by seed (each seed on every flow before the
     next seed: a study stopped half-way has both flows at as many seeds)."""
     return [(str(f), int(s)) for s in cfg.settle.seeds for f in cfg.settle.flows]
+
+
+#: The variants of stage ``converge``: the 2 × 2's flows, the unclamped weights, the largest set.
+VARIANTS = ("exact", "dis", "unclamped", "largest")
+
+
+def converge_runs(cfg: DictConfig) -> list[tuple[str, int]]:
+    """The converged models, ``(variant, seed)``: each group of ``converge.variants`` seed by
+    seed as :func:`seed_runs`, then the next group."""
+    groups = cfg.converge.variants
+    return [(str(v), int(s)) for g in groups for s in cfg.converge.seeds for v in g]
 
 
 def strided_runs(cfg: DictConfig) -> list[int]:
@@ -69,8 +83,12 @@ def _table2_extra(cfg: DictConfig, flow: str) -> list[str]:
     return [*cfg.table2.overrides, *_flow_overrides(cfg, flow), *cfg.settle.overrides]
 
 
-def _train(study: S.Study, name: str, extra: list[str]) -> dict:
-    """Train (or resume) ``name`` for the equal budget ``settle.steps``."""
+def _train(study: S.Study, name: str, extra: list[str], converge: bool = False) -> dict:
+    """Train (or resume) ``name`` for the equal budget ``settle.steps``, or (``converge``) under
+    ``converge.rule`` capped at ``converge.steps`` and ``converge.max_time``."""
+    c = study.cfg.converge
+    if converge:
+        return study.train(name, [*extra, *c.rule], int(c.steps), c.max_time, last=True)
     steps = int(study.cfg.settle.steps)
     budget = [f"callbacks.convergence.budget_steps={steps}"]
     return study.train(name, [*extra, *budget], steps, study.cfg.budget.get("other_max_time"))
@@ -110,23 +128,72 @@ def stage_seed(study: S.Study, flow: str, seed: int) -> dict:
     MFG's per-pair errors at every ``table2.top_k`` on the test pairs; on the exact flow also
     the object masks and the object velocity (:func:`object_velocity_pairs`), the threshold and
     the filters' constants chosen on validation."""
+    extra = [*_table2_extra(study.cfg, flow), f"seed={seed}"]
+    return _evaluated(study, _train(study, f"settle_{flow}_seed{seed}", extra), flow, seed)
+
+
+def stage_converge(study: S.Study, variant: str, seed: int) -> dict:
+    """``converge/<variant>_seed<n>``: one model of ``converge.variants`` trained under the
+    rotation rule (``converge.rule``), evaluated as :func:`stage_seed` on the 2 × 2's test pairs
+    of its flow (``largest``: the exact ones, all units only, as :func:`stage_strided`)."""
     cfg = study.cfg
-    extra = [*_table2_extra(cfg, flow), f"seed={seed}"]
-    trained = _train(study, f"settle_{flow}_seed{seed}", extra)
+    if variant not in VARIANTS:
+        raise ValueError(f"converge.variants: unknown {variant!r}; known: {', '.join(VARIANTS)}")
+    flow = "dis" if variant == "dis" else "exact"
+    extra = {
+        "unclamped": [*_table2_extra(cfg, flow), *cfg.converge.unclamped],
+        "largest": [
+            *cfg.size.overrides, *cfg.settle.overrides,
+            f"dataset.frame_stride={int(cfg.size.strides[-1])}",
+        ],
+    }.get(variant, _table2_extra(cfg, flow))  # fmt: skip
+    trained = _train(study, f"converge_{variant}_seed{seed}", [*extra, f"seed={seed}"], True)
+    return {**_evaluated(study, trained, flow, seed, variant != "largest"), "variant": variant}
+
+
+def _evaluated(study: S.Study, trained: dict, flow: str, seed: int, full: bool = True) -> dict:
+    """A trained model's result on the 2 × 2's test pairs of ``flow``: MFG's per-pair errors at
+    every ``table2.top_k`` and, on the exact flow, the objects (:func:`object_velocity_pairs`);
+    all units only when not ``full``."""
     model = study.model(trained)
     dm, test = _test_loader(study, flow)
+    train_cfg = study.train_config(trained["name"], list(trained["overrides"]), 1)
+    ks = [float(k) for k in study.cfg.table2.top_k] if full else [1.0]
     out = {
         **trained,
         "flow": flow,
         "seed": seed,
-        "train_pairs": len(dm.dataset("train")),
+        "train_pairs": len(study.datamodule(train_cfg, ("train",)).dataset("train")),
         "test_pairs": len(test.dataset),
-        "mfg": mfg_pairs(model, test, [float(k) for k in cfg.table2.top_k]),
+        "mfg": mfg_pairs(model, test, ks),
     }
-    if flow == "exact":
-        val = study.loader(dm, "val", forward_only=True)
-        out["objects"] = object_velocity_pairs(study, model, val, test)
+    if flow == "exact" and full:
+        out["objects"] = object_velocity_pairs(study, model, study.loader(dm, "val", True), test)
     return out
+
+
+def stage_objects(study: S.Study, seed: int) -> dict | None:
+    """``objects/seed<n>``: the converged exact-flow model of ``seed`` (``converge/exact_seed<n>``;
+    None until it exists) on the object test set (``objects.world``: Table 2's test pairs in
+    worlds with more movers), the threshold and the filters' constants chosen on Table 2's
+    validation over ``objects.filter_grid`` (:func:`object_velocity_pairs`)."""
+    cfg = study.cfg
+    if (trained := study.cached(f"converge/exact_seed{seed}")) is None:
+        return None
+    extra = [*_table2_extra(cfg, "exact"), *cfg.objects.world]
+    dm, _ = _test_loader(study, "exact")
+    objects_dm = study.datamodule(study.train_config("objects", extra, 1), ("test",))
+    if getattr(objects_dm.dataset("test"), "crossing", None) is None:
+        raise ValueError(
+            f"objects.world: {list(cfg.objects.world)} renders no object crossing the road "
+            "(it needs rendered worlds, flow=dis, and dataset.world.crossing_per_100m > 0)"
+        )
+    test = study.loader(objects_dm, "test", forward_only=True)
+    val = study.loader(dm, "val", forward_only=True)
+    grid = S.to_container(cfg.objects.filter_grid)
+    objects = object_velocity_pairs(study, study.model(trained), val, test, grid)
+    return {"model": trained["name"], "seed": seed, "world": list(cfg.objects.world),
+            "test_pairs": len(test.dataset), "objects": objects}  # fmt: skip
 
 
 def stage_classical(study: S.Study, flow: str) -> dict:
@@ -155,18 +222,8 @@ def stage_strided(study: S.Study, seed: int) -> dict:
         *cfg.size.overrides, *cfg.settle.overrides, f"dataset.frame_stride={stride}",
         f"seed={seed}",
     ]  # fmt: skip
-    name = f"settle_strided_seed{seed}"
-    trained = _train(study, name, extra)
-    dm = study.datamodule(study.train_config(name, extra, 1))
-    _, test = _test_loader(study, "exact")
-    return {
-        **trained,
-        "stride": stride,
-        "seed": seed,
-        "train_pairs": len(dm.dataset("train")),
-        "test_pairs": len(test.dataset),
-        "mfg": mfg_pairs(study.model(trained), test, [1.0]),
-    }
+    trained = _train(study, f"settle_strided_seed{seed}", extra)
+    return {**_evaluated(study, trained, "exact", seed, full=False), "stride": stride}
 
 
 # --------------------------------------------------------------------------------------------
@@ -192,7 +249,7 @@ def _bin_of(x: np.ndarray, edges: list[float]) -> np.ndarray:
 
 @torch.no_grad()
 def object_velocity_pairs(
-    study: S.Study, model: Any, val: DataLoader, test: DataLoader
+    study: S.Study, model: Any, val: DataLoader, test: DataLoader, grid: Any = None
 ) -> dict[str, Any]:
     """The object masks and the object velocity of the paper's filters and of the plain
     threshold, per test pair, both chosen on validation
@@ -219,7 +276,7 @@ def object_velocity_pairs(
     om = cfg.object_motion
     child = study.train_config("settle_objects", list(cfg.table2.overrides), 1)
     base = instantiate(child.object_motion)
-    grid = S.to_container(om.get("filter_grid")) or FILTER_GRID
+    grid = grid or S.to_container(om.get("filter_grid")) or FILTER_GRID
     chosen = choose_threshold(model, val, base, [float(x) for x in om.thresholds], "flow")
     filters = choose_filters(model, val, base, grid, "flow")
     tuned = dataclasses.replace(

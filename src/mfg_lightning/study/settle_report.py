@@ -31,6 +31,7 @@ __all__ = [
     "FAILURE_RAD",
     "block_errors",
     "contiguous_against_strided",
+    "converge_section",
     "para_settle",
     "settle_section",
 ]
@@ -133,9 +134,10 @@ def contiguous_against_strided(settled: Settled) -> tuple[Interval, dict[str, An
     """log(strided MFG's mean rotation error / contiguous MFG's), both on the exact flow and the
     same test pairs: the difference of the two sets of seeds' mean log errors, its interval t
     over each set of seeds added in quadrature (a conservative stand-in for Welch's interval:
-    the models differ, so there is no pairing).
+    the models differ, so there is no pairing). The contiguous side is the equal budget's, as
+    the strided seeds' (whatever models the verdicts read).
     Returns it and each side's seeds, training pairs and log errors."""
-    contiguous = settled.seeds.get("exact") or {}
+    contiguous = settled.budget.get("exact") or {}
     if min(len(contiguous), len(settled.strided)) < MIN_SEEDS:
         return None
     sides = {}
@@ -210,7 +212,7 @@ def settle_section(settled: Settled) -> tuple[list[str], Any]:
         ]  # fmt: skip
         mean = "geometric mean of the seeds' mean rotation error (rad)"
         cs_table = table(("training pairs", "seeds", "pairs", mean), rows)
-        frames = (_training_frames(settled.seeds["exact"]), _training_frames(settled.strided))
+        frames = (_training_frames(settled.budget["exact"]), _training_frames(settled.strided))
     mixed = mixed_reading(settled)
     text = lines(
         "report/settle.md.j2", some=some, seeds=", ".join(f"{len(settled.seeds[f])} on {f}"
@@ -218,9 +220,61 @@ def settle_section(settled: Settled) -> tuple[list[str], Any]:
         (some.get("convergence") or {}).get("rule", {}).get("decay_fraction") or 0),
         failure=FAILURE_RAD, printed=PRINTED_TABLE2_ROT, table=table(heads, _rows(settled)),
         block=BLOCK_PAIRS, blocks=_block_text(settled), cs=cs, cs_table=cs_table, frames=frames,
-        mixed=_ratio_text(mixed) if mixed is not None else "",
+        mixed=_ratio_text(mixed) if mixed is not None else "", reads=settled.reads,
+        met=_met(settled.seeds), n=sum(map(len, settled.seeds.values())),
     )  # fmt: skip
     return text, _figure(settled)
+
+
+def _met(by: dict[Any, dict[int, dict]]) -> int:
+    """How many of the runs (``{key: {seed: result}}``) met their convergence rule."""
+    return sum(bool(r["convergence"].get("converged")) for runs in by.values()
+               for r in runs.values())  # fmt: skip
+
+
+def _logs(runs: dict[int, dict]) -> list[float]:
+    """Each seed's log mean rotation error (all units)."""
+    return [math.log(float(np.mean(r["mfg"]["1"]["rot_err"]))) for _, r in sorted(runs.items())]
+
+
+def converge_section(settled: Settled, rule: Sequence[str] = ()) -> list[str]:
+    """The models trained under the rotation rule (stage ``converge``, ``rule``: its overrides)
+    beside their references: per variant, its steps, how many met the rule, MFG's mean rotation
+    error (all units) over IRLS's on the same pairs (:func:`log_ratio_part`) and over its
+    reference's, the difference of the seeds' mean log errors (:func:`difference`); the
+    reference is the equal budget on the same flow, or for a variant that changes something
+    else (``unclamped``, ``largest``) the converged exact-flow models."""
+    rows, found = [], []
+    for variant, runs in settled.converged.items():
+        if not runs:
+            continue
+        flow = next(iter(runs.values()))["flow"]
+        budget = variant in settled.budget
+        ref = settled.budget[variant] if budget else settled.converged.get("exact", {})
+        rot = settled.classical_rot(flow) if flow in settled.classical else {}
+        irls = next((e for n, e in rot.items() if IRLS in n), None)
+        errs = [np.asarray(r["mfg"]["1"]["rot_err"]) for _, r in sorted(runs.items())]
+        part = log_ratio_part(variant, errs, irls) if irls is not None else None
+        enough = min(len(runs), len(ref)) >= MIN_SEEDS and ref is not runs
+        moved = difference(_logs(runs), _logs(ref)) if enough else None
+        steps = sorted(int(r["steps"]) for r in runs.values())
+        met = _met({variant: runs})
+        f = {"variant": variant, "flow": flow, "budget": budget, "moved": moved,
+             "irls": _ratio_text(part) if part else "–", "part": part}  # fmt: skip
+        found.append(f)
+        rows.append([
+            variant, _FLOW[flow], str(len(runs)), f"{steps[0]:,}–{steps[-1]:,}",
+            f"{met} of {len(runs)}", _sig(math.exp(statistics.fmean(_logs(runs)))), f["irls"],
+            "–" if moved is None else f"×{math.exp(moved.value):.3f} [×{math.exp(moved.lo):.3f}, "
+            f"×{math.exp(moved.hi):.3f}]",
+        ])  # fmt: skip
+    if not rows:
+        return []
+    heads = ("variant", "flow", "seeds", "steps", "met the rule",
+             "geometric mean rotation error (rad)", "over IRLS", "over its reference")  # fmt: skip
+    text = lines("report/rotation_rule.md.j2", rule=list(rule), table=table(heads, rows),
+                 found=found, reads=settled.reads)  # fmt: skip
+    return [*text, ""]
 
 
 def para_settle(settled: Settled, data: Sequence[str] = ()) -> str | None:
@@ -242,7 +296,7 @@ def para_settle(settled: Settled, data: Sequence[str] = ()) -> str | None:
                           "irls": irls_mean, "part": p, "text": _ratio_text(p)})  # fmt: skip
     more = 0
     if (cs := contiguous_against_strided(settled)) is not None:
-        seqs = [_sequences(settled.seeds["exact"], data), _sequences(settled.strided, data)]
+        seqs = [_sequences(settled.budget["exact"], data), _sequences(settled.strided, data)]
         # a caveat to the reading where the sets also differ in how many sequences they draw on
         more = len(seqs[1]) - len(seqs[0]) if None not in seqs else 0  # type: ignore[arg-type]
     return paragraph("reading/settle.md.j2", flows=flows, cs=cs, more=more)

@@ -155,10 +155,13 @@ class Study:
         cfg = self.train_config("main", [*extra, CENTRAL_OFFSETS], 1)
         return self.datamodule(cfg, splits=("test",))
 
-    def train(self, name: str, extra: list[str], steps: int, max_time: str | None = None) -> Result:
+    def train(
+        self, name: str, extra: list[str], steps: int, max_time: str | None = None,
+        last: bool = False,
+    ) -> Result:  # fmt: skip
         """Train (or resume) model ``name`` under the convergence rule, capped at ``steps`` and
-        ``max_time``; its best checkpoint by ``val/ate``, the steps it ran, whether it converged
-        (and why it stopped), its validation curve."""
+        ``max_time``; its best checkpoint by ``val/ate`` (``last``, or under an equal budget:
+        the last), the steps it ran, whether it converged (and why it stopped), its curve."""
         from mfg_lightning.run.training import train
 
         cfg = self.train_config(name, extra, steps, max_time)
@@ -167,9 +170,10 @@ class Study:
         start = time.perf_counter()
         train(cfg)
         seconds = time.perf_counter() - start
-        if cfg.callbacks.convergence.get("budget_steps"):
-            # an equal budget: the schedule's end is the model, nothing is selected
-            chosen, selected_on = out / "checkpoints" / "last.ckpt", "last (equal budget)"
+        if last or cfg.callbacks.convergence.get("budget_steps"):
+            # the schedule's end is the model, nothing is selected
+            why = "equal budget" if not last else f"rule on {cfg.callbacks.convergence.monitor}"
+            chosen, selected_on = out / "checkpoints" / "last.ckpt", f"last ({why})"
         else:
             chosen, selected_on = chosen_checkpoint(out)
         status = json.loads((out / "convergence.json").read_text())
@@ -220,7 +224,7 @@ class Study:
             log.warning("%s: not on this machine; training %s again", path, trained["name"])
             again = self.train(
                 trained["name"], list(trained["overrides"]), trained["step_cap"],
-                trained.get("time_cap"),
+                trained.get("time_cap"), trained["selected_on"].startswith("last (rule"),
             )  # fmt: skip
             path = self.checkpoint(again)
         return module_from_checkpoint(str(path)).eval()
