@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from mfg_lightning.core.tables import fmt
-from mfg_lightning.study.intervals import BLOCK_PAIRS, Interval, bootstrap_se, difference
+from mfg_lightning.study.intervals import BLOCK_PAIRS, Interval, bootstrap_se, difference, interval
 from mfg_lightning.study.render import lines, paragraph, table
 from mfg_lightning.study.sentences import (
     IRLS,
@@ -241,7 +241,7 @@ def converge_section(settled: Settled, rule: Sequence[str] = ()) -> list[str]:
     """The models trained under the rotation rule (stage ``converge``, ``rule``: its overrides)
     beside their references: per variant, its steps, how many met the rule, MFG's mean rotation
     error (all units) over IRLS's on the same pairs (:func:`log_ratio_part`) and over its
-    reference's, the difference of the seeds' mean log errors (:func:`difference`); the
+    reference's, paired by seed (t over the seeds' log ratios, :func:`interval`); the
     reference is the equal budget on the same flow, or for a variant that changes something
     else (``unclamped``, ``largest``) the converged exact-flow models."""
     rows, found = [], []
@@ -255,8 +255,11 @@ def converge_section(settled: Settled, rule: Sequence[str] = ()) -> list[str]:
         irls = next((e for n, e in rot.items() if IRLS in n), None)
         errs = [np.asarray(r["mfg"]["1"]["rot_err"]) for _, r in sorted(runs.items())]
         part = log_ratio_part(variant, errs, irls) if irls is not None else None
-        enough = min(len(runs), len(ref)) >= MIN_SEEDS and ref is not runs
-        moved = difference(_logs(runs), _logs(ref)) if enough else None
+        # paired by seed: a seed fixes the initialisation and the data order, which both runs
+        # share (under the rule and the equal budget they are identical to step 5,400)
+        common = sorted(set(runs) & set(ref)) if ref is not runs else []
+        pairs = [_logs({0: runs[s]})[0] - _logs({0: ref[s]})[0] for s in common]
+        moved = interval(pairs) if len(pairs) >= MIN_SEEDS else None
         steps = sorted(int(r["steps"]) for r in runs.values())
         met = _met({variant: runs})
         f = {"variant": variant, "flow": flow, "budget": budget, "moved": moved,
