@@ -119,6 +119,11 @@ def test_tiny_study_runs_resumes_and_rebuilds_from_committed_results(tmp_path: P
     # 20, and the 2 × 2's: the classical methods, two seeds and one strided seed; the rotation
     # rule's 3 variants at 2 seeds and the object test set's 2 evaluations
     assert len(stage_files) == 32
+    # a rule on validation rotation evaluates the schedule's end: the best checkpoints rank val/ate
+    for f in ("exact_seed0", "unclamped_seed1", "largest_seed0"):
+        rule = json.loads((results / "converge" / f"{f}.json").read_text())
+        assert rule["selected_on"] == "last (rule on val/rot_err)", f
+        assert rule["checkpoint"].endswith("checkpoints/last.ckpt"), f
     for f in stage_files:
         assert str(tmp_path) not in (results / f).read_text(), f
 

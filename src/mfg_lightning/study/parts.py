@@ -183,8 +183,7 @@ class Settled:
     (``converge/<variant>_seed<n>``). ``seeds`` (what the verdicts read) holds the converged
     models once every flow has all of ``converge.seeds`` (the exact ones' objects then those of
     the object test set, ``objects/seed<n>``, once it has run at every seed), else the equal
-    budget's
-    (``settle/<flow>_seed<n>``, also in ``budget``); ``reads`` names which."""
+    budget's (``settle/<flow>_seed<n>``, also in ``budget``); ``reads`` names which."""
 
     seeds: dict[str, dict[int, dict]] = field(default_factory=dict)
     classical: dict[str, dict] = field(default_factory=dict)

@@ -344,7 +344,8 @@ def _causes_sections(
     t2 = causes.table2_flow_section(cached("table2_exact"), cached("table2"))
     stale = {n: cached(n) for n in ("twin", "table2", "table2_exact", "size/classical")}
     twin_lines, size_lines, settle_lines = sections
-    rule = converge_section(settled, list(study.cfg.converge.rule))
+    clamp = config_default("model.loss.balance_max")
+    rule = converge_section(settled, list(study.cfg.converge.rule), clamp)
     return [*twin_lines, *learned, *settle_lines, *rule, *t2, *size_lines, *stale_essential(stale)]
 
 

@@ -88,7 +88,7 @@ def _train(study: S.Study, name: str, extra: list[str], converge: bool = False) 
     ``converge.rule`` capped at ``converge.steps`` and ``converge.max_time``."""
     c = study.cfg.converge
     if converge:
-        return study.train(name, [*extra, *c.rule], int(c.steps), c.max_time, last=True)
+        return study.train(name, [*extra, *c.rule], int(c.steps), c.max_time)
     steps = int(study.cfg.settle.steps)
     budget = [f"callbacks.convergence.budget_steps={steps}"]
     return study.train(name, [*extra, *budget], steps, study.cfg.budget.get("other_max_time"))

@@ -142,7 +142,7 @@ def contiguous_against_strided(settled: Settled) -> tuple[Interval, dict[str, An
         return None
     sides = {}
     for name, runs in (("contiguous", contiguous), ("strided", settled.strided)):
-        logs = [math.log(float(np.mean(r["mfg"]["1"]["rot_err"]))) for _, r in sorted(runs.items())]
+        logs = _logs(runs)
         pairs = sorted({int(r["train_pairs"]) for r in runs.values()})
         sides[name] = {"logs": logs, "seeds": len(logs), "train_pairs": pairs}
     return difference(sides["strided"]["logs"], sides["contiguous"]["logs"]), sides
@@ -232,18 +232,23 @@ def _met(by: dict[Any, dict[int, dict]]) -> int:
                for r in runs.values())  # fmt: skip
 
 
+def _log_err(r: dict) -> float:
+    """A run's log mean rotation error (all units)."""
+    return math.log(float(np.mean(r["mfg"]["1"]["rot_err"])))
+
+
 def _logs(runs: dict[int, dict]) -> list[float]:
-    """Each seed's log mean rotation error (all units)."""
-    return [math.log(float(np.mean(r["mfg"]["1"]["rot_err"]))) for _, r in sorted(runs.items())]
+    """Each seed's log mean rotation error, by seed."""
+    return [_log_err(r) for _, r in sorted(runs.items())]
 
 
-def converge_section(settled: Settled, rule: Sequence[str] = ()) -> list[str]:
-    """The models trained under the rotation rule (stage ``converge``, ``rule``: its overrides)
-    beside their references: per variant, its steps, how many met the rule, MFG's mean rotation
-    error (all units) over IRLS's on the same pairs (:func:`log_ratio_part`) and over its
-    reference's, paired by seed (t over the seeds' log ratios, :func:`interval`); the
-    reference is the equal budget on the same flow, or for a variant that changes something
-    else (``unclamped``, ``largest``) the converged exact-flow models."""
+def converge_section(settled: Settled, rule: Sequence[str] = (), clamp: Any = None) -> list[str]:
+    """The models trained under the rotation rule (stage ``converge``, ``rule``: its overrides;
+    ``clamp``: the balancing weights' clamp that ``unclamped`` lifts) beside their references:
+    per variant, its steps, how many met the rule, MFG's mean rotation error (all units) over
+    IRLS's on the same pairs (:func:`log_ratio_part`) and over its reference's, paired by seed
+    (t over the seeds' log ratios, :func:`interval`); the reference is the equal budget on the
+    same flow, or for a variant that changes something else the converged exact-flow models."""
     rows, found = [], []
     for variant, runs in settled.converged.items():
         if not runs:
@@ -256,9 +261,10 @@ def converge_section(settled: Settled, rule: Sequence[str] = ()) -> list[str]:
         errs = [np.asarray(r["mfg"]["1"]["rot_err"]) for _, r in sorted(runs.items())]
         part = log_ratio_part(variant, errs, irls) if irls is not None else None
         # paired by seed: a seed fixes the initialisation and the data order, which both runs
-        # share (under the rule and the equal budget they are identical to step 5,400)
+        # share (under the rule and the equal budget they are identical until the budget's
+        # decay begins)
         common = sorted(set(runs) & set(ref)) if ref is not runs else []
-        pairs = [_logs({0: runs[s]})[0] - _logs({0: ref[s]})[0] for s in common]
+        pairs = [_log_err(runs[s]) - _log_err(ref[s]) for s in common]
         moved = interval(pairs) if len(pairs) >= MIN_SEEDS else None
         steps = sorted(int(r["steps"]) for r in runs.values())
         met = _met({variant: runs})
@@ -276,7 +282,7 @@ def converge_section(settled: Settled, rule: Sequence[str] = ()) -> list[str]:
     heads = ("variant", "flow", "seeds", "steps", "met the rule",
              "geometric mean rotation error (rad)", "over IRLS", "over its reference")  # fmt: skip
     text = lines("report/rotation_rule.md.j2", rule=list(rule), table=table(heads, rows),
-                 found=found, reads=settled.reads)  # fmt: skip
+                 found=found, reads=settled.reads, clamp=clamp)  # fmt: skip
     return [*text, ""]
 
 

@@ -155,13 +155,10 @@ class Study:
         cfg = self.train_config("main", [*extra, CENTRAL_OFFSETS], 1)
         return self.datamodule(cfg, splits=("test",))
 
-    def train(
-        self, name: str, extra: list[str], steps: int, max_time: str | None = None,
-        last: bool = False,
-    ) -> Result:  # fmt: skip
+    def train(self, name: str, extra: list[str], steps: int, max_time: str | None = None) -> Result:
         """Train (or resume) model ``name`` under the convergence rule, capped at ``steps`` and
-        ``max_time``; its best checkpoint by ``val/ate`` (``last``, or under an equal budget:
-        the last), the steps it ran, whether it converged (and why it stopped), its curve."""
+        ``max_time``; its best checkpoint by ``val/ate`` (the last under an equal budget or a
+        rule on another metric), the steps it ran, whether it converged and why, its curve."""
         from mfg_lightning.run.training import train
 
         cfg = self.train_config(name, extra, steps, max_time)
@@ -170,9 +167,11 @@ class Study:
         start = time.perf_counter()
         train(cfg)
         seconds = time.perf_counter() - start
-        if last or cfg.callbacks.convergence.get("budget_steps"):
-            # the schedule's end is the model, nothing is selected
-            why = "equal budget" if not last else f"rule on {cfg.callbacks.convergence.monitor}"
+        rule = cfg.callbacks.convergence
+        if rule.get("budget_steps") or rule.monitor != cfg.callbacks.model_checkpoint.monitor:
+            # the schedule's end is the model, nothing is selected (the best checkpoints rank a
+            # metric a rule on another one does not watch)
+            why = "equal budget" if rule.get("budget_steps") else f"rule on {rule.monitor}"
             chosen, selected_on = out / "checkpoints" / "last.ckpt", f"last ({why})"
         else:
             chosen, selected_on = chosen_checkpoint(out)
@@ -224,7 +223,7 @@ class Study:
             log.warning("%s: not on this machine; training %s again", path, trained["name"])
             again = self.train(
                 trained["name"], list(trained["overrides"]), trained["step_cap"],
-                trained.get("time_cap"), trained["selected_on"].startswith("last (rule"),
+                trained.get("time_cap"),
             )  # fmt: skip
             path = self.checkpoint(again)
         return module_from_checkpoint(str(path)).eval()
