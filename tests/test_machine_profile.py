@@ -212,6 +212,23 @@ def test_concrete_settings_measure_nothing(tmp_path: Path) -> None:
     assert not (tmp_path / "cache").exists()
 
 
+def test_the_log_line_says_auto_only_where_auto_was_resolved(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A run given ``trainer.precision=32-true`` with ``conv_impl=auto`` measures its kernels
+    only; its log line names the precision as given, not as ``auto``'s answer (the study's
+    Table 2 runs read "precision=auto -> 32-true" while nothing had chosen it)."""
+    with caplog.at_level(logging.INFO):
+        resolve_run_choices(_tiny_cfg(tmp_path, "trainer.precision=32-true"))
+    (line,) = [r.getMessage() for r in caplog.records if "machine profile" in r.getMessage()]
+    assert "precision=32-true as given, float32 kernels" in line and "auto" not in line
+    caplog.clear()
+    with caplog.at_level(logging.INFO):
+        resolve_run_choices(_tiny_cfg(tmp_path))
+    (line,) = [r.getMessage() for r in caplog.records if "machine profile" in r.getMessage()]
+    assert "precision=auto -> " in line
+
+
 def _test_metrics(run: Path) -> dict[str, float | None]:
     metrics = json.loads((run / "metrics.json").read_text())["metrics"]
     return {k: v for k, v in metrics.items() if k.startswith("test/")}

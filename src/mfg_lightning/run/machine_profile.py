@@ -50,7 +50,7 @@ from torch import Tensor, nn
 from mfg_lightning.core.atomic import atomic_write_text
 from mfg_lightning.core.machine import cpu_flags, cpu_model, describe_cpu, isa_caps
 from mfg_lightning.models.conv import SwitchableConv2d, layer_inputs, switchable_layers
-from mfg_lightning.run.precision import cpu_has_native_bf16
+from mfg_lightning.run.precision import PRECISION_AUTO, cpu_has_native_bf16
 
 log = logging.getLogger(__name__)
 
@@ -438,13 +438,16 @@ def machine_profile(
         return profile, False
 
 
-def describe(profile: Profile, read: bool) -> str:
-    """One log line: where the choice came from and what it is."""
+def describe(profile: Profile, read: bool, given: str = PRECISION_AUTO) -> str:
+    """One log line: where the choice came from and what it is (``given``: the run's
+    ``trainer.precision``; only ``auto`` is resolved by the profile, any other value just picks
+    the kernels' dtype)."""
     how = "read" if read else f"measured in {profile.seconds:.1f} s"
+    choice = (f"precision=auto -> {profile.precision}" if given == PRECISION_AUTO
+              else f"precision={given} as given, {'/'.join(profile.conv)} kernels")  # fmt: skip
     return (
         f"machine profile ({how}; {describe_cpu()}, {profile.key['threads']} threads, batch "
-        f"{profile.key['batch']}): precision=auto -> {profile.precision}"
-        f"{', disturbed: defaults' if profile.disturbed else ''}"
+        f"{profile.key['batch']}): {choice}{', disturbed: defaults' if profile.disturbed else ''}"
     )
 
 

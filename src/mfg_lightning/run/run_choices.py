@@ -188,7 +188,7 @@ def measure_machine(
         keep_freed_memory()
     cache_dir = cfg.paths.get("cache_dir")
     profile, read = machine_profile(cache_dir, key, dtypes, build_net, again, progress)
-    log.info(describe(profile, read))
+    log.info(describe(profile, read, given))
     return profile, None if cache_dir is None else profile_path(cache_dir, key)
 
 
