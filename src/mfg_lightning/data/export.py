@@ -335,7 +335,7 @@ def export(cfg: DictConfig, progress: bool = True) -> dict[str, Any]:
     from hydra.utils import get_class, instantiate
     from tqdm.auto import tqdm
 
-    from mfg_lightning.data.rendered import crossing_config, generate_world, world_config
+    from mfg_lightning.data.rendered_worlds import crossing_config, generate_world, world_config
     from mfg_lightning.data.synthetic import SyntheticDataModule
     from mfg_lightning.data.vkitti_files import normalize_version
     from mfg_lightning.scene.render import render_frame

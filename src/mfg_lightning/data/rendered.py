@@ -19,6 +19,12 @@ import torch
 from mfg_lightning.data import transforms
 from mfg_lightning.data.driving import TrajectoryDataset
 from mfg_lightning.data.rendered_preparation import prepare_pairs
+from mfg_lightning.data.rendered_worlds import (
+    crossing_config,
+    crossing_module,
+    generate_world,
+    world_config,
+)
 from mfg_lightning.data.sample import sanitize_flow
 from mfg_lightning.data.sample_cache import MemoryBudget, SampleStore, source_digest
 from mfg_lightning.flow.estimators import (
@@ -193,7 +199,7 @@ class RenderedDrivingDataset(TrajectoryDataset):
             },
             # the crossings' module only where there are crossings: a world without them does
             # not depend on it
-            "renderer": source_digest(worlds, render, *_crossing_module(self.crossing)),
+            "renderer": source_digest(worlds, render, *crossing_module(self.crossing)),
             "torch": torch.__version__,
             "numpy": np.__version__,
         }
@@ -488,56 +494,3 @@ def flow_render_size(flow: EstimatedFlow, model_hw: tuple[int, int]) -> tuple[in
                 "least at the input size (default 192 × 512)"
             )
     return hw
-
-
-def world_config(fields: dict[str, Any]) -> Any:
-    """``dataset.world`` → :class:`~mfg_lightning.scene.worlds.WorldConfig` (None: defaults),
-    the crossings' keys (:data:`mfg_lightning.scene.crossing.KEYS`) left to
-    :func:`crossing_config`."""
-    worlds, _ = _renderer()
-    import dataclasses
-
-    from mfg_lightning.scene.crossing import KEYS
-
-    known = {f.name for f in dataclasses.fields(worlds.WorldConfig)}
-    unknown = sorted(set(fields) - known - set(KEYS))
-    if unknown:
-        raise ValueError(
-            f"unknown dataset.world setting(s) {unknown}; known: {sorted(known | set(KEYS))}"
-        )
-    own = {k: tuple(v) if isinstance(v, list) else v for k, v in fields.items() if k in known}
-    return worlds.WorldConfig(**own) if own else None
-
-
-def crossing_config(fields: dict[str, Any]) -> Any:
-    """The crossing objects of ``dataset.world``
-    (:class:`~mfg_lightning.scene.crossing.CrossingConfig`; None: none)."""
-    if not fields:
-        return None
-    from mfg_lightning.scene.crossing import split_world_fields
-
-    return split_world_fields(fields)[1]
-
-
-def _crossing_module(crossing: Any) -> tuple[Any, ...]:
-    """The crossings' module where a dataset has crossings (part of its cache key), else ()."""
-    if crossing is None:
-        return ()
-    from mfg_lightning.scene import crossing as module
-
-    return (module,)
-
-
-def generate_world(
-    poses: torch.Tensor, seed: int, name: str, config: Any = None, crossing: Any = None
-) -> Any:
-    """The persistent world of one trajectory
-    (:meth:`mfg_lightning.scene.worlds.World.generate`), with ``crossing``'s objects crossing
-    the road added (:func:`mfg_lightning.scene.crossing.with_crossings`; None: none)."""
-    worlds, _ = _renderer()
-    world = worlds.World.generate(poses, seed=seed, name=name, config=config)
-    if crossing is None:
-        return world
-    from mfg_lightning.scene.crossing import with_crossings
-
-    return with_crossings(world, crossing)

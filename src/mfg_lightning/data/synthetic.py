@@ -38,13 +38,9 @@ from mfg_lightning.data.base import (
 )
 from mfg_lightning.data.driving import SyntheticDrivingDataset
 from mfg_lightning.data.prefetch import Prefetcher, check_prefetch
-from mfg_lightning.data.rendered import (
-    RenderedDrivingDataset,
-    crossing_config,
-    flow_render_size,
-    world_config,
-)
+from mfg_lightning.data.rendered import RenderedDrivingDataset, flow_render_size
 from mfg_lightning.data.rendered_preparation import MIN_CHUNK_PAIRS, prepare_pairs
+from mfg_lightning.data.rendered_worlds import crossing_config, world_config
 from mfg_lightning.data.resumable_loader import ResumableDataLoader
 from mfg_lightning.data.sample_cache import MemoryBudget, SampleCacheSettings
 from mfg_lightning.flow.estimators import (
