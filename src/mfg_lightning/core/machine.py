@@ -78,11 +78,15 @@ def describe_cpu() -> str:
 
 
 def cpu_kind() -> str:
-    """The CPU's vector kind, which sets the speed of every CPU figure: ``avx512_bf16`` (AVX-512
-    with native bfloat16, where ``precision=auto`` picks bf16-mixed), ``avx512``, ``avx2``, else
-    the machine name (a non-Linux system or another architecture)."""
+    """The CPU's vector kind, which sets the speed of every CPU figure: ``amx_bf16`` (AMX tiles
+    beside AVX512-BF16: Intel's Sapphire Rapids and later), ``avx512_bf16`` (AVX-512 with native
+    bfloat16 but no AMX, e.g. AMD's Zen 4), ``avx512``, ``avx2``, else the machine name (a
+    non-Linux system or another architecture). AMX is named apart because it, not AVX512-BF16,
+    gives bf16-mixed its large speed-up (``docs/precision.md`` measures both kinds)."""
     flags = _cpuinfo()[1]
-    for kind, flag in (("avx512_bf16", "avx512_bf16"), ("avx512", "avx512f"), ("avx2", "avx2")):
+    kinds = (("amx_bf16", "amx_bf16"), ("avx512_bf16", "avx512_bf16"), ("avx512", "avx512f"),
+             ("avx2", "avx2"))  # fmt: skip
+    for kind, flag in kinds:
         if flag in flags:
             return kind
     return platform.machine() or "unknown"
