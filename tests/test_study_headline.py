@@ -36,7 +36,11 @@ def test_the_headline_names_the_part_that_decides() -> None:
     assert "| fails: 1.700 [1.500, 1.900] ≤ 1.000 | 1 of 2 do not hold | does not hold |" in row
     # inconclusive: the part Holm's procedure stopped at (the most decisive undecided one)
     row = _row(_part("wide", 0.0, 3.0), _part("close", 0.95, 1.25))
-    assert "| close: 1.100 [0.950, 1.250] ≤ 1.000 | 2 of 2 inconclusive | inconclusive |" in row
+    # at the level Holm's procedure judged it, printed beside the 95 % interval
+    assert (
+        "| close: 1.100 [0.950, 1.250] ≤ 1.000; at Holm's 97.50 %: [0.911, 1.289] "
+        "| 2 of 2 inconclusive | inconclusive |"
+    ) in row
     assert row.count("|") == 6  # one line, one part
     # partly: the parts that hold are counted, the rest being inconclusive by definition
     row = _row(_part("far", 0.1, 0.2), _part("near", 0.2, 0.3), _part("wide", 0.0, 3.0))
