@@ -38,13 +38,13 @@ def test_the_headline_names_the_part_that_decides() -> None:
     row = _row(_part("wide", 0.0, 3.0), _part("close", 0.95, 1.25))
     # at the level Holm's procedure judged it, printed beside the 95 % interval
     assert (
-        "| close: 1.100 [0.950, 1.250] ≤ 1.000; at Holm's 97.50 %: [0.911, 1.289] "
+        "| close: 1.100 [0.950, 1.250] ≤ 1.000; judged at 97.50 % (Holm): [0.911, 1.289] "
         "| 2 of 2 inconclusive | inconclusive |"
     ) in row
     assert row.count("|") == 6  # one line, one part
-    # partly: the parts that hold are counted, the rest being inconclusive by definition
+    # partly: the parts counted by verdict
     row = _row(_part("far", 0.1, 0.2), _part("near", 0.2, 0.3), _part("wide", 0.0, 3.0))
-    assert "| 2 of 3 hold, the others inconclusive | partly |" in row
+    assert "| 2 of 3 hold, 1 inconclusive | partly |" in row
 
 
 def _learned(rpe_trans: float) -> str:

@@ -355,21 +355,21 @@ class Claim:
         )
 
     def decisiveness(self) -> float:
-        """How far the bound lies outside the interval, in 95 % half-widths (less the fixed
-        pad): Holm's order, which is the order of the p-values where the parts share one
-        construction. A zero-width interval off its bound is infinitely decisive."""
-        half = (self.iv.hi - self.iv.lo) / 2 - self.iv.pad
-        gap = abs(self.iv.value - self.bound) - self.iv.pad
-        if half <= 0:
-            return math.inf if gap > 0 or self.strict else 0.0
-        return gap / half
+        """Holm's order: −log of the dual p-value (the smallest α whose interval at 1 − α is
+        decided; bisection on :meth:`verdict`). Known at 95 % only: ∞ if decided, else 0."""
+        decided = lambda a: self.verdict(1 - a) in (HOLDS, NOT_HOLD)  # noqa: E731
+        if decided(lo := 1e-15) or not decided(hi := 1 - 1e-9):
+            return math.inf if decided(lo) else 0.0
+        for _ in range(60):
+            lo, hi = (lo, m) if decided(m := math.sqrt(lo * hi)) else (m, hi)
+        return -math.log(hi)
 
 
 def holm(claims: Sequence[Claim], family: float = 0.05) -> list[tuple[str, float]]:
     """Holm's step-down procedure over one sentence's parts: the verdict of every claim and the
     level it was judged at, in the claims' order.
 
-    The claims are taken from the most decisive (:meth:`Claim.decisiveness`); the ``i``-th
+    The claims are taken from the smallest p-value (:meth:`Claim.decisiveness`); the ``i``-th
     (from 0) of ``m`` is judged at ``1 − family / (m − i)``. While each is decided (holds or
     does not hold) at its level the next is taken; the first that is not, and every claim after
     it, is inconclusive. One claim: its verdict at ``1 − family``, unchanged."""

@@ -130,17 +130,17 @@ class Part:
             return f"{self.label}: {self.floor}{note} — {self.verdict}"
         if self.iv is None:
             return f"{self.label}: not measured{note} — {self.verdict}"
-        holm = ""
-        if self.level != 0.95:
-            iv = self.judged.at(self.level)
-            holm = (
-                f"; judged at {100 * self.level:.2f} % (Holm): [{self.show(iv.lo)}, "
-                f"{self.show(iv.hi)}]"
-            )
         return (
             f"{self.label}: {self.interval_text()} {sign} {self.show(self.bound)} "
-            f"({self.judged.how}){holm}{note} — {self.verdict}"
+            f"({self.judged.how}){self.holm_text()}{note} — {self.verdict}"
         )
+
+    def holm_text(self) -> str:
+        """``; judged at L % (Holm): [lo, hi]``, where Holm's procedure set a level not 95 %."""
+        if self.level == 0.95 or self.judged is None:
+            return ""
+        iv, pct = self.judged.at(self.level), f"{100 * self.level:.2f}"
+        return f"; judged at {pct} % (Holm): [{self.show(iv.lo)}, {self.show(iv.hi)}]"
 
 
 @dataclass
