@@ -111,7 +111,7 @@ class MFGLitModule(AgreedSteps, L.LightningModule):
         self.object_motion = object_motion
         self.init_agreed_steps(max_consecutive_nonfinite)  # skip, stop and fail together
         #: non-finite input-flow pixels masked in training so far (summed across processes)
-        self.masked_flow_pixels = StepCount("sum")
+        self.masked_flow_pixels = StepCount()
         self._flow_warnings = {s: DeferredCounts() for s in ("train", *STAGES)}
         #: the model's config, set by the entry point and stored in checkpoints so that
         #: :mod:`mfg_lightning.run.checkpoints` can rebuild the network without the run directory.

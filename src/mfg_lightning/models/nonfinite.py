@@ -20,8 +20,8 @@ others waiting in the gradient all-reduce. The module passes the verdict agreed 
 and the :class:`NonFiniteLossError` that ends a run, are the same on every process.
 
 Logged names, one meaning each: ``train/skipped_steps`` is the number of training steps skipped
-so far (either way). The counts are :class:`StepCount` metrics, reduced across processes by their
-``compute()`` (the maximum: an agreed count is the same on every process).
+so far (either way). The counts are :class:`StepCount` tensors on the device; the skipped and
+consecutive counts follow the agreed verdict, so they are the same on every process.
 """
 
 from __future__ import annotations
@@ -31,7 +31,6 @@ from typing import Any
 
 import torch
 from torch import Tensor, nn
-from torchmetrics import Metric
 
 from mfg_lightning.data.sample import SAMPLE_ID
 
@@ -42,23 +41,30 @@ class NonFiniteLossError(RuntimeError):
     """Training produced non-finite losses too many times in a row."""
 
 
-class StepCount(Metric):
-    """A count kept on the device, added to (``update(n)``) or, with ``restart``, reset to 0
-    where ``restart`` is True; reduced across processes by ``reduce`` (``"sum"`` or ``"max"``).
-    ``update`` reads nothing back from the device."""
+class StepCount(nn.Module):
+    """A count kept on the device (``count``, a 0-dim long tensor), added to in place:
+    ``update(n)``, and with ``restart`` set to 0 where ``restart`` is True. ``update`` reads
+    nothing back from the device and costs two tensor operations.
 
-    full_state_update = False
+    Not a torchmetrics ``Metric``: its ``update`` wrapper's bookkeeping cost the batch-1 step
+    ~0.4 ms for three counts (Lightning / bare, step-paired, bf16-mixed on an AMD EPYC: 0.943 with
+    them, 0.957 without; no ``compute()`` reduced them across processes). Not a buffer either:
+    DDP broadcasts buffers from rank 0 at every forward, and ``masked_flow_pixels`` is each
+    process's own count. It moves with the module all the same (``_apply``), and like a
+    ``Metric``'s state it is not saved in checkpoints."""
 
-    def __init__(self, reduce: str = "sum") -> None:
+    def __init__(self) -> None:
         super().__init__()
-        self.add_state("count", default=torch.tensor(0, dtype=torch.long), dist_reduce_fx=reduce)
+        self.count = torch.zeros((), dtype=torch.long)
+
+    def _apply(self, fn: Any, recurse: bool = True) -> StepCount:
+        self.count = fn(self.count)
+        return super()._apply(fn, recurse)
 
     def update(self, n: Tensor, restart: Tensor | None = None) -> None:
-        count = self.count + n.to(self.count)
-        self.count = count if restart is None else torch.where(restart, 0, count)
-
-    def compute(self) -> Tensor:
-        return self.count
+        self.count.add_(n.to(self.count))
+        if restart is not None:
+            self.count.masked_fill_(restart, 0)
 
 
 class NonFiniteLosses(nn.Module):
@@ -76,9 +82,9 @@ class NonFiniteLosses(nn.Module):
         super().__init__()
         self.max_consecutive = max_consecutive
         #: training steps skipped so far
-        self.skipped = StepCount("max")
+        self.skipped = StepCount()
         #: non-finite losses in a row, up to the last step
-        self.consecutive = StepCount("max")
+        self.consecutive = StepCount()
         self._reported = 0
         self._window_finite: Tensor | None = None
         self._found_inf: Tensor | None = None
