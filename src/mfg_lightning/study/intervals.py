@@ -356,7 +356,7 @@ class Claim:
 
     def decisiveness(self) -> float:
         """Holm's order: −log of the dual p-value (the smallest α whose interval at 1 − α is
-        decided; bisection on :meth:`verdict`). Known at 95 % only: ∞ if decided, else 0."""
+        decided; bisection on :meth:`verdict`): ∞ if decided at every level, 0 if at none."""
         decided = lambda a: self.verdict(1 - a) in (HOLDS, NOT_HOLD)  # noqa: E731
         if decided(lo := 1e-15) or not decided(hi := 1 - 1e-9):
             return math.inf if decided(lo) else 0.0
