@@ -14,6 +14,7 @@ from typing import Any
 
 from omegaconf import DictConfig
 
+from mfg_lightning.study import end_to_end as E
 from mfg_lightning.study import settle as T
 from mfg_lightning.study import stages as S
 
@@ -38,6 +39,8 @@ def _expand(cfg: DictConfig, stage: str) -> list[tuple[str, Any]]:
         return [(f"converge/{v}_seed{s}", (v, s)) for v, s in T.converge_runs(cfg)]
     if stage == "objects":
         return [(f"objects/seed{int(s)}", int(s)) for s in cfg.converge.seeds]
+    if stage == "end_to_end":
+        return E.runs(cfg)
     if stage == "size":
         runs = [(f"size/{S.size_name(*p)}", p) for p in S.size_runs(cfg)]
         return [*runs, ("size/classical", None)]

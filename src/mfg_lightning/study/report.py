@@ -328,7 +328,7 @@ def _causes_sections(
     """The causes separated (:mod:`mfg_lightning.study.causes`): the exact-flow twin, Table 2 on
     exact flow beside DIS, the size curve (``size``: its results by name); their figures
     written by ``link``."""
-    from mfg_lightning.study import causes
+    from mfg_lightning.study import causes, end_to_end
 
     cached, twin = study.cached, study.cached("twin")
     sections = []
@@ -346,7 +346,11 @@ def _causes_sections(
     twin_lines, size_lines, settle_lines = sections
     clamp = config_default("model.loss.balance_max")
     rule = converge_section(settled, list(study.cfg.converge.rule), clamp)
-    return [*twin_lines, *learned, *settle_lines, *rule, *t2, *size_lines, *stale_essential(stale)]
+    e2e, fig = end_to_end.section(cached, study.cfg)
+    if fig is not None:
+        e2e[2] += " " + link("end_to_end.png", fig)
+    return [*twin_lines, *learned, *settle_lines, *rule, *e2e, *t2, *size_lines,
+            *stale_essential(stale)]  # fmt: skip
 
 
 def study_flow_name(study: S.Study) -> str:

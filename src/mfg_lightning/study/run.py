@@ -16,6 +16,7 @@ from typing import Any
 
 from omegaconf import DictConfig
 
+from mfg_lightning.study import end_to_end as E
 from mfg_lightning.study import plan
 from mfg_lightning.study import settle as T
 from mfg_lightning.study import stages as S
@@ -51,6 +52,7 @@ def _runners(study: S.Study) -> dict[str, Callable[[Any], dict | None]]:
         T.stage_seed(study, *r),
         "converge": lambda r: T.stage_converge(study, *r),
         "objects": lambda seed: T.stage_objects(study, seed),
+        "end_to_end": lambda r: E.stage_end_to_end(study, *r),
         "size": lambda p: stage_size_classical(study) if p is None else stage_size(study, *p),
         "sparsity": lambda v: stage_sparsity(study, *v, study.cached("main")),
         "balance": lambda _: stage_balance(study),

@@ -37,6 +37,7 @@ from mfg_lightning.study import stages as S
 
 __all__ = [
     "converge_runs",
+    "evaluated",
     "object_velocity_pairs",
     "seed_runs",
     "stage_classical",
@@ -45,6 +46,9 @@ __all__ = [
     "stage_seed",
     "stage_strided",
     "strided_runs",
+    "table2_extra",
+    "test_loader",
+    "train_settled",
 ]
 
 
@@ -75,15 +79,17 @@ def _flow_overrides(cfg: DictConfig, flow: str) -> list[str]:
         return list(cfg.table2.exact)
     if flow == "dis":
         return []
+    if flow == "learned":  # stage end_to_end's two-stage models
+        return list(cfg.learned.overrides)
     raise ValueError(f"settle.flows: {flow!r} is not a flow of the study (exact, dis)")
 
 
-def _table2_extra(cfg: DictConfig, flow: str) -> list[str]:
+def table2_extra(cfg: DictConfig, flow: str) -> list[str]:
     """Table 2's data on ``flow`` with the 2 × 2's training settings."""
     return [*cfg.table2.overrides, *_flow_overrides(cfg, flow), *cfg.settle.overrides]
 
 
-def _train(study: S.Study, name: str, extra: list[str], converge: bool = False) -> dict:
+def train_settled(study: S.Study, name: str, extra: list[str], converge: bool = False) -> dict:
     """Train (or resume) ``name`` for the equal budget ``settle.steps``, or (``converge``) under
     ``converge.rule`` capped at ``converge.steps`` and ``converge.max_time``."""
     c = study.cfg.converge
@@ -94,9 +100,11 @@ def _train(study: S.Study, name: str, extra: list[str], converge: bool = False) 
     return study.train(name, [*extra, *budget], steps, study.cfg.budget.get("other_max_time"))
 
 
-def _test_loader(study: S.Study, flow: str) -> tuple[Any, DataLoader]:
-    """Table 2's test pairs (+1 only) on ``flow``: the same pairs for every model and method."""
-    dm = study.datamodule(study.train_config(f"settle_{flow}", _table2_extra(study.cfg, flow), 1))
+def test_loader(study: S.Study, flow: str, more: tuple = ()) -> tuple[Any, DataLoader]:
+    """Table 2's test pairs (+1 only) on ``flow`` (``more``: overrides of its estimator): the
+    same pairs for every model and method."""
+    extra = [*table2_extra(study.cfg, flow), *more]
+    dm = study.datamodule(study.train_config(f"settle_{flow}", extra, 1), ("val", "test"))
     return dm, study.loader(dm, "test", forward_only=True)
 
 
@@ -128,8 +136,8 @@ def stage_seed(study: S.Study, flow: str, seed: int) -> dict:
     MFG's per-pair errors at every ``table2.top_k`` on the test pairs; on the exact flow also
     the object masks and the object velocity (:func:`object_velocity_pairs`), the threshold and
     the filters' constants chosen on validation."""
-    extra = [*_table2_extra(study.cfg, flow), f"seed={seed}"]
-    return _evaluated(study, _train(study, f"settle_{flow}_seed{seed}", extra), flow, seed)
+    extra = [*table2_extra(study.cfg, flow), f"seed={seed}"]
+    return evaluated(study, train_settled(study, f"settle_{flow}_seed{seed}", extra), flow, seed)
 
 
 def stage_converge(study: S.Study, variant: str, seed: int) -> dict:
@@ -141,22 +149,24 @@ def stage_converge(study: S.Study, variant: str, seed: int) -> dict:
         raise ValueError(f"converge.variants: unknown {variant!r}; known: {', '.join(VARIANTS)}")
     flow = "dis" if variant == "dis" else "exact"
     extra = {
-        "unclamped": [*_table2_extra(cfg, flow), *cfg.converge.unclamped],
+        "unclamped": [*table2_extra(cfg, flow), *cfg.converge.unclamped],
         "largest": [
             *cfg.size.overrides, *cfg.settle.overrides,
             f"dataset.frame_stride={int(cfg.size.strides[-1])}",
         ],
-    }.get(variant, _table2_extra(cfg, flow))  # fmt: skip
-    trained = _train(study, f"converge_{variant}_seed{seed}", [*extra, f"seed={seed}"], True)
-    return {**_evaluated(study, trained, flow, seed, variant != "largest"), "variant": variant}
+    }.get(variant, table2_extra(cfg, flow))  # fmt: skip
+    trained = train_settled(study, f"converge_{variant}_seed{seed}", [*extra, f"seed={seed}"], True)
+    return {**evaluated(study, trained, flow, seed, variant != "largest"), "variant": variant}
 
 
-def _evaluated(study: S.Study, trained: dict, flow: str, seed: int, full: bool = True) -> dict:
-    """A trained model's result on the 2 × 2's test pairs of ``flow``: MFG's per-pair errors at
-    every ``table2.top_k`` and, on the exact flow, the objects (:func:`object_velocity_pairs`);
-    all units only when not ``full``."""
+def evaluated(
+    study: S.Study, trained: dict, flow: str, seed: int, full: bool = True, more: tuple = ()
+) -> dict:
+    """A trained model's result on the 2 × 2's test pairs of ``flow`` (``more``: overrides of
+    its estimator): MFG's per-pair errors at every ``table2.top_k`` and, on the exact flow, the
+    objects (:func:`object_velocity_pairs`); all units only when not ``full``."""
     model = study.model(trained)
-    dm, test = _test_loader(study, flow)
+    dm, test = test_loader(study, flow, more)
     train_cfg = study.train_config(trained["name"], list(trained["overrides"]), 1)
     ks = [float(k) for k in study.cfg.table2.top_k] if full else [1.0]
     out = {
@@ -180,8 +190,8 @@ def stage_objects(study: S.Study, seed: int) -> dict | None:
     cfg = study.cfg
     if (trained := study.cached(f"converge/exact_seed{seed}")) is None:
         return None
-    extra = [*_table2_extra(cfg, "exact"), *cfg.objects.world]
-    dm, _ = _test_loader(study, "exact")
+    extra = [*table2_extra(cfg, "exact"), *cfg.objects.world]
+    dm, _ = test_loader(study, "exact")
     objects_dm = study.datamodule(study.train_config("objects", extra, 1), ("test",))
     if getattr(objects_dm.dataset("test"), "crossing", None) is None:
         raise ValueError(
@@ -201,7 +211,7 @@ def stage_classical(study: S.Study, flow: str) -> dict:
     ``flow``, with per-pair errors."""
     from mfg_lightning.analysis.scoring import classical_methods, score_methods, scored_rows
 
-    _, test = _test_loader(study, flow)
+    _, test = test_loader(study, flow)
     ds = test.dataset.dataset
     rows = score_methods(classical_methods(ds.height, ds.width), list(test))
     scored = scored_rows(rows, per_sample=True)
@@ -222,8 +232,8 @@ def stage_strided(study: S.Study, seed: int) -> dict:
         *cfg.size.overrides, *cfg.settle.overrides, f"dataset.frame_stride={stride}",
         f"seed={seed}",
     ]  # fmt: skip
-    trained = _train(study, f"settle_strided_seed{seed}", extra)
-    return {**_evaluated(study, trained, "exact", seed, full=False), "stride": stride}
+    trained = train_settled(study, f"settle_strided_seed{seed}", extra)
+    return {**evaluated(study, trained, "exact", seed, full=False), "stride": stride}
 
 
 # --------------------------------------------------------------------------------------------

@@ -141,7 +141,9 @@ class Study:
             dm = instantiate(cfg.dataset)
             dm.prepare_data()
             return dm
-        dm = instantiate(cfg.dataset, precompute_flow=False)
+        # (image pairs have no flow to precompute: the end-to-end models' data)
+        kw = {"precompute_flow": False} if "precompute_flow" in cfg.dataset else {}
+        dm = instantiate(cfg.dataset, **kw)
         for split in splits:
             ds = dm.dataset(split)
             if hasattr(ds, "precompute_flow"):
