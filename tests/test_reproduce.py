@@ -91,7 +91,7 @@ def test_tiny_study_runs_resumes_and_rebuilds_from_committed_results(tmp_path: P
                       ("## The learned flow: the main setting on flow=learned", None),
                       ("## Table 2's setting at every seed", "settle.png"),
                       ("## Table 2's setting trained until validation rotation", None),
-                      ("## Images to egomotion trained end to end", None),
+                      ("## Images to egomotion trained end to end", "end_to_end.png"),
                       ("## Claim 3's data size", "size.png")):  # fmt: skip
         section = text.split(head)[1].split("\n## ")[0]
         assert "|---" in section, head
@@ -111,7 +111,7 @@ def test_tiny_study_runs_resumes_and_rebuilds_from_committed_results(tmp_path: P
         "size_stride2", "ws0", "ws100", "ws100_scale0.2", "ws100_lr0.0001", "balance_squared",
         "recipe_cpu", "recipe_paper", "settle_exact_seed0", "settle_exact_seed1",
         "settle_strided_seed0", *(f"converge_{v}_seed{s}" for v in ("exact", "unclamped",
-        "largest") for s in (0, 1)), "e2e_two_stage_seed0", "e2e_joint_seed0",
+        "largest") for s in (0, 1)), "e2e_two_stage_seed0", "e2e_joint_seed0", "e2e_frozen_seed0",
     }  # fmt: skip
     recipe = json.loads((results / "recipe.json").read_text())
     assert "same_as" not in recipe["cpu"] and recipe["cpu"]["epochs"] >= 0.5
@@ -119,8 +119,8 @@ def test_tiny_study_runs_resumes_and_rebuilds_from_committed_results(tmp_path: P
     stage_files = sorted(p.relative_to(results) for p in results.glob("**/*.json"))
     # 20, and the 2 × 2's: the classical methods, two seeds and one strided seed; the rotation
     # rule's 3 variants at 2 seeds and the object test set's 2 evaluations; the end-to-end
-    # comparison's two models and its flow reference
-    assert len(stage_files) == 35
+    # comparison's three models and its flow reference
+    assert len(stage_files) == 36
     # a rule on validation rotation evaluates the schedule's end: the best checkpoints rank val/ate
     for f in ("exact_seed0", "unclamped_seed1", "largest_seed0"):
         rule = json.loads((results / "converge" / f"{f}.json").read_text())

@@ -7,7 +7,10 @@ At Table 2's setting (its worlds, training pairs and +1 test pairs, the 2 × 2's
   (``flow=learned``, the shipped weights; the 2 × 2's budget and precision);
 * ``end_to_end/joint_seed<n>``: that model and the shipped flow network fine-tuned together on
   MFG's loss (``experiment=end_to_end`` on the same pairs' images, ``end_to_end.overrides``) for
-  ``end_to_end.steps`` more steps, tested with its own network's flow.
+  ``end_to_end.steps`` more steps, tested with its own network's flow;
+* ``end_to_end/frozen_seed<n>``: the control of those extra steps, the same fine-tuning with the
+  network frozen throughout (``model.freeze_flow_steps`` = the steps): what the end-to-end
+  model gains over it is the network's training, not the steps, rate or batch.
 
 Both are scored as the 2 × 2's models (per-pair errors, :func:`settle.mfg_pairs`) on the same
 test pairs, whose DIS and exact-flow models (``settle/<flow>_seed<n>``) are the references;
@@ -28,14 +31,14 @@ from omegaconf import DictConfig
 from mfg_lightning.core.tables import fmt
 from mfg_lightning.study import settle as T
 from mfg_lightning.study import stages as S
-from mfg_lightning.study.intervals import BLOCK_PAIRS, Interval, bootstrap_se, interval
+from mfg_lightning.study.intervals import BLOCK_PAIRS, FLOORS, Interval, bootstrap_se, interval
 from mfg_lightning.study.render import lines, table
 
-__all__ = ["KINDS", "REGIONS", "runs", "section", "stage_end_to_end"]
+__all__ = ["KINDS", "REGIONS", "paired_ratio", "runs", "section", "stage_end_to_end"]
 
-#: The two learned-flow models of a seed, in the order they train (the joint one starts from
-#: the two-stage one).
-KINDS = ("two_stage", "joint")
+#: The learned-flow models of a seed, in the order they train (the joint one and its frozen
+#: control start from the two-stage one).
+KINDS = ("two_stage", "joint", "frozen")
 #: The regions of the flow table (the renderer's), then every pixel.
 REGIONS = ("road", "structure", "moving", "far", "all")
 
@@ -66,12 +69,14 @@ def stage_end_to_end(study: S.Study, kind: str, seed: int | None) -> dict | None
     if kind == "two_stage":
         extra = [*T.table2_extra(cfg, "learned"), f"seed={seed}"]
         trained, more = T.train_settled(study, f"e2e_two_stage_seed{seed}", extra), ()
-    elif kind == "joint":
+    elif kind in ("joint", "frozen"):
         start = study.cached(f"end_to_end/two_stage_seed{seed}")
         if start is None:
             return None
         if not study.checkpoint(start).is_file():
-            study.model(start)  # a fresh clone: the two-stage model is trained again first
+            # a fresh clone: the two-stage model is trained again first (the same config, seed
+            # and recorded kernels give the same model on the same kind of machine)
+            study.model(start)
         steps = int(cfg.end_to_end.steps)
         # relative to the run's own directory: the result names no path of this machine
         ckpt = f"'${{paths.output_dir}}/../../{start['checkpoint']}'"
@@ -79,8 +84,10 @@ def stage_end_to_end(study: S.Study, kind: str, seed: int | None) -> dict | None
             *cfg.table2.overrides, *cfg.settle.overrides, *cfg.end_to_end.overrides,
             f"model.mfg_checkpoint={ckpt}", f"seed={seed}",
             f"callbacks.convergence.budget_steps={steps}",
+            *([f"model.freeze_flow_steps={steps}"] if kind == "frozen" else []),
         ]  # fmt: skip
-        trained = study.train(f"e2e_joint_seed{seed}", extra, steps, cfg.end_to_end.max_time)
+        name = f"e2e_{kind}_seed{seed}"
+        trained = study.train(name, extra, steps, cfg.end_to_end.max_time)
         more = (f"flow.weights={study.checkpoint(trained)}",)
     else:
         raise ValueError(f"end_to_end: unknown model {kind!r}; known: {', '.join(KINDS)}")
@@ -97,14 +104,19 @@ def stage_end_to_end(study: S.Study, kind: str, seed: int | None) -> dict | None
 MODELS = (
     ("two-stage (learned flow, network frozen)", "end_to_end/two_stage"),
     ("end to end (network and MFG fine-tuned)", "end_to_end/joint"),
+    ("control: the same extra steps, network frozen", "end_to_end/frozen"),
     ("DIS (the 2 × 2's model)", "settle/dis"),
     ("exact flow (the 2 × 2's model, its twin)", "settle/exact"),
 )
 METRICS = (("ATE † (m)", "ate", 4), ("RPE translation (m)", "rpe_trans", 4),
            ("RPE rotation (rad)", "rpe_rot", 5))  # fmt: skip
+#: The per-pair errors of the paired ratios, and the floor below which a mean error is no
+#: denominator (:data:`mfg_lightning.study.intervals.FLOORS`).
+ERRORS = {"rot_err": "rotation", "trans_err": "translation"}
 
 
 def _seeds(cached: Callable[[str], dict | None], prefix: str, seeds: list[int]) -> dict[int, dict]:
+    """The results of ``prefix`` at ``seeds`` that are computed, by seed."""
     return {s: r for s in seeds if (r := cached(f"{prefix}_seed{s}")) is not None}
 
 
@@ -113,16 +125,22 @@ def _mean_log_ratio(a: np.ndarray, b: np.ndarray) -> Any:
     return lambda i: np.log(a[i].mean(1) / b[i].mean(1))
 
 
-def joint_over_two_stage(runs_: Mapping[str, dict[int, dict]], key: str) -> Interval | None:
-    """log(end to end's mean per-pair ``key`` error / the two-stage model's) seed by seed (the
-    joint model of a seed starts from that seed's two-stage model): t over the seeds plus the
-    paired block bootstrap over the test pairs. None without a seed that has both."""
-    two, joint = runs_["end_to_end/two_stage"], runs_["end_to_end/joint"]
+def paired_ratio(num: Mapping[int, dict], den: Mapping[int, dict], key: str) -> Interval | None:
+    """log(``num``'s mean per-pair ``key`` error / ``den``'s) seed by seed (the models of a seed
+    share their start and test pairs): t over the seeds plus the paired block bootstrap over the
+    test pairs. None without a seed that has both above the error's floor.
+
+    Raises:
+        ValueError: a seed's two results hold different numbers of test pairs (not paired).
+    """
     logs, ses = [], []
-    for s in sorted(set(two) & set(joint)):
-        a = np.asarray(joint[s]["mfg"]["1"][key], float)
-        b = np.asarray(two[s]["mfg"]["1"][key], float)
-        if len(a) != len(b) or not len(a) or b.mean() <= 0:
+    for s in sorted(set(num) & set(den)):
+        a = np.asarray(num[s]["mfg"]["1"][key], float)
+        b = np.asarray(den[s]["mfg"]["1"][key], float)
+        if len(a) != len(b):
+            raise ValueError(f"end_to_end, seed {s}: {len(a)} and {len(b)} test pairs of {key}: "
+                             "the two models were not tested on the same pairs")  # fmt: skip
+        if not len(a) or min(a.mean(), b.mean()) < FLOORS[ERRORS[key]]:
             continue
         logs.append(math.log(a.mean() / b.mean()))
         ses.append(bootstrap_se(_mean_log_ratio(a, b), len(a), block=BLOCK_PAIRS))
@@ -139,29 +157,52 @@ def _cell(iv: Interval | None, digits: int) -> str:
 
 
 def _ratio_cell(iv: Interval | None) -> str:
+    """A paired ratio as the report prints it (× the value [× its interval])."""
     if iv is None:
-        return "–"
+        return "not measured"
+    if not iv.terms:
+        return f"×{math.exp(iv.value):.3f} (no spread measured: no interval)"
     return f"×{math.exp(iv.value):.3f} [×{math.exp(iv.lo):.3f}, ×{math.exp(iv.hi):.3f}]"
 
 
-def _flow_rows(runs_: Mapping[str, dict[int, dict]], dis_quality: dict | None) -> list[list]:
+def _quality(r: dict) -> dict | None:
+    """A result's flow quality (None where not recorded)."""
+    q = r.get("flow_quality")
+    return q if isinstance(q, dict) and "regions" in q else None
+
+
+def _flow_rows(by: Mapping[str, dict[int, dict]], dis_quality: dict | None) -> list[list]:
     """EPE (px) and Fl (%) by region on the test pairs, all pixels and non-occluded: the shipped
-    network (before), each joint seed's (after, their mean), DIS's (the study's cache)."""
+    network (before), the joint seeds' networks (after, their mean), DIS's (the 2 × 2's)."""
+    befores = [q for r in by["end_to_end/two_stage"].values() if (q := _quality(r))]
+    after = [q for r in by["end_to_end/joint"].values() if (q := _quality(r))]
     rows = []
-    before = next(iter(runs_["end_to_end/two_stage"].values()), {}).get("flow_quality")
-    after = [r["flow_quality"] for r in runs_["end_to_end/joint"].values()]
     for pixels, key in (("all", "regions"), ("noc", "regions_noc")):
-        for label, qs in (("shipped network (before)", [before] if before else []),
+        for label, qs in (("shipped network (before)", befores[:1]),
                           (f"fine-tuned end to end (after, seeds: {len(after)})", after),
                           ("DIS", [dis_quality] if dis_quality else [])):  # fmt: skip
             if not qs or any(key not in q for q in qs):
                 continue
-            cells = []
-            for r in REGIONS:
-                for m, d in (("epe", 2), ("fl", 1)):
-                    cells.append(fmt(float(np.mean([q[key][r][m] for q in qs])), d))
+            cells = [fmt(float(np.mean([q[key][r][m] for q in qs])), d)
+                     for r in REGIONS for m, d in (("epe", 2), ("fl", 1))]  # fmt: skip
             rows.append([label, pixels, *cells])
     return rows
+
+
+def _quality_change(by: Mapping[str, dict[int, dict]], dis: dict | None) -> dict[str, Any]:
+    """Per region, the EPE on the non-occluded test pixels: before, after (the joint seeds'
+    mean, smallest and largest, their number) and DIS's (None: not computed), for the prose."""
+    before = next((q for r in by["end_to_end/two_stage"].values() if (q := _quality(r))), None)
+    after = [q for r in by["end_to_end/joint"].values() if (q := _quality(r))]
+    out: dict[str, Any] = {}
+    if before is None or not after or any("regions_noc" not in q for q in (before, *after)):
+        return out
+    for r in REGIONS:
+        a = [q["regions_noc"][r]["epe"] for q in after]
+        d = dis["regions_noc"][r]["epe"] if dis and "regions_noc" in dis else None
+        out[r] = {"before": before["regions_noc"][r]["epe"], "after": float(np.mean(a)),
+                  "lo": min(a), "hi": max(a), "n": len(a), "dis": d}  # fmt: skip
+    return out
 
 
 def _figure(by: Mapping[str, dict[int, dict]], seeds: list[int]) -> Any:
@@ -173,7 +214,7 @@ def _figure(by: Mapping[str, dict[int, dict]], seeds: list[int]) -> Any:
         return {f"seed {s}": [(by[p].get(s) or {}).get("mfg", {}).get("1", {}).get("metrics",
                 {}).get(key) for _, p in MODELS] for s in seeds}  # fmt: skip
 
-    names = ["two-stage", "end to end", "DIS", "exact flow"]
+    names = ["two-stage", "end to end", "control", "DIS", "exact flow"]
     panels = [("RPE rotation (rad)", series("rpe_rot")), ("RPE translation (m)",
               series("rpe_trans"))]  # fmt: skip
     return bar_figure(panels, names, "Table 2's setting: learned flow two-stage and end to end")
@@ -181,52 +222,39 @@ def _figure(by: Mapping[str, dict[int, dict]], seeds: list[int]) -> Any:
 
 def section(cached: Callable[[str], dict | None], cfg: DictConfig) -> tuple[list[str], Any]:
     """The report's end-to-end section from the stage results (``cached``: a result by name;
-    empty until a joint model is computed) and its figure (None without one): the four models
-    at every seed with intervals (t over the seeds), the joint model over the two-stage one
-    seed by seed, and the flow's quality before and after fine-tuning."""
-    seeds = [int(s) for s in cfg.end_to_end.seeds]
+    empty until a joint model is computed) and its figure (None without one): the models at
+    the seeds that have a joint model, with intervals (t over the seeds), the joint model over
+    its control and over its two-stage start seed by seed, and the flow's quality before and
+    after fine-tuning."""
+    joint = _seeds(cached, "end_to_end/joint", [int(s) for s in cfg.end_to_end.seeds])
+    seeds = sorted(joint)
+    # every row at the joint models' seeds: the intervals then compare like with like
     by = {p: _seeds(cached, p, seeds) for _, p in MODELS}
-    dis_quality = (cached("end_to_end/dis_flow") or {}).get("flow_quality")
-    if not by["end_to_end/joint"]:
+    if not seeds:
         return [], None
+    dis_quality = _quality(cached("end_to_end/dis_flow") or {})
     rows = []
     for label, prefix in MODELS:
         runs_ = by[prefix]
-        cells = []
-        for _, key, d in METRICS:
-            iv = interval([r["mfg"]["1"]["metrics"][key] for r in runs_.values()])
-            cells.append(_cell(iv, d))
+        cells = [_cell(interval([r["mfg"]["1"]["metrics"][key] for r in runs_.values()]), d)
+                 for _, key, d in METRICS]  # fmt: skip
         rows.append([label, ", ".join(map(str, sorted(runs_))) or "–", *cells])
     heads = ["model", "seeds", *(f"{h} [95 %]" for h, _, _ in METRICS)]
-    ratios = {k: joint_over_two_stage(by, k) for k in ("rot_err", "trans_err")}
-    flow_heads = ["flow", "pixels", *(f"{m} {r}" for r in REGIONS for m in ("EPE", "Fl %"))]
+    over = {
+        den: {k: paired_ratio(by["end_to_end/joint"], by[f"end_to_end/{den}"], k) for k in ERRORS}
+        for den in ("frozen", "two_stage")
+    }
     flows = _flow_rows(by, dis_quality)
-    joint = next(iter(by["end_to_end/joint"].values()))
-    two_stage = by["end_to_end/two_stage"][joint["seed"]]
+    first = joint[seeds[0]]
+    two_stage = by["end_to_end/two_stage"].get(seeds[0])
     per_step = {k: float(r["train_seconds"]) / max(1, int(r["steps"]))
-                for k, r in (("joint", joint), ("two_stage", two_stage))}  # fmt: skip
+                for k, r in (("joint", first), ("two_stage", two_stage)) if r}  # fmt: skip
+    flow_heads = ["flow", "pixels", *(f"{m} {r}" for r in REGIONS for m in ("EPE", "Fl %"))]
     text = lines(
-        "report/end_to_end.md.j2", table=table(heads, rows), ratios=ratios,
-        ratio_text={k: _ratio_cell(v) for k, v in ratios.items()}, joint=joint,
-        two_stage=two_stage, step_seconds=per_step,
-        flow_table=table(flow_heads, flows) if flows else None, by=by, cfg=cfg.end_to_end,
+        "report/end_to_end.md.j2", table=table(heads, rows), over=over, joint=first,
+        two_stage=two_stage, step_seconds=per_step, seeds=seeds, has_dis=dis_quality is not None,
+        ratio_text={d: {k: _ratio_cell(v) for k, v in o.items()} for d, o in over.items()},
+        flow_table=table(flow_heads, flows) if flows else None,
         quality=_quality_change(by, dis_quality),
     )  # fmt: skip
     return text, _figure(by, seeds)
-
-
-def _quality_change(by: Mapping[str, dict[int, dict]], dis: dict | None) -> dict[str, Any]:
-    """Per region, the EPE on the non-occluded test pixels: before, after (the joint seeds'
-    mean and range) and DIS's, for the prose."""
-    before = next(iter(by["end_to_end/two_stage"].values()), {}).get("flow_quality") or {}
-    after = [r["flow_quality"] for r in by["end_to_end/joint"].values()]
-    out = {}
-    for r in REGIONS:
-        try:
-            b = before["regions_noc"][r]["epe"]
-            a = [q["regions_noc"][r]["epe"] for q in after]
-        except KeyError:
-            continue
-        d = dis["regions_noc"][r]["epe"] if dis and "regions_noc" in dis else None
-        out[r] = {"before": b, "after": float(np.mean(a)), "lo": min(a), "hi": max(a), "dis": d}
-    return out

@@ -81,7 +81,7 @@ def _flow_overrides(cfg: DictConfig, flow: str) -> list[str]:
         return []
     if flow == "learned":  # stage end_to_end's two-stage models
         return list(cfg.learned.overrides)
-    raise ValueError(f"settle.flows: {flow!r} is not a flow of the study (exact, dis)")
+    raise ValueError(f"settle.flows: {flow!r} is not a flow of the study (exact, dis, learned)")
 
 
 def table2_extra(cfg: DictConfig, flow: str) -> list[str]:
