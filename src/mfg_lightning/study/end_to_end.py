@@ -160,9 +160,16 @@ def _ratio_cell(iv: Interval | None) -> str:
     """A paired ratio as the report prints it (× the value [× its interval])."""
     if iv is None:
         return "not measured"
+    v, lo, hi = math.exp(iv.value), math.exp(iv.lo), math.exp(iv.hi)
     if not iv.terms:
-        return f"×{math.exp(iv.value):.3f} (no spread measured: no interval)"
-    return f"×{math.exp(iv.value):.3f} [×{math.exp(iv.lo):.3f}, ×{math.exp(iv.hi):.3f}]"
+        return f"×{v:.3f} (no spread measured: no interval)"
+    # enough digits that the printed interval shows which side of ×1 it is on
+    d = 3
+    while d < 7 and (
+        f"{lo:.{d}f}" == f"{hi:.{d}f}" or f"{1:.{d}f}" in (f"{lo:.{d}f}", f"{hi:.{d}f}")
+    ):
+        d += 1
+    return f"×{v:.{d}f} [×{lo:.{d}f}, ×{hi:.{d}f}]"
 
 
 def _quality(r: dict) -> dict | None:

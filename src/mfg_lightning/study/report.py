@@ -119,16 +119,19 @@ def _stage_rows(study: S.Study) -> tuple[list[dict], float]:
             # the record of changes made after a test number was seen, not a stage
             continue
         r = study.cached(name) or {}
-        seconds = float(r.get("seconds", 0.0))
-        total += seconds
         # a run that is another stage's (``same_as``) was trained there, not here
         trained = [r] if "steps" in r else [v for v in r.values() if isinstance(v, dict)
                                             and "steps" in v]  # fmt: skip
         trained = [t for t in trained if not t.get("same_as")]
         shape = ", ".join(f"{t['steps']} × {t['batch_size']}" for t in trained)
         train_s = sum(float(t.get("train_seconds", 0.0)) for t in trained)
-        rows.append({"name": name, "seconds": seconds, "train": train_s, "shape": shape,
-                     "commit": r.get("commit")})  # fmt: skip
+        # a stage resumed in a later process records that process's seconds only; its training
+        # time counts every session's, so it bounds the stage's time from below
+        seconds = float(r.get("seconds", 0.0))
+        resumed = train_s > seconds
+        total += max(seconds, train_s)
+        rows.append({"name": name, "seconds": max(seconds, train_s), "resumed": resumed,
+                     "train": train_s, "shape": shape, "commit": r.get("commit")})  # fmt: skip
     return rows, total
 
 
