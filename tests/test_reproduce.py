@@ -81,7 +81,8 @@ def test_tiny_study_runs_resumes_and_rebuilds_from_committed_results(tmp_path: P
                  "size stride4", "size stride2", "balance_squared", "sparsity w_s=0",
                  "recipe paper", "table2 exact, seed 1", "table2 strided, seed 0",
                  "rotation rule, exact, seed 1", "rotation rule, unclamped, seed 0",
-                 "rotation rule, largest, seed 1"):  # fmt: skip
+                 "rotation rule, largest, seed 1", "end to end: joint, seed 0",
+                 "end to end: frozen, seed 0"):  # fmt: skip
         assert f"| {name} |" in conv, name
     assert str(tmp_path) not in text
     # the causes separated: the exact-flow twin, Table 2 on exact flow beside the study's flow,

@@ -71,3 +71,18 @@ def test_the_convergence_figure_groups_seeds_and_never_repeats_a_colour_in_a_pan
     # a setting's seeds are one group: one colour, one line each
     main_colours = {to_hex(line.get_color()) for line in panels["main setting"].get_lines()}
     assert len(main_colours) == 1 and len(panels["main setting"].get_lines()) == 2
+
+
+def test_the_convergence_table_gives_the_best_value_of_the_metric_the_rule_watched() -> None:
+    from mfg_lightning.study.figures import convergence_rows
+
+    curve = [{"step": 1000, "samples": 16000, "val/ate": 0.03, "val/rot_err": 0.004},
+             {"step": 2000, "samples": 32000, "val/ate": 0.02, "val/rot_err": 0.005}]  # fmt: skip
+    rule = {"converged": True, "decay_start": 1000, "decay_end": 2000}
+    models = {
+        "ate rule": {"steps": 2000, "curve": curve, "convergence": rule},
+        "rotation rule": {"steps": 2000, "curve": curve,
+                          "convergence": {**rule, "rule": {"monitor": "val/rot_err"}}},
+    }  # fmt: skip
+    rows, _ = convergence_rows(models)
+    assert rows[0][4] == "0.0200 (val/ate)" and rows[1][4] == "0.00400 (val/rot_err)"

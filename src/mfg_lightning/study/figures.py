@@ -16,20 +16,23 @@ __all__ = ["CURVE_PANELS", "convergence_rows", "verdict_figure"]
 
 def convergence_rows(models: dict[str, dict]) -> tuple[list[list[str]], Any]:
     """One row per trained model: steps, samples, whether the rule was met (or why it stopped),
-    its best validation ATE †; and one figure with every model's validation curve."""
+    the best validation value of the metric its rule monitored (ATE †, or the rotation error
+    under the rotation rule); and one figure with every model's validation ATE † curve."""
     rows, lines = [], {}
     for name, m in models.items():
         c = m.get("convergence") or {}
         curve = m.get("curve") or []
         ates = [p.get("val/ate") for p in curve]
-        finite = [a for a in ates if a is not None and math.isfinite(a)]
         if c.get("converged"):
             state = f"converged at step {c.get('decay_start')} (decay to {c.get('decay_end')})"
         elif c.get("reason") == "budget":
             state = f"equal budget (decay from {c.get('decay_start')} to {c.get('decay_end')})"
         else:
             state = f"not converged at {m.get('steps')} steps ({c.get('reason') or 'no rule'})"
-        best, minutes = fmt(min(finite) if finite else None), m.get("train_seconds", 0.0) / 60
+        monitor = str((c.get("rule") or {}).get("monitor") or "val/ate")
+        watched = [v for p in curve if (v := p.get(monitor)) is not None and math.isfinite(v)]
+        best = f"{fmt(min(watched), 5 if 'rot' in monitor else 4)} ({monitor})" if watched else "–"
+        minutes = m.get("train_seconds", 0.0) / 60
         rows.append([name, str(m.get("steps")), str(m.get("samples_seen")), state, best,
                      f"{minutes:.0f}"])  # fmt: skip
         if curve:
@@ -45,7 +48,7 @@ def convergence_rows(models: dict[str, dict]) -> tuple[list[list[str]], Any]:
 #: The convergence figure's panels: a model goes to the first whose prefix its name has.
 CURVE_PANELS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("main setting", ("main", "exact-flow twin", "learned")),
-    ("Table 2 setting", ("table2", "balance")),
+    ("Table 2 setting", ("table2", "balance", "end to end")),
     ("size curve", ("size",)),
     ("sparsity, recipe", ("sparsity", "recipe")),
 )

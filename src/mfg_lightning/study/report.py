@@ -20,6 +20,7 @@ from mfg_lightning.core.tables import fmt
 from mfg_lightning.flow.cache import default_cache_dir
 from mfg_lightning.pictures.plots import figure_png
 from mfg_lightning.study import claims as C
+from mfg_lightning.study import end_to_end as E
 from mfg_lightning.study import plan
 from mfg_lightning.study import prose as P
 from mfg_lightning.study import stages as S
@@ -95,6 +96,10 @@ def _trained_models(
     for variant, by in settled.converged.items():
         models.update({f"rotation rule, {variant}, seed {s}": r for s, r in sorted(by.items())})
     models.update({f"table2 strided, seed {s}": r for s, r in sorted(settled.strided.items())})
+    for name, _ in E.runs(study.cfg):
+        if "seed" in name and (r := study.cached(name)) is not None:
+            kind, seed = name.split("/")[1].rsplit("_seed", 1)
+            models[f"end to end: {kind.replace('_', '-')}, seed {seed}"] = r
     models.update({f"size {k}": v for k, v in size.items() if "steps" in v})
     # a run that is the main model's (``same_as``) has the main model's row
     models.update({f"sparsity {k}": v for k, v in sparsity.items() if not v.get("same_as")})
@@ -181,7 +186,14 @@ def write_report(study: S.Study, report: Path) -> Path:
     scale_text = input_scale_finding(views, scale_model, cfg.sparsity.input_scale, default_scale)
     stage_rows, total = _stage_rows(study)
     flow = study_flow_name(study)
-    conv_heads = ("model", "steps", "samples", "status", "best val ATE †", "training (min)")
+    conv_heads = (
+        "model",
+        "steps",
+        "samples",
+        "status",
+        "best validation value (the rule's metric)",
+        "training (min)",
+    )
     text = [
         *_header(study, views, total),
         *lines("report/verdicts.md.j2", judged=judged, figure=verdict_link, flow=flow,
@@ -331,7 +343,7 @@ def _causes_sections(
     """The causes separated (:mod:`mfg_lightning.study.causes`): the exact-flow twin, Table 2 on
     exact flow beside DIS, the size curve (``size``: its results by name); their figures
     written by ``link``."""
-    from mfg_lightning.study import causes, end_to_end
+    from mfg_lightning.study import causes
 
     cached, twin = study.cached, study.cached("twin")
     sections = []
@@ -349,7 +361,7 @@ def _causes_sections(
     twin_lines, size_lines, settle_lines = sections
     clamp = config_default("model.loss.balance_max")
     rule = converge_section(settled, list(study.cfg.converge.rule), clamp)
-    e2e, fig = end_to_end.section(cached, study.cfg)
+    e2e, fig = E.section(cached, study.cfg)
     if fig is not None:
         e2e[2] += " " + link("end_to_end.png", fig)
     return [*twin_lines, *learned, *settle_lines, *rule, *e2e, *t2, *size_lines,
