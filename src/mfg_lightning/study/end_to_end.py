@@ -45,9 +45,12 @@ REGIONS = ("road", "structure", "moving", "far", "all")
 
 def runs(cfg: DictConfig) -> list[tuple[str, tuple[str, int | None]]]:
     """The stage's results, ``(name, (kind, seed))``: DIS's flow quality on the test pairs (the
-    flow table's reference), then both models of a seed before the next seed."""
-    models = [(f"end_to_end/{k}_seed{s}", (k, int(s))) for s in cfg.end_to_end.seeds for k in KINDS]
-    return [("end_to_end/dis_flow", ("dis_flow", None)), *models]
+    flow table's reference), then the two-stage and the end-to-end model of a seed before the
+    next seed, then the controls (the comparison the issue asks for comes first)."""
+    seeds = [int(s) for s in cfg.end_to_end.seeds]
+    models = [(f"end_to_end/{k}_seed{s}", (k, s)) for s in seeds for k in KINDS[:2]]
+    controls = [(f"end_to_end/{KINDS[2]}_seed{s}", (KINDS[2], s)) for s in seeds]
+    return [("end_to_end/dis_flow", ("dis_flow", None)), *models, *controls]
 
 
 def _flow_quality(dm: Any) -> dict[str, Any] | None:
