@@ -30,6 +30,7 @@ from mfg_lightning.metrics.frame_errors import FiniteMean
 from mfg_lightning.models.losses import MFGLoss, sparsity_count
 from mfg_lightning.models.mfg import MFG, bilinear_matrix, upsample_bilinear
 from mfg_lightning.models.mfg_module import HOST_INTRINSICS, MFGLitModule, NonFiniteLossError
+from mfg_lightning.models.nonfinite import NonFiniteLosses
 from mfg_lightning.motion.object_motion import extract_object_motion
 from mfg_lightning.run.callbacks import BatchChecks
 from mfg_lightning.run.checkpoints import module_from_checkpoint
@@ -311,10 +312,14 @@ def test_patched_syncs_raise() -> None:
 
 
 @pytest.mark.parametrize("precision", ["32-true", "bf16-mixed"])
-def test_no_host_sync_in_the_training_step_outside_logging_steps(precision: str) -> None:
+def test_no_host_sync_in_the_training_step_outside_logging_steps(
+    precision: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """The module's training step, with masked NaN flow and a non-finite loss among its steps,
     runs with every host read of a tensor raising, except on the logging steps (which read the
-    deferred counts)."""
+    deferred counts). Its verdict taken for a GPU's, where a read would wait: on the CPU the
+    step reads it (``test_a_finite_cpu_step_reads_its_verdict_and_sets_no_found_inf``)."""
+    monkeypatch.setattr(NonFiniteLosses, "readable_for_free", staticmethod(lambda verdict: False))
     model = _module(NaNLoss(bad={2}))
     step = model.training_step
     guarded = []
@@ -367,6 +372,40 @@ def test_a_non_finite_loss_is_skipped_inside_the_fused_optimiser() -> None:
         torch.equal(p, q) for p, q in zip(snaps.weights[1], snaps.weights[2], strict=True)
     )
     assert not hasattr(trainer.optimizers[0], "found_inf")  # nothing left for a later step
+
+
+def test_a_finite_cpu_step_reads_its_verdict_and_sets_no_found_inf(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """On the CPU a finite step's verdict is read (it waits for nothing) and the optimiser gets
+    no ``found_inf``; the non-finite step still goes to the fused optimiser's skip. The weights
+    and Adam's step counts equal the device route's (the verdict never read) bit for bit."""
+    handed = []
+    before = NonFiniteLosses.before_optimizer_step
+
+    def recording(self, optimizer):
+        handed.append(self._window_finite is not None)
+        return before(self, optimizer)
+
+    monkeypatch.setattr(NonFiniteLosses, "before_optimizer_step", recording)
+    runs = {}
+    for route, readable in (("cpu", NonFiniteLosses.readable_for_free), ("device", None)):
+        if readable is None:
+            monkeypatch.setattr(
+                NonFiniteLosses, "readable_for_free", staticmethod(lambda verdict: False)
+            )
+        handed.clear()
+        model, snaps = _module(NaNLoss(bad={2})), Snapshots()
+        quiet_trainer(max_steps=3, limit_val_batches=0, callbacks=[snaps]).fit(
+            model, datamodule=_dm()
+        )
+        runs[route] = (list(handed), snaps)
+    assert runs["cpu"][0] == [False, True, False]  # found_inf only for the NaN step
+    assert runs["device"][0] == [True, True, True]
+    cpu, device = runs["cpu"][1], runs["device"][1]
+    assert cpu.steps == device.steps == [1.0, 1.0, 2.0]
+    for a, b in zip(cpu.weights, device.weights, strict=True):
+        assert all(torch.equal(p, q) for p, q in zip(a, b, strict=True))
 
 
 def test_persistent_non_finite_losses_stop_the_run_at_a_logging_step() -> None:

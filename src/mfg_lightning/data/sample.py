@@ -158,7 +158,7 @@ def sanitize_flow(
     finite = torch.isfinite(flow).all(dim=-3)
     n_bad = (~finite).sum()
     # Always masked: the same values where every pixel is finite, and no test of n_bad.
-    flow = torch.where(finite.unsqueeze(-3), flow, torch.zeros_like(flow))
+    flow = torch.where(finite.unsqueeze(-3), flow, 0.0)
     valid = valid & finite
     return flow, valid, n_bad
 

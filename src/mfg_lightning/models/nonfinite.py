@@ -6,7 +6,8 @@ Two ways to skip, chosen once per step by what the optimiser can do:
 - **in the optimiser** (one fused optimiser, e.g. Adam with ``fused=True``, the default config's):
   the step's finiteness goes to the optimiser's kernel as ``found_inf`` (as GradScaler does),
   which leaves weights and state untouched on the device. Nothing is read on the host; the counts
-  are read at the logging steps (:meth:`NonFiniteLosses.report`).
+  are read at the logging steps (:meth:`NonFiniteLosses.report`). On the CPU, where the verdict
+  already is in host memory, a finite step skips this plumbing (same weights, fewer operations).
 - **on the host** (any other optimiser): the verdict is read on the host (one synchronisation per
   step) and the step returns None, which skips backward and the optimiser step. Under DDP, where
   Lightning refuses a None step and every process must run backward, the step returns a zero
@@ -98,6 +99,12 @@ class NonFiniteLosses(nn.Module):
             return False
         return bool(trainer.optimizers[0].defaults.get("fused"))
 
+    @staticmethod
+    def readable_for_free(verdict: Tensor) -> bool:
+        """Whether reading ``verdict`` on the host waits for nothing: a CPU tensor is in host
+        memory already, where on a GPU the read would wait for the step's kernels."""
+        return verdict.device.type == "cpu"
+
     def check(
         self,
         loss: Tensor,
@@ -121,6 +128,12 @@ class NonFiniteLosses(nn.Module):
             NonFiniteLossError: on the host route, after ``max_consecutive`` in a row.
         """
         if fused:
+            if self.readable_for_free(finite) and bool(finite):
+                # A finite step needs no ``found_inf`` (the optimiser's step as without the
+                # guard, to the bit) and leaves the skip count as it is: one operation where
+                # the device's route takes eight (~60 µs of a batch-1 step, AMD EPYC).
+                self.consecutive.count.zero_()
+                return True
             window = self._window_finite
             self._window_finite = finite if window is None else window & finite
             self.consecutive.update(torch.ones_like(self.consecutive.count), restart=finite)
