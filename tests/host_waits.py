@@ -19,9 +19,11 @@ ends of the epochs, counted apart under ``"epoch_end"``).
 
 Used by tests/test_host_waits.py through the entry point (``+callbacks.host_waits._target_=
 host_waits.CountHostWaits``, with tests/ on ``PYTHONPATH``). ``accelerator_cadence`` makes the
-stop and fail flags of :class:`~mfg_lightning.models.agreement.Agreement` read at the logging
-steps only, as on a GPU, instead of every step as on a CPU (``callbacks.batch_checks.deferred``
-does the same for the batch checks).
+run read as on a GPU, where a read waits for the device
+(:meth:`~mfg_lightning.models.nonfinite.NonFiniteLosses.reads_wait_for_nothing` answers no): the
+stop and fail flags of :class:`~mfg_lightning.models.agreement.Agreement` at the logging steps
+only, instead of every step as on a CPU, and a finite step's verdict not at all
+(``callbacks.batch_checks.deferred`` does the same for the batch checks).
 
 Not a test module (no ``test_`` prefix): pytest does not collect it.
 """
@@ -39,7 +41,7 @@ import lightning as L
 import torch
 import torch.distributed as dist
 
-from mfg_lightning.models.agreement import Agreement
+from mfg_lightning.models.nonfinite import NonFiniteLosses
 
 # (``numpy()`` is not among them: it refuses a device tensor, so it never waits for one)
 READS = ("item", "tolist", "cpu", "__float__", "__int__", "__bool__")
@@ -132,10 +134,9 @@ class CountHostWaits(L.Callback):
         for name in COLLECTIVES:
             self._wrap(dist, name)
         if self.accelerator_cadence:
-            self._patched.append(
-                (Agreement, "reads_every_step", vars(Agreement)["reads_every_step"])
-            )
-            Agreement.reads_every_step = staticmethod(lambda device: False)
+            original = vars(NonFiniteLosses)["reads_wait_for_nothing"]
+            self._patched.append((NonFiniteLosses, "reads_wait_for_nothing", original))
+            NonFiniteLosses.reads_wait_for_nothing = staticmethod(lambda device: False)
 
     def teardown(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
         if stage != "fit":

@@ -319,7 +319,9 @@ def test_no_host_sync_in_the_training_step_outside_logging_steps(
     runs with every host read of a tensor raising, except on the logging steps (which read the
     deferred counts). Its verdict taken for a GPU's, where a read would wait: on the CPU the
     step reads it (``test_a_finite_cpu_step_reads_its_verdict_and_sets_no_found_inf``)."""
-    monkeypatch.setattr(NonFiniteLosses, "readable_for_free", staticmethod(lambda verdict: False))
+    monkeypatch.setattr(
+        NonFiniteLosses, "reads_wait_for_nothing", staticmethod(lambda device: False)
+    )
     model = _module(NaNLoss(bad={2}))
     step = model.training_step
     guarded = []
@@ -389,10 +391,10 @@ def test_a_finite_cpu_step_reads_its_verdict_and_sets_no_found_inf(
 
     monkeypatch.setattr(NonFiniteLosses, "before_optimizer_step", recording)
     runs = {}
-    for route, readable in (("cpu", NonFiniteLosses.readable_for_free), ("device", None)):
-        if readable is None:
+    for route, readable in (("cpu", True), ("device", False)):
+        if not readable:
             monkeypatch.setattr(
-                NonFiniteLosses, "readable_for_free", staticmethod(lambda verdict: False)
+                NonFiniteLosses, "reads_wait_for_nothing", staticmethod(lambda device: False)
             )
         handed.clear()
         model, snaps = _module(NaNLoss(bad={2})), Snapshots()

@@ -152,12 +152,6 @@ class Agreement:
         self._unread = agreed if self._unread is None else torch.maximum(self._unread, agreed)
         return flags[0] > 0
 
-    @staticmethod
-    def reads_every_step(device: torch.device) -> bool:
-        """Whether the agreed flags are read at every step on ``device``: on a CPU (a read
-        waits for nothing there), not elsewhere (only at the logging steps)."""
-        return device.type == "cpu"
-
     def decide(self, step: int, due: bool = False, force: bool = False) -> None:
         """Read the agreed stop and fail flags when due (every step on a CPU, at the logging
         steps elsewhere; ``force``: now): set :attr:`stop`, or raise.
@@ -174,7 +168,8 @@ class Agreement:
         unread = self._unread
         if unread is None:
             return
-        if not (force or due or self.reads_every_step(unread.device)):
+        # read at every step where a read waits for nothing (a CPU), else at the logging steps
+        if not (force or due or NonFiniteLosses.reads_wait_for_nothing(unread.device)):
             return
         self._unread = None
         stop, fail = unread.tolist()

@@ -100,10 +100,12 @@ class NonFiniteLosses(nn.Module):
         return bool(trainer.optimizers[0].defaults.get("fused"))
 
     @staticmethod
-    def readable_for_free(verdict: Tensor) -> bool:
-        """Whether reading ``verdict`` on the host waits for nothing: a CPU tensor is in host
-        memory already, where on a GPU the read would wait for the step's kernels."""
-        return verdict.device.type == "cpu"
+    def reads_wait_for_nothing(device: torch.device) -> bool:
+        """Whether reading a tensor on ``device`` from the host waits for nothing: on a CPU it is
+        in host memory already; on an accelerator the read waits for the step's kernels. The
+        one answer for every per-step read of a verdict or a flag (this class's finite steps,
+        :meth:`~mfg_lightning.models.agreement.Agreement.decide`)."""
+        return device.type == "cpu"
 
     def check(
         self,
@@ -128,7 +130,7 @@ class NonFiniteLosses(nn.Module):
             NonFiniteLossError: on the host route, after ``max_consecutive`` in a row.
         """
         if fused:
-            if self.readable_for_free(finite) and bool(finite):
+            if self.reads_wait_for_nothing(finite.device) and bool(finite):
                 # A finite step needs no ``found_inf`` (the optimiser's step as without the
                 # guard, to the bit) and leaves the skip count as it is: one operation where
                 # the device's route takes eight (~60 µs of a batch-1 step, AMD EPYC).
