@@ -22,7 +22,7 @@ host_waits.CountHostWaits``, with tests/ on ``PYTHONPATH``). ``accelerator_caden
 run read as on a GPU, where a read waits for the device
 (:meth:`~mfg_lightning.models.nonfinite.NonFiniteLosses.reads_wait_for_nothing` answers no): the
 stop and fail flags of :class:`~mfg_lightning.models.agreement.Agreement` at the logging steps
-only, instead of every step as on a CPU, and a finite step's verdict not at all
+only, instead of every step as on a CPU, and the step's non-finite verdict not at all
 (``callbacks.batch_checks.deferred`` does the same for the batch checks).
 
 Not a test module (no ``test_`` prefix): pytest does not collect it.
@@ -88,8 +88,8 @@ class CountHostWaits(L.Callback):
 
     Args:
         path: the folder of the ``host_waits_rank<r>.json`` files.
-        accelerator_cadence: read the agreed flags at the logging steps only, as on a GPU (the
-            CPU reads them every step).
+        accelerator_cadence: read as on a GPU: the agreed flags at the logging steps only and
+            the step's non-finite verdict not at all (a CPU reads both every step).
         where: also count each call by its call site (``"item at file:line"``), to find them.
     """
 

@@ -356,7 +356,8 @@ class Snapshots(L.Callback):
     def on_train_batch_end(self, trainer, pl_module, *args) -> None:
         self.weights.append([p.detach().clone() for p in pl_module.parameters()])
         state = trainer.optimizers[0].state[next(pl_module.parameters())]
-        self.steps.append(float(state["step"]))
+        # no state before the first optimiser step (a first micro-batch)
+        self.steps.append(float(state["step"]) if "step" in state else 0.0)
 
 
 def test_a_non_finite_loss_is_skipped_inside_the_fused_optimiser() -> None:
@@ -406,6 +407,33 @@ def test_a_finite_cpu_step_reads_its_verdict_and_sets_no_found_inf(
     assert runs["device"][0] == [True, True, True]
     cpu, device = runs["cpu"][1], runs["device"][1]
     assert cpu.steps == device.steps == [1.0, 1.0, 2.0]
+    for a, b in zip(cpu.weights, device.weights, strict=True):
+        assert all(torch.equal(p, q) for p, q in zip(a, b, strict=True))
+
+
+def test_an_accumulated_step_skips_alike_on_both_routes(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Two micro-batches per optimiser step, the first one's loss NaN, the second finite: on the
+    CPU route the finite one reads its verdict and leaves the first one's ``found_inf`` standing,
+    so the step is skipped as on the device route; weights, Adam's step counts and the skip
+    counts equal bit for bit."""
+    runs = {}
+    for route in ("cpu", "device"):
+        if route == "device":
+            monkeypatch.setattr(
+                NonFiniteLosses, "reads_wait_for_nothing", staticmethod(lambda device: False)
+            )
+        model, snaps = _module(NaNLoss(bad={1})), Snapshots()
+        trainer = quiet_trainer(
+            max_steps=2, limit_val_batches=0, callbacks=[snaps], accumulate_grad_batches=2
+        )
+        trainer.fit(model, datamodule=_dm())
+        counts = (int(model.nonfinite.skipped.count), int(model.nonfinite.consecutive.count))
+        runs[route] = (snaps, counts)
+    (cpu, cpu_counts), (device, device_counts) = runs["cpu"], runs["device"]
+    assert cpu_counts == device_counts == (1, 0)
+    # Snapshots sees every micro-batch (an epoch of 3: the last one steps alone): the first
+    # optimiser step (batches 1-2) was skipped, the second taken
+    assert cpu.steps == device.steps == [0.0, 0.0, 1.0]
     for a, b in zip(cpu.weights, device.weights, strict=True):
         assert all(torch.equal(p, q) for p, q in zip(a, b, strict=True))
 

@@ -16,12 +16,14 @@ reduced flags at the same step (:class:`Agreement`):
 * **fail**: the process holds an error that ends the run (a refused batch): every process raises
   at the same step, that one its own error, the others :class:`PeerFailedError` naming it.
 
-The skip flag stays on the device (a fused optimiser's ``found_inf``; the host route reads it, as
-it reads the loss). The stop and fail flags are read on the host at every step on a CPU, where a
-read costs nothing, and on an accelerator, where a read waits for the device, only at the logging
-steps (:func:`logging_step`: every ``trainer.log_every_n_steps``, when the loggers make the host
-wait anyway); meanwhile their maximum is kept on the device. A stop or a failure is then acted on
-up to that many steps late, at the same step on every process.
+On an accelerator the skip flag stays on the device (a fused optimiser's ``found_inf``; the host
+route reads it, as it reads the loss); on a CPU every step's verdict is read, which waits for
+nothing there (:meth:`NonFiniteLosses.reads_wait_for_nothing`). The stop and fail flags are read on
+the host at every step on a CPU, where a read costs nothing, and on an accelerator, where a read
+waits for the device, only at the logging steps (:func:`logging_step`: every
+``trainer.log_every_n_steps``, when the loggers make the host wait anyway); meanwhile their maximum
+is kept on the device. A stop or a failure is then acted on up to that many steps late, at the same
+step on every process.
 
 One process (no process group): nothing is reduced; SIGTERM and a refused batch are acted on at
 once, as Lightning and the callbacks do by themselves.
@@ -259,8 +261,9 @@ class AgreedSteps:
         return 1 if trainer is None else int(trainer.world_size)
 
     def skips_in_the_optimiser(self) -> bool:
-        """Whether a skipped step is skipped inside a fused optimiser (nothing read on the host;
-        :meth:`NonFiniteLosses.skips_in_the_optimiser`); asked once per step."""
+        """Whether a skipped step is skipped inside a fused optimiser (on an accelerator nothing
+        is read on the host; :meth:`NonFiniteLosses.skips_in_the_optimiser`); asked once per
+        step."""
         module: Any = self
         return self.nonfinite.skips_in_the_optimiser(
             getattr(self, "_trainer", None), module.automatic_optimization

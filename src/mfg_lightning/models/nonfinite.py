@@ -5,9 +5,10 @@ Two ways to skip, chosen once per step by what the optimiser can do:
 
 - **in the optimiser** (one fused optimiser, e.g. Adam with ``fused=True``, the default config's):
   the step's finiteness goes to the optimiser's kernel as ``found_inf`` (as GradScaler does),
-  which leaves weights and state untouched on the device. Nothing is read on the host; the counts
-  are read at the logging steps (:meth:`NonFiniteLosses.report`). On the CPU, where the verdict
-  already is in host memory, a finite step skips this plumbing (same weights, fewer operations).
+  which leaves weights and state untouched on the device. On an accelerator nothing is read on
+  the host; the counts are read at the logging steps (:meth:`NonFiniteLosses.report`). On a CPU,
+  where the verdict already is in host memory, every step's verdict is read, and a finite step
+  then skips this plumbing (same weights, fewer operations).
 - **on the host** (any other optimiser): the verdict is read on the host (one synchronisation per
   step) and the step returns None, which skips backward and the optimiser step. Under DDP, where
   Lightning refuses a None step and every process must run backward, the step returns a zero

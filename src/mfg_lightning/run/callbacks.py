@@ -45,6 +45,7 @@ from lightning.pytorch.utilities.exceptions import SIGTERMException
 from mfg_lightning.core.atomic import atomic_write_bytes
 from mfg_lightning.core.errors import UserError
 from mfg_lightning.models.agreement import Agreement, logging_step
+from mfg_lightning.models.nonfinite import NonFiniteLosses
 
 log = logging.getLogger(__name__)
 
@@ -437,7 +438,9 @@ class BatchChecks(L.Callback):
         # training and evaluation compare with the ground truth: the pose is needed here
         check_batch_layout(batch, height, width, dtype=dtype, needs=(POSE,))
         flags = batch_value_flags(batch)
-        deferred = self.deferred if self.deferred is not None else flags.device.type != "cpu"
+        deferred = self.deferred
+        if deferred is None:
+            deferred = not NonFiniteLosses.reads_wait_for_nothing(flags.device)
         if not deferred:
             raise_on_bad_values(batch, flags)
             return
