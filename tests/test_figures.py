@@ -19,11 +19,11 @@ from mfg_lightning.data.synthetic import SyntheticDataModule
 from mfg_lightning.models.losses import MFGLoss
 from mfg_lightning.models.mfg import MFG
 from mfg_lightning.models.mfg_module import MFGLitModule, StepFields
-from mfg_lightning.models.nonfinite import NonFiniteLosses
 from mfg_lightning.pictures.colours import colour_wheel, flow_to_rgb
 from mfg_lightning.pictures.fields import FIELD_COLUMNS, FieldRow, basis_figure, field_figure
 from mfg_lightning.run.figures import TensorBoardFigures, sample_plan
 from mfg_lightning.run.runs import build_model
+from module_helpers import read_as_on_a_gpu
 from test_precision import no_host_sync
 
 FIGURES = ("val/fields", "val/basis", "val/trajectory", "val/drift")
@@ -90,8 +90,8 @@ def _module(image_every: int) -> MFGLitModule:
 def test_the_training_step_hands_its_fields_without_a_host_read(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    # read as on a GPU: on the CPU a finite step reads its verdict, which waits for nothing
-    monkeypatch.setattr(NonFiniteLosses, "reads_wait_for_nothing", staticmethod(lambda d: False))
+    # read as on a GPU: on the CPU every step reads its verdict, which waits for nothing there
+    read_as_on_a_gpu(monkeypatch)
     model = _module(image_every=2)
     step, handed = model.training_step, []
 

@@ -42,7 +42,7 @@ from mfg_lightning.run.precision import (
 )
 from mfg_lightning.run.runs import build_model
 from mfg_lightning.run.training import check_trainer_settings, train
-from module_helpers import corrupt_datamodule, small_datamodule, small_module
+from module_helpers import corrupt_datamodule, read_as_on_a_gpu, small_datamodule, small_module
 
 #: torch.autocast dtypes on the CPU: what bf16-mixed and 16-mixed run the encoder in.
 LOW = {"bf16-mixed": torch.bfloat16, "16-mixed": torch.float16}
@@ -319,9 +319,7 @@ def test_no_host_sync_in_the_training_step_outside_logging_steps(
     runs with every host read of a tensor raising, except on the logging steps (which read the
     deferred counts). Its verdict taken for a GPU's, where a read would wait: on the CPU the
     step reads it (``test_a_finite_cpu_step_reads_its_verdict_and_sets_no_found_inf``)."""
-    monkeypatch.setattr(
-        NonFiniteLosses, "reads_wait_for_nothing", staticmethod(lambda device: False)
-    )
+    read_as_on_a_gpu(monkeypatch)
     model = _module(NaNLoss(bad={2}))
     step = model.training_step
     guarded = []
@@ -377,6 +375,14 @@ def test_a_non_finite_loss_is_skipped_inside_the_fused_optimiser() -> None:
     assert not hasattr(trainer.optimizers[0], "found_inf")  # nothing left for a later step
 
 
+def _on_both_routes(monkeypatch: pytest.MonkeyPatch, train: Any) -> tuple[Any, Any]:
+    """``train()`` on the CPU's route (every step's verdict read, no ``found_inf`` for a finite
+    one), then on the device's (the verdict never read): both results."""
+    cpu = train()
+    read_as_on_a_gpu(monkeypatch)
+    return cpu, train()
+
+
 def test_a_finite_cpu_step_reads_its_verdict_and_sets_no_found_inf(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
@@ -391,21 +397,18 @@ def test_a_finite_cpu_step_reads_its_verdict_and_sets_no_found_inf(
         return before(self, optimizer)
 
     monkeypatch.setattr(NonFiniteLosses, "before_optimizer_step", recording)
-    runs = {}
-    for route, readable in (("cpu", True), ("device", False)):
-        if not readable:
-            monkeypatch.setattr(
-                NonFiniteLosses, "reads_wait_for_nothing", staticmethod(lambda device: False)
-            )
+
+    def train() -> tuple[list[bool], Snapshots]:
         handed.clear()
         model, snaps = _module(NaNLoss(bad={2})), Snapshots()
         quiet_trainer(max_steps=3, limit_val_batches=0, callbacks=[snaps]).fit(
             model, datamodule=_dm()
         )
-        runs[route] = (list(handed), snaps)
-    assert runs["cpu"][0] == [False, True, False]  # found_inf only for the NaN step
-    assert runs["device"][0] == [True, True, True]
-    cpu, device = runs["cpu"][1], runs["device"][1]
+        return list(handed), snaps
+
+    (cpu_handed, cpu), (device_handed, device) = _on_both_routes(monkeypatch, train)
+    assert cpu_handed == [False, True, False]  # found_inf only for the NaN step
+    assert device_handed == [True, True, True]
     assert cpu.steps == device.steps == [1.0, 1.0, 2.0]
     for a, b in zip(cpu.weights, device.weights, strict=True):
         assert all(torch.equal(p, q) for p, q in zip(a, b, strict=True))
@@ -416,20 +419,16 @@ def test_an_accumulated_step_skips_alike_on_both_routes(monkeypatch: pytest.Monk
     CPU route the finite one reads its verdict and leaves the first one's ``found_inf`` standing,
     so the step is skipped as on the device route; weights, Adam's step counts and the skip
     counts equal bit for bit."""
-    runs = {}
-    for route in ("cpu", "device"):
-        if route == "device":
-            monkeypatch.setattr(
-                NonFiniteLosses, "reads_wait_for_nothing", staticmethod(lambda device: False)
-            )
+
+    def train() -> tuple[Snapshots, tuple[int, int]]:
         model, snaps = _module(NaNLoss(bad={1})), Snapshots()
         trainer = quiet_trainer(
             max_steps=2, limit_val_batches=0, callbacks=[snaps], accumulate_grad_batches=2
         )
         trainer.fit(model, datamodule=_dm())
-        counts = (int(model.nonfinite.skipped.count), int(model.nonfinite.consecutive.count))
-        runs[route] = (snaps, counts)
-    (cpu, cpu_counts), (device, device_counts) = runs["cpu"], runs["device"]
+        return snaps, (int(model.nonfinite.skipped.count), int(model.nonfinite.consecutive.count))
+
+    (cpu, cpu_counts), (device, device_counts) = _on_both_routes(monkeypatch, train)
     assert cpu_counts == device_counts == (1, 0)
     # Snapshots sees every micro-batch (an epoch of 3: the last one steps alone): the first
     # optimiser step (batches 1-2) was skipped, the second taken

@@ -104,8 +104,9 @@ class NonFiniteLosses(nn.Module):
     def reads_wait_for_nothing(device: torch.device) -> bool:
         """Whether reading a tensor on ``device`` from the host waits for nothing: on a CPU it is
         in host memory already; on an accelerator the read waits for the step's kernels. The
-        one answer for every per-step read of a verdict or a flag (this class's finite steps,
-        :meth:`~mfg_lightning.models.agreement.Agreement.decide`)."""
+        one answer for every per-step read of a verdict or a flag (:meth:`check`,
+        :meth:`~mfg_lightning.models.agreement.Agreement.decide`, the batch checks' default
+        deferral)."""
         return device.type == "cpu"
 
     def check(
@@ -134,7 +135,8 @@ class NonFiniteLosses(nn.Module):
             if self.reads_wait_for_nothing(finite.device) and bool(finite):
                 # A finite step needs no ``found_inf`` (the optimiser's step as without the
                 # guard, to the bit) and leaves the skip count as it is: one operation where
-                # the device's route takes eight (~60 µs of a batch-1 step, AMD EPYC).
+                # the device's route takes eight, fused Adam's ``found_inf`` correction
+                # included (bench/results/throughput_epyc/batch1_ab.md).
                 self.consecutive.count.zero_()
                 return True
             window = self._window_finite

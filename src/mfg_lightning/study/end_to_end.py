@@ -48,8 +48,9 @@ def runs(cfg: DictConfig) -> list[tuple[str, tuple[str, int | None]]]:
     flow table's reference), then the two-stage and the end-to-end model of a seed before the
     next seed, then the controls (the comparison the issue asks for comes first)."""
     seeds = [int(s) for s in cfg.end_to_end.seeds]
-    models = [(f"end_to_end/{k}_seed{s}", (k, s)) for s in seeds for k in KINDS[:2]]
-    controls = [(f"end_to_end/{KINDS[2]}_seed{s}", (KINDS[2], s)) for s in seeds]
+    two_stage, joint, frozen = KINDS
+    models = [(f"end_to_end/{k}_seed{s}", (k, s)) for s in seeds for k in (two_stage, joint)]
+    controls = [(f"end_to_end/{frozen}_seed{s}", (frozen, s)) for s in seeds]
     return [("end_to_end/dis_flow", ("dis_flow", None)), *models, *controls]
 
 
