@@ -20,6 +20,7 @@ from mfg_lightning.run.checkpoints import (
     UnsafeConfigError,
     allowed_targets,
     check_targets,
+    config_group_targets,
     dataset_config,
     load_checkpoint,
     module_from_checkpoint,
@@ -82,7 +83,8 @@ def test_checkpoint_of_another_model_size_is_a_clear_error(tmp_path: Path) -> No
 
 
 def test_every_target_of_the_project_configs_is_allowed() -> None:
-    """A config group whose class is missing from the allow-list could not be evaluated."""
+    """The allow-list is the config groups' classes: a config group whose class is missing from
+    it could not be evaluated, and a new dataset is allowed by its config file alone."""
     from hydra.utils import get_object
 
     groups = ("model", "dataset", "flow", "object_motion")
@@ -101,10 +103,14 @@ def test_every_target_of_the_project_configs_is_allowed() -> None:
 
     found = {t for f in files for t in targets(yaml.safe_load(f.read_text()) or {})}
     assert "mfg_lightning.models.mfg_module.MFGLitModule" in found
+    assert "mfg_lightning.models.mfg.MFG" in found  # nested under model.net
+    assert config_group_targets() == found
     for target in found:
         assert get_object(target) in allowed_targets(), target
     assert get_object("torch.optim.AdamW") in allowed_targets()
     assert get_object("torch.optim.lr_scheduler.OneCycleLR") in allowed_targets()
+    # a class the project has but no config group builds is not allowed
+    assert get_object("mfg_lightning.run.callbacks.LastCheckpoint") not in allowed_targets()
 
 
 @pytest.mark.parametrize(

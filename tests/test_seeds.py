@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from conftest import run_module
+from mfg_lightning.analysis.sweep_report import write_report
 from mfg_lightning.analysis.sweeps import seed_groups, swept_keys
 from mfg_lightning.core.config import compose
 from mfg_lightning.core.tables import pm
-from mfg_lightning.report import write_report
 from test_sweeps import _fake_job, _metrics
 
 

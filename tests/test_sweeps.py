@@ -13,9 +13,10 @@ from hydra import compose, initialize_config_dir
 
 from conftest import run_module
 from mfg_lightning.analysis.sweep_figures import SWEEP_FIGURES
+from mfg_lightning.analysis.sweep_report import write_report
 from mfg_lightning.analysis.sweeps import NotAMultirunError, collect_jobs, swept_keys
 from mfg_lightning.core.config import CONFIG_DIR, processes_cpus
-from mfg_lightning.report import main, write_report
+from mfg_lightning.report import main
 
 
 def _rows(path: Path) -> list[dict[str, str]]:

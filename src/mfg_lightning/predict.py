@@ -49,49 +49,13 @@ The prediction itself, its checks and its writers are :mod:`mfg_lightning.run.pr
 
 from __future__ import annotations
 
-import logging
-from pathlib import Path
-
 import hydra
 import lightning as L
-from omegaconf import DictConfig, open_dict
+from omegaconf import DictConfig
 
 from mfg_lightning.core.config import CONFIG_DIR
-from mfg_lightning.core.errors import UserError, exit_on_unknown_choice, exit_on_user_error
-from mfg_lightning.run.checkpoints import peek_checkpoint
+from mfg_lightning.core.errors import exit_on_unknown_choice, exit_on_user_error
 from mfg_lightning.run.prediction import predict
-
-log = logging.getLogger("mfg_lightning.predict")
-
-
-def end_to_end_flow(cfg: DictConfig) -> None:
-    """The flow of an end-to-end checkpoint's prediction: its own network under ``flow=learned``
-    without ``flow.weights`` (set to the checkpoint); refused on ``dataset=image_pairs``, whose
-    flow is the exact flow (the network runs inside the training module only)."""
-    path = Path(str(cfg.ckpt_path)).expanduser()
-    if not path.is_file():
-        return  # (predict names the missing file)
-    ckpt = peek_checkpoint(path)
-    if "flow_net_config" not in ckpt or "mfg_model_config" not in ckpt:
-        return  # an MFG checkpoint (or not a checkpoint: predict says so)
-    if str(cfg.dataset.get("_target_", "")).endswith("ImagePairsDataModule"):
-        raise UserError(
-            f"{path} was trained end to end: predict its poses on frames whose flow its own "
-            "network estimates, e.g. dataset=synthetic flow=learned (dataset=image_pairs "
-            "carries the exact flow)"
-        )
-    flow = cfg.get("flow") or {}
-    if flow.get("source") == "learned" and not flow.get("weights"):
-        with open_dict(cfg):
-            cfg.flow.weights = str(path)
-        log.info("flow=learned: the flow network of the end-to-end checkpoint %s", path)
-    elif flow.get("source") != "learned" or Path(str(flow.get("weights"))) != path:
-        log.warning(
-            "%s was trained end to end on its own flow network's flow; this prediction reads "
-            "flow=%s (flow=learned without flow.weights reads the checkpoint's)",
-            path,
-            flow.get("source"),
-        )
 
 
 @exit_on_unknown_choice
@@ -99,7 +63,6 @@ def end_to_end_flow(cfg: DictConfig) -> None:
 @exit_on_user_error
 def main(cfg: DictConfig) -> None:
     L.seed_everything(cfg.seed, workers=True, verbose=False)
-    end_to_end_flow(cfg)
     written = predict(cfg)
     for seq, files in written.items():
         print(f"{seq}: {files['frames']} poses in {files['kitti']} and {files['tum']}")

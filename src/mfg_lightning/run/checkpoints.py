@@ -9,9 +9,9 @@ Researchers share checkpoints, so reading one must never run its author's code:
   payload calling ``os.system``, say) is refused before it runs: :class:`CheckpointError`.
 * **Configs** read from a checkpoint (``mfg_model_config``, ``mfg_dataset_config``) or from a run
   directory's ``config.yaml`` are instantiated only if every ``_target_`` in them, at any depth,
-  resolves to one of the classes the project's own configs build (:func:`allowed_targets`: the
-  LightningModule, the network, the loss, the object-motion filters, the DataModules and flow
-  estimators, torch's optimisers and lr schedulers). The check is on the resolved object, so an
+  resolves to one of the classes the project's own configs build (:func:`allowed_targets`: every
+  ``_target_`` of the model, dataset, flow and object-motion config groups, and torch's
+  optimisers and lr schedulers). The check is on the resolved object, so an
   alias of an allowed class passes and nothing else does (``builtins.open``,
   ``subprocess.run``, ...): :class:`UnsafeConfigError` names the key and the target.
 
@@ -25,15 +25,18 @@ from __future__ import annotations
 import contextlib
 import inspect
 import logging
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import torch
+import yaml
 from omegaconf import OmegaConf
 from torch import Tensor
+
+from mfg_lightning.core.config import config_dir
 
 if TYPE_CHECKING:
     from mfg_lightning.models.mfg_module import MFGLitModule
@@ -50,6 +53,7 @@ __all__ = [
     "allowed_targets",
     "build_module",
     "check_targets",
+    "config_group_targets",
     "dataset_config",
     "load_checkpoint",
     "model_size",
@@ -197,27 +201,31 @@ def describe_load_error(err: BaseException) -> str:
 # Configs: the allow-list
 # --------------------------------------------------------------------------------------------
 
-#: Every class a config read from a checkpoint or a run directory may build, by dotted name
-#: (resolved on first use). torch's optimisers and lr schedulers are added by
-#: :func:`allowed_targets`. A new DataModule, estimator or network part goes here too:
-#: tests/test_checkpoints.py checks that every ``_target_`` of the model, dataset, flow and
-#: object-motion config groups is listed.
-PROJECT_TARGETS = (
-    "mfg_lightning.models.mfg_module.MFGLitModule",
-    "mfg_lightning.models.mfg.MFG",
-    "mfg_lightning.models.losses.MFGLoss",
-    "mfg_lightning.motion.object_motion.ObjectMotionConfig",
-    "mfg_lightning.data.synthetic.SyntheticDataModule",
-    "mfg_lightning.data.kitti.KittiDataModule",
-    "mfg_lightning.data.vkitti.VirtualKittiDataModule",
-    "mfg_lightning.data.image_folder.ImageFolderDataModule",
-    # the learned flow's training (python -m mfg_lightning.train_flow)
-    "mfg_lightning.models.flow_module.FlowLitModule",
-    "mfg_lightning.data.flow_pairs.FlowPairsDataModule",
-    # the flow network and MFG trained together (experiment=end_to_end)
-    "mfg_lightning.models.end_to_end.EndToEndLitModule",
-    "mfg_lightning.data.image_pairs.ImagePairsDataModule",
-)
+#: The config groups whose classes a config read from a checkpoint or a run directory may build:
+#: every ``_target_`` in their YAML files (:func:`config_group_targets`). A new dataset, network
+#: or module is allowed by adding its config file; torch's optimisers and lr schedulers are added
+#: by :func:`allowed_targets`.
+TARGET_GROUPS = ("model", "dataset", "flow", "object_motion")
+
+
+def config_group_targets(groups: Sequence[str] = TARGET_GROUPS) -> set[str]:
+    """Every ``_target_`` named at any depth in the YAML files of the config ``groups``."""
+    found: set[str] = set()
+
+    def walk(node: Any) -> None:
+        if isinstance(node, Mapping):
+            if isinstance(node.get("_target_"), str):
+                found.add(node["_target_"])
+            for value in node.values():
+                walk(value)
+        elif isinstance(node, list):
+            for value in node:
+                walk(value)
+
+    for group in groups:
+        for path in sorted((config_dir() / group).glob("*.yaml")):
+            walk(yaml.safe_load(path.read_text()))
+    return found
 
 
 #: Modules that moved when the package was laid out in folders (0.1 → 0.2), old → new. A config
@@ -303,7 +311,8 @@ def _optimisers_and_schedulers() -> list[Any]:
 @cache
 def allowed_targets() -> frozenset[Any]:
     """The resolved objects a stored config may name as ``_target_``."""
-    return frozenset([_resolve(name) for name in PROJECT_TARGETS] + _optimisers_and_schedulers())
+    project = [_resolve(name) for name in sorted(config_group_targets())]
+    return frozenset(project + _optimisers_and_schedulers())
 
 
 def _resolve(target: str) -> Any:
@@ -338,8 +347,8 @@ def check_targets(cfg: Any, source: str, key: str = "") -> None:
             if resolved is None or resolved not in allowed_targets():
                 raise UnsafeConfigError(
                     f"{source}: {where} = {target!r} is not one of the classes this project's "
-                    "configs build (mfg_lightning.run.checkpoints.PROJECT_TARGETS, torch "
-                    "optimisers and lr schedulers); refusing to instantiate it"
+                    "configs build (conf/{model,dataset,flow,object_motion}/, torch optimisers "
+                    "and lr schedulers); refusing to instantiate it"
                 )
         for name, value in cfg.items():
             check_targets(value, source, f"{key}.{name}" if key else str(name))

@@ -5,6 +5,7 @@ docstring lists the files it writes).
 into Lightning's predict loop; :func:`gather` groups its batch outputs into one
 :class:`PredictedSequence` per sequence and checks that the pairs chain; :func:`write_sequence`
 writes a sequence's pose files (KITTI, TUM), its motions CSV and its object masks;
+:func:`end_to_end_flow` gives an end-to-end checkpoint its own flow network;
 :func:`score_against_ground_truth` draws and scores the sequences where the split has ground
 truth; :func:`predict` does all of it for a composed ``predict`` config.
 """
@@ -24,7 +25,7 @@ import numpy as np
 import torch
 from hydra.utils import instantiate
 from lightning.pytorch.utilities.model_helpers import is_overridden
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 from torch import Tensor
 
 from mfg_lightning.core import geometry
@@ -38,7 +39,7 @@ from mfg_lightning.models.mfg import validate_top_k
 from mfg_lightning.models.mfg_module import MFGLitModule
 from mfg_lightning.motion.object_motion import ObjectMotionConfig, extract_object_motion
 from mfg_lightning.pictures import plots
-from mfg_lightning.run.checkpoints import module_from_checkpoint
+from mfg_lightning.run.checkpoints import module_from_checkpoint, peek_checkpoint
 from mfg_lightning.run.runs import run_info
 from mfg_lightning.trajectory import trajectories
 from mfg_lightning.trajectory.pose_io import frame_times, write_trajectory
@@ -246,6 +247,37 @@ def score_against_ground_truth(
     return {"align": align, "metrics": {k: finite_or_none(v) for k, v in metrics.items()}}
 
 
+def end_to_end_flow(cfg: DictConfig) -> dict[str, Any] | None:
+    """The flow config of an end-to-end checkpoint's prediction, or None to read ``cfg.flow`` as
+    given: under ``flow=learned`` without ``flow.weights``, the checkpoint's own flow network.
+    Refused on ``dataset=image_pairs``, whose flow is the exact flow (the network runs inside the
+    training module only). The config itself is not changed."""
+    path = Path(str(cfg.ckpt_path)).expanduser()
+    if not path.is_file():
+        return None  # (predict names the missing file)
+    ckpt = peek_checkpoint(path)
+    if "flow_net_config" not in ckpt or "mfg_model_config" not in ckpt:
+        return None  # an MFG checkpoint (or not a checkpoint: predict says so)
+    if str(cfg.dataset.get("_target_", "")).endswith("ImagePairsDataModule"):
+        raise UserError(
+            f"{path} was trained end to end: predict its poses on frames whose flow its own "
+            "network estimates, e.g. dataset=synthetic flow=learned (dataset=image_pairs "
+            "carries the exact flow)"
+        )
+    flow = cfg.get("flow") or {}
+    if flow.get("source") == "learned" and not flow.get("weights"):
+        log.info("flow=learned: the flow network of the end-to-end checkpoint %s", path)
+        return {**OmegaConf.to_container(flow, resolve=True), "weights": str(path)}
+    if flow.get("source") != "learned" or Path(str(flow.get("weights"))) != path:
+        log.warning(
+            "%s was trained end to end on its own flow network's flow; this prediction reads "
+            "flow=%s (flow=learned without flow.weights reads the checkpoint's)",
+            path,
+            flow.get("source"),
+        )
+    return None
+
+
 def predict(cfg: DictConfig) -> dict[str, dict[str, Any]]:
     """Predict every sequence of the configured dataset and write the files
     (:mod:`mfg_lightning.predict` lists them) and ``predict.json``.
@@ -258,7 +290,8 @@ def predict(cfg: DictConfig) -> dict[str, dict[str, Any]]:
     out = Path(cfg.paths.output_dir)
     predict_align(cfg)  # a wrong value is an error before anything is predicted
     module = module_from_checkpoint(cfg.ckpt_path, top_k=validate_top_k(cfg.model.get("top_k")))
-    datamodule = instantiate(cfg.dataset)
+    flow = end_to_end_flow(cfg)
+    datamodule = instantiate(cfg.dataset) if flow is None else instantiate(cfg.dataset, flow=flow)
     net_hw = (module.net.height, module.net.width)
     if (datamodule.height, datamodule.width) != net_hw:
         raise ValueError(
