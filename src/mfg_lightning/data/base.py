@@ -288,6 +288,7 @@ class MFGDataModule(L.LightningDataModule):
         batch_size: int,
         num_workers: int | None = None,
         persistent_workers: bool | None = None,
+        drop_last: bool = False,
     ) -> DataLoader:
         """The loader of ``split``; ``num_workers``, ``persistent_workers``: the DataModule's
         unless given (a split's own, e.g. one persistent worker that keeps its sample cache)."""
@@ -313,7 +314,7 @@ class MFGDataModule(L.LightningDataModule):
             generator=generator,
             pin_memory=self.pin_memory,
             persistent_workers=persistent_workers and workers > 0,
-            drop_last=False,
+            drop_last=drop_last,
         )
 
     def _bytes_per_sample(self, split: str) -> int:

@@ -29,15 +29,13 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import lightning as L
 import numpy as np
 import torch
-import torch.distributed as dist
-from torch.utils.data import DataLoader, Dataset
 
-from mfg_lightning.data.base import EvaluationShard, UnpaddedDistributedSampler, collate_samples
+from mfg_lightning.data.base import MFGDataModule
 from mfg_lightning.data.rendered import RenderedDrivingDataset
 from mfg_lightning.data.rendered_preparation import MIN_CHUNK_PAIRS, prepare_pairs
+from mfg_lightning.data.resumable_loader import ResumableDataLoader
 from mfg_lightning.flow.estimators import EstimatedFlow
 from mfg_lightning.metrics.flow_quality import (
     OCCLUDED,
@@ -48,7 +46,7 @@ from mfg_lightning.metrics.flow_quality import (
 
 log = logging.getLogger(__name__)
 
-__all__ = ["FlowPairsDataModule", "FlowPairsDataset"]
+__all__ = ["FlowPairsDataModule", "FlowPairsDataset", "render_pairs"]
 
 # Bump when the arrays cached per pair change. 2: the visibility codes.
 _PAIRS_CACHE_FORMAT = 2
@@ -162,7 +160,17 @@ class FlowPairsDataset(RenderedDrivingDataset):
         }
 
 
-class FlowPairsDataModule(L.LightningDataModule):
+def render_pairs(datasets: Sequence[FlowPairsDataset], workers: int | None) -> None:
+    """Render every missing pair of ``datasets`` into the cache on ``workers`` processes (None:
+    every usable core), and log what was rendered."""
+    done = prepare_pairs(datasets, workers=workers, min_chunk_pairs=MIN_CHUNK_PAIRS)
+    for ds, result in zip(datasets, done, strict=True):
+        if result.pairs:
+            log.info("rendered %d frames and the exact flow of %d %s pairs under %s",
+                     result.frames, result.pairs, ds.name, ds.cache.root)  # fmt: skip
+
+
+class FlowPairsDataModule(MFGDataModule):
     """The learned flow's training and validation pairs (``dataset=flow_pairs``).
 
     Args:
@@ -174,11 +182,11 @@ class FlowPairsDataModule(L.LightningDataModule):
         frame_stride: training pairs from every ``frame_stride``-th source frame.
         val_every: validation pairs from every ``val_every``-th frame of the validation tails.
         image_hw: the render size (``[192, 512]``, ``flow=dis``'s), multiples of 32.
-        batch_size, eval_batch_size, num_workers: the loaders'.
+        batch_size, eval_batch_size, num_workers, seed: :class:`MFGDataModule`'s (the workers
+            persist across epochs).
         prepare_workers: processes rendering the pairs in :meth:`prepare_data` (None: every
             usable core).
         cache_dir: ``paths.cache_dir``.
-        seed: the default ``scene_seed``.
     """
 
     def __init__(
@@ -202,107 +210,60 @@ class FlowPairsDataModule(L.LightningDataModule):
         cache_dir: str | None = None,
         seed: int = 0,
     ) -> None:
-        super().__init__()
-        from mfg_lightning.data.synthetic import SyntheticDataModule
-
         hw = tuple(int(v) for v in image_hw)
         if len(hw) != 2 or min(hw) < 32 or hw[0] % 32 or hw[1] % 32:
             raise ValueError(
                 f"dataset.image_hw must be [height, width], multiples of 32, got {list(image_hw)}"
             )
+        super().__init__(height=hw[0], width=hw[1], batch_size=int(batch_size),
+                         eval_batch_size=int(eval_batch_size), num_workers=int(num_workers),
+                         seed=int(seed), persistent_workers=True)  # fmt: skip
+        from mfg_lightning.data.synthetic import SyntheticDataModule
+
         for key, value in (("frame_stride", frame_stride), ("val_every", val_every)):
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"dataset.{key} must be a positive integer, got {value!r}")
         self.image_hw = hw
         # the splits and worlds of dataset=synthetic flow=dis (the estimator is never run)
         self.splits = SyntheticDataModule(
-            trajectory=trajectory,
-            poses_dir=poses_dir,
-            train_sequences=train_sequences,
-            sequence_length=sequence_length,
-            max_frames=max_frames,
-            val_fraction=val_fraction,
-            flow={"source": "dis", "height": hw[0], "width": hw[1]},
-            offsets=offsets,
-            frame_stride=frame_stride,
-            world=world,
-            scene_seed=scene_seed,
-            seed=seed,
-        )
+            trajectory=trajectory, poses_dir=poses_dir, train_sequences=train_sequences,
+            sequence_length=sequence_length, max_frames=max_frames, val_fraction=val_fraction,
+            flow={"source": "dis", "height": hw[0], "width": hw[1]}, offsets=offsets,
+            frame_stride=frame_stride, world=world, scene_seed=scene_seed, seed=seed,
+        )  # fmt: skip
         self.world = dict(world or {})
         self.val_every = val_every
-        self.batch_size, self.eval_batch_size = int(batch_size), int(eval_batch_size)
-        self.num_workers = int(num_workers)
         self.prepare_workers = prepare_workers
         self.cache_dir = cache_dir
-        self.seed = int(seed)
-        self._datasets: dict[str, FlowPairsDataset] = {}
 
-    def dataset(self, split: str) -> FlowPairsDataset:
-        """The ``train`` or ``val`` pairs (built once)."""
+    def build_dataset(self, split: str) -> FlowPairsDataset:  # type: ignore[override]
+        """The ``train`` or ``val`` pairs."""
         if split not in ("train", "val"):
             raise ValueError(f"flow pairs have a train and a val split, not {split!r}")
-        if split not in self._datasets:
-            trajs, frames, common = self.splits.split_spec(split)
-            self._datasets[split] = FlowPairsDataset(
-                trajs,
-                frames,
-                image_hw=self.image_hw,
-                world=self.world,
-                cache_dir=self.cache_dir,
-                every=self.val_every if split == "val" else 1,
-                **{**common, "name": f"flow_pairs/{split}"},
+        trajs, frames, common = self.splits.split_spec(split)
+        ds = FlowPairsDataset(
+            trajs, frames, image_hw=self.image_hw, world=self.world, cache_dir=self.cache_dir,
+            every=self.val_every if split == "val" else 1,
+            **{**common, "name": f"flow_pairs/{split}"},
+        )  # fmt: skip
+        if not ds.samples:
+            raise ValueError(
+                f"{ds.name}: no pairs (dataset.frame_stride, dataset.val_every or "
+                "dataset.val_fraction leave none)"
             )
-        return self._datasets[split]
+        return ds
+
+    def setup(self, stage: str | None = None) -> None:
+        # the flow network is fit and validated, never tested: no test split
+        for split in ("train", "val") if stage in ("fit", None) else ("val",):
+            self.dataset(split)
 
     def prepare_data(self) -> None:
         """Render every missing pair of both splits into the cache, on every core."""
-        datasets = [self.dataset("train"), self.dataset("val")]
-        done = prepare_pairs(
-            datasets, workers=self.prepare_workers, min_chunk_pairs=MIN_CHUNK_PAIRS
-        )
-        for ds, result in zip(datasets, done, strict=True):
-            if result.pairs:
-                log.info(
-                    "rendered %d frames and the exact flow of %d %s pairs under %s",
-                    result.frames,
-                    result.pairs,
-                    ds.name,
-                    ds.cache.root,
-                )
-        for ds in datasets:
-            if not ds.samples:
-                raise ValueError(
-                    f"{ds.name}: no pairs (dataset.frame_stride, dataset.val_every or "
-                    "dataset.val_fraction leave none)"
-                )
+        render_pairs([self.dataset("train"), self.dataset("val")], self.prepare_workers)
 
-    def train_dataloader(self) -> DataLoader:
-        from mfg_lightning.data.resumable_loader import ResumableDataLoader
-
-        return ResumableDataLoader(
-            self.dataset("train"),
-            seed=self.seed,
-            batch_size=self.batch_size,
-            drop_last=len(self.dataset("train")) >= self.batch_size,
-            num_workers=self.num_workers,
-            persistent_workers=self.num_workers > 0,
-        )
-
-    def val_dataloader(self) -> DataLoader:
-        # Under DDP every validation pair goes to exactly one process (torch's sampler pads the
-        # last round with repeats, which the summed EPE would count twice); a process with no
-        # pair gets one None batch, which FlowLitModule.validation_step skips.
-        dataset: Dataset = self.dataset("val")
-        sampler = None
-        if dist.is_available() and dist.is_initialized():
-            sampler = UnpaddedDistributedSampler(dataset, dist.get_world_size(), dist.get_rank())
-            dataset = EvaluationShard(dataset)
-        return DataLoader(
-            dataset,
-            batch_size=self.eval_batch_size,
-            shuffle=False,
-            sampler=sampler,
-            num_workers=self.num_workers,
-            collate_fn=collate_samples,
-        )
+    def ordinary_train_loader(self) -> ResumableDataLoader:
+        # whole batches only, where the split holds one
+        loader = self._loader("train", shuffle=True, batch_size=self.batch_size,
+                              drop_last=len(self.dataset("train")) >= self.batch_size)  # fmt: skip
+        return ResumableDataLoader.like(loader, seed=self.seed)

@@ -14,7 +14,6 @@ intrinsics and the exact flow resized to the model input as every rendered datas
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -24,12 +23,9 @@ import torch
 from mfg_lightning.data import sample as keys
 from mfg_lightning.data import transforms
 from mfg_lightning.data.base import MFGDataModule
-from mfg_lightning.data.flow_pairs import FlowPairsDataset
-from mfg_lightning.data.rendered_preparation import MIN_CHUNK_PAIRS, prepare_pairs
+from mfg_lightning.data.flow_pairs import FlowPairsDataset, render_pairs
 from mfg_lightning.data.sample_cache import MemoryBudget
 from mfg_lightning.scene.camera import kitti_like_intrinsics
-
-log = logging.getLogger(__name__)
 
 __all__ = [
     "IMAGE0",
@@ -198,16 +194,5 @@ class ImagePairsDataModule(MFGDataModule):
 
     def prepare_data(self) -> None:
         """Render every missing pair of every split into the cache, on every core."""
-        datasets = [self.build_dataset(split) for split in ("train", "val", "test")]
-        done = prepare_pairs(
-            datasets, workers=self.prepare_workers, min_chunk_pairs=MIN_CHUNK_PAIRS
-        )
-        for ds, result in zip(datasets, done, strict=True):
-            if result.pairs:
-                log.info(
-                    "rendered %d frames and the exact flow of %d %s pairs under %s",
-                    result.frames,
-                    result.pairs,
-                    ds.name,
-                    ds.cache.root,
-                )
+        render_pairs([self.build_dataset(split) for split in ("train", "val", "test")],
+                     self.prepare_workers)  # fmt: skip

@@ -122,17 +122,6 @@ def check_trainer_settings(cfg: DictConfig) -> None:
             cfg.trainer.benchmark = False
 
 
-def _spawns_in_multirun(trainer: L.Trainer) -> bool:
-    """Whether this is a Hydra multirun job whose trainer starts its own DDP processes."""
-    from hydra.core.hydra_config import HydraConfig
-    from hydra.types import RunMode
-
-    spawns = trainer.world_size > 1 and not getattr(
-        trainer.strategy.cluster_environment, "creates_processes_externally", True
-    )
-    return spawns and HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
-
-
 #: The environment variables Lightning's DDP launcher sets in the process that starts the others
 _LAUNCH_VARIABLES = ("MASTER_ADDR", "MASTER_PORT", "NODE_RANK", "LOCAL_RANK", "WORLD_SIZE")
 
