@@ -1,4 +1,4 @@
-"""Named columns of the boxes' ``(M, 8)`` texture parameters (:attr:`.worlds.Boxes.params`).
+"""Named columns of the boxes' ``(M, 8)`` texture parameters (:attr:`.furnishing.Boxes.params`).
 
 The world generator (:mod:`.worlds`) draws them and the shaders (:mod:`.shading`) read them;
 both index the columns through these names. What a column means depends on the box's kind:

@@ -26,9 +26,10 @@ from typing import Any
 import numpy as np
 import torch
 
+from mfg_lightning.scene.furnishing import MovingObjects, place_moving, yaw_pose
 from mfg_lightning.scene.seeding import seeded_rng
 from mfg_lightning.scene.world_config import Range, WorldConfig
-from mfg_lightning.scene.worlds import MovingObjects, World, yaw_pose
+from mfg_lightning.scene.worlds import World
 
 __all__ = ["KEYS", "CrossingConfig", "CrossingWorld", "split_world_fields", "with_crossings"]
 
@@ -119,9 +120,12 @@ def with_crossings(world: World, cfg: CrossingConfig) -> CrossingWorld:
     wc: WorldConfig = world.config
     rate = cfg.per_100m / (2 if wc.lanes_per_side else 1)
     # the world's own drawing of cars and pedestrians, at the crossings' density
-    drawn = dataclasses.replace(
-        world, config=dataclasses.replace(wc, cars_per_100m=rate, pedestrians_per_100m=rate)
-    )._place_moving(rng)
+    drawn = place_moving(
+        dataclasses.replace(
+            world, config=dataclasses.replace(wc, cars_per_100m=rate, pedestrians_per_100m=rate)
+        ),
+        rng,
+    )
     n = len(drawn)
     scale = rng.uniform(*cfg.scale, n)
     drawn.boxes.half = drawn.boxes.half * scale[:, None]

@@ -81,7 +81,7 @@ class _BoxSurface:
         fp: ``(n,)`` the pixel footprint on the face (metres).
         half: ``(n, 3)`` the box's half sizes (metres).
         colour, colour2, params: the box's colours ``(n, 3)`` and texture parameters
-            ``(n, NUM_PARAMS)`` (see :class:`~.worlds.Boxes`; columns named in
+            ``(n, NUM_PARAMS)`` (see :class:`~.furnishing.Boxes`; columns named in
             :mod:`.box_params`).
     """
 
