@@ -15,11 +15,11 @@ from conftest import run_module
 from mfg_lightning.analysis.basis import (
     SELECTIVITY_COLUMNS,
     decoder_norms,
-    example_indices,
     population_statistics,
     preferred_motions,
     selectivity_rows,
 )
+from mfg_lightning.analysis.basis_report import example_indices
 from mfg_lightning.core import geometry
 from mfg_lightning.models.mfg import MFG
 

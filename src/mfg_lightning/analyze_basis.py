@@ -3,7 +3,7 @@
 ``python -m mfg_lightning.analyze_basis ckpt_path=… [dataset=…] [n_units=100] [out_dir=…]``
 (config: ``conf/analyze_basis.yaml``). Loads the checkpoint (:mod:`mfg_lightning.run.checkpoints`),
 builds the dataset (given, or the checkpoint's) and runs
-:func:`mfg_lightning.analysis.basis.analyze`,
+:func:`mfg_lightning.analysis.basis_report.analyze`,
 whose module docstring lists every file written into ``out_dir``.
 """
 
@@ -14,7 +14,7 @@ import logging
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from mfg_lightning.analysis.basis import analyze
+from mfg_lightning.analysis.basis_report import analyze
 from mfg_lightning.core.config import CONFIG_DIR
 from mfg_lightning.core.errors import exit_on_unknown_choice, exit_on_user_error
 from mfg_lightning.run.checkpoints import (
