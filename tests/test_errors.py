@@ -199,9 +199,10 @@ def test_a_setting_the_built_object_does_not_take_is_one_line_when_it_is_built()
 EVERY_ENTRY_POINT = [*ENTRY_POINTS, "mfg_lightning.train_flow", "mfg_lightning.measure"]
 
 
-def _mistakes(module: str) -> dict[str, str]:
+def _mistakes(module: str) -> tuple[list[str], dict[str, str]]:
     """Mistakes in ``module``'s own config: a whole-number setting given a word, and (where the
-    config builds objects) a setting added to a node whose object takes no such setting."""
+    config builds objects) a setting added to a node whose object takes no such setting; and
+    the arguments it needs first (``predict`` names its dataset)."""
     name = importlib.import_module(module).main.__wrapped__
     name = inspect.getclosurevars(name).nonlocals["config_name"]
     given = ["dataset=synthetic"] if name == "predict" else []
@@ -215,7 +216,7 @@ def _mistakes(module: str) -> dict[str, str]:
             built = key.removesuffix("._target_")
             mistakes[f"{built}.no_such_setting"] = f"+{built}.no_such_setting=1"
             break
-    return mistakes
+    return given, mistakes
 
 
 @pytest.mark.slow
@@ -225,8 +226,9 @@ def test_every_entry_point_refuses_a_wrong_type_and_an_unknown_setting_in_one_li
 ) -> None:
     """Through the real command line: exit status 2, one line naming the key, nothing written
     (no FAILED run directory)."""
-    for key, arg in _mistakes(module).items():
-        proc = run_module(module, arg, cwd=tmp_path, check=False)
+    given, mistakes = _mistakes(module)
+    for key, arg in mistakes.items():
+        proc = run_module(module, *given, arg, cwd=tmp_path, check=False)
         errors = [line for line in proc.stderr.splitlines() if line.strip()]
         assert proc.returncode == 2, (arg, proc.stderr[-2000:])
         assert len(errors) == 1 and errors[0].startswith(f"error: {arg}: "), proc.stderr[-2000:]
