@@ -229,7 +229,10 @@ def check_command_line(
                                                                     list(leaves)))  # fmt: skip
     groups = set(cfg.hydra.runtime.choices)
     group_lines = [o.input_line for o in plain if o.key_or_group in groups]
-    defaults = dict(config_keys(_container(_compose(config_name, group_lines))))
+    try:  # each setting's default, under the groups chosen
+        defaults = dict(config_keys(_container(_compose(config_name, group_lines))))
+    except HydraException:
+        defaults = {}
     for o in plain:
         key = o.key_or_group
         if key in groups or key.startswith("hydra") or o.is_delete() or o in floats:
@@ -237,7 +240,7 @@ def check_command_line(
         message = _wrong_type(o.input_line, key, o.value(), defaults.get(key), container)
         if message is not None:
             return CommandLine(argv, error=message)
-    message = _unknown_settings(container, plain, groups, dict(cfg.hydra.runtime.choices))
+    message = _unknown_settings(container, plain, dict(cfg.hydra.runtime.choices))
     if message is not None:
         return CommandLine(argv, error=message)
     swept = {o.key_or_group for o in parsed if o.is_sweep_override()}
@@ -448,9 +451,7 @@ def _option_sets(group: str, option: str, key: str) -> bool:
     return True
 
 
-def _unknown_settings(
-    container: dict, plain: Sequence[Any], groups: set[str], choices: dict[str, Any]
-) -> str | None:
+def _unknown_settings(container: dict, plain: Sequence[Any], choices: dict[str, Any]) -> str | None:
     """The message for a setting that the object its node builds does not take (``+model.foo=1``,
     or a preset such as ``debug=tiny`` that sets ``dataset.sequence_length`` for a dataset
     without one), or None."""
