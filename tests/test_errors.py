@@ -117,6 +117,11 @@ def test_a_value_of_the_wrong_type_names_the_key_what_it_got_and_what_it_takes()
     }
     for arg, message in refused.items():
         assert check_command_line("train", [arg], module).error == message
+    # each value of a sweep too
+    swept = check_command_line("train", ["-m", "dataset.batch_size=8,abc"], module).error
+    assert swept == ("dataset.batch_size=8,abc: dataset.batch_size takes a whole number "
+                     "(default 16); got 'abc', a string")  # fmt: skip
+    assert check_command_line("train", ["-m", "dataset.batch_size=8,16"], module).error is None
     # What a setting's parameter takes wins over its default's type: Lightning's devices and
     # precision take strings, a float setting an integer, any setting null or an interpolation.
     for arg in ("trainer.devices=auto", "trainer.precision=bf16-mixed", "model.optimizer.lr=1",

@@ -240,6 +240,18 @@ def check_command_line(
         message = _wrong_type(o.input_line, key, o.value(), defaults.get(key), container)
         if message is not None:
             return CommandLine(argv, error=message)
+    for o in parsed:  # each value of a sweep (-m dataset.batch_size=8,abc)
+        key = o.key_or_group
+        if not o.is_sweep_override() or key in groups or key.startswith("hydra"):
+            continue
+        try:
+            values = list(o.sweep_iterator())
+        except Exception:  # an interval (Optuna's) has no values to list
+            continue
+        for value in values:
+            message = _wrong_type(o.input_line, key, value, leaves.get(key), container)
+            if message is not None:
+                return CommandLine(argv, error=message)
     message = _unknown_settings(container, plain, dict(cfg.hydra.runtime.choices))
     if message is not None:
         return CommandLine(argv, error=message)
@@ -265,7 +277,7 @@ def unwritable_run_dir(cfg: Any, multirun: bool) -> str | None:
     setting = "hydra.sweep.dir" if multirun else "hydra.run.dir"
     try:
         run_dir = Path(str(OmegaConf.select(cfg, setting, throw_on_missing=True)))
-    except Exception:
+    except Exception:  # an interpolation that fails here fails in Hydra too
         return None
     if run_dir.is_dir() and OmegaConf.select(cfg, "hydra.output_subdir") is None:
         return None
@@ -380,7 +392,7 @@ def _locate(target: str) -> Any:
 
     try:
         return locate(target)
-    except Exception:
+    except Exception:  # any import failure: left to Hydra's own message
         return None
 
 
@@ -405,7 +417,7 @@ def _parameters(target: Any) -> dict[str, Any] | None:
             return None
         try:
             hints = typing.get_type_hints(fn)
-        except Exception:
+        except Exception:  # an unresolvable annotation: that one is not checked
             hints = {}
         takes_more = False
         for name, p in signature.parameters.items():
