@@ -68,6 +68,15 @@ def _session_cache_dir(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Pat
 REPO = Path(__file__).resolve().parents[1]
 # ../shared beside the checkout; MFG_SHARED_DIR points elsewhere (a git worktree, a CI cache).
 SHARED = Path(os.environ.get("MFG_SHARED_DIR", REPO.parent / "shared"))
+#: KITTI's real ground-truth poses in the shared data; a test about real poses skips without
+#: them, saying where it looked (:data:`NO_KITTI_POSES`), and never falls back to synthetic ones.
+KITTI_POSES = SHARED / "data" / "kitti_odometry" / "poses"
+NO_KITTI_POSES = f"{KITTI_POSES} not present (MFG_SHARED_DIR names the shared data's folder)"
+
+# A user's conf/local/default.yaml (git-ignored: this machine's data directory, trainer...) is
+# composed by every entry point. The tests see only what they set up: no local file, in this
+# process and the entry points it starts (conf/*.yaml: optional local: ${oc.env:MFG_LOCAL_CONFIG}).
+os.environ["MFG_LOCAL_CONFIG"] = "none"
 
 
 #: Overrides of a seconds-long real training on a small dataset (two steps, one validation and
@@ -170,9 +179,9 @@ def bench_module(name: str) -> ModuleType:
 
 @pytest.fixture
 def shared_poses() -> Path:
-    poses = SHARED / "data" / "kitti_odometry" / "poses"
+    poses = KITTI_POSES
     if not poses.is_dir():
-        pytest.skip("../shared/data/kitti_odometry/poses is not present")
+        pytest.skip(NO_KITTI_POSES)
     return poses
 
 

@@ -11,12 +11,14 @@ decode with what was written:
   (``B == 0``) and part carries a bogus *valid* flow, which must still never become an object.
 * :func:`make_kitti` — KITTI odometry: textured images in which frame ``k`` is the texture shifted
   by ``k · shift`` pixels (so the true flow ``t → t + 1`` is ``+shift`` everywhere and DIS can
-  find it), ``calib.txt`` with distinct P0–P3, and poses from ``../shared`` when present
-  (else a synthetic drive).
+  find it), ``calib.txt`` with distinct P0–P3, and KITTI's real poses from the shared data
+  (``conftest.KITTI_POSES``, under ``MFG_SHARED_DIR``): without them a test that asks for real
+  poses skips, naming where it looked, and any other gets a synthetic drive with a warning.
 """
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -27,9 +29,6 @@ import torch
 from mfg_lightning.core import geometry
 from mfg_lightning.flow import io as flow_io
 
-SHARED_POSES = (
-    Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti_odometry" / "poses"
-)
 VKITTI1_K = np.array([725.0, 725.0, 620.5, 187.0])
 
 
@@ -239,11 +238,25 @@ def make_kitti(
     width: int = 200,
     shift: tuple[float, float] = (2.0, 0.5),
     seed: int = 0,
+    real_poses: bool | None = None,
 ) -> FakeKitti:
-    """Write a tiny KITTI odometry tree under ``root`` (``n_frames`` frames per sequence)."""
+    """Write a tiny KITTI odometry tree under ``root`` (``n_frames`` frames per sequence).
+
+    ``real_poses``: True, KITTI's real poses or a skip; None, real ones where the shared data
+    has them, else a synthetic drive and a warning saying so; False, a synthetic drive."""
+    import pytest
+
+    from conftest import KITTI_POSES, NO_KITTI_POSES
+
+    found = KITTI_POSES.is_dir()
+    if real_poses and not found:
+        pytest.skip(NO_KITTI_POSES)
+    if real_poses is None and not found:
+        warnings.warn(f"make_kitti: synthetic poses, {NO_KITTI_POSES}", stacklevel=2)
+    use_real = found if real_poses is None else real_poses
     rng = np.random.default_rng(seed)
     K = np.array([0.9 * width, 0.9 * width, width / 2 + 3.25, height / 2 - 1.5])
-    fake = FakeKitti(root, height, width, shift, K, real_poses=SHARED_POSES.is_dir())
+    fake = FakeKitti(root, height, width, shift, K, real_poses=use_real)
     margin = 8 + int(np.ceil(max(abs(s) for s in shift) * n_frames))
     for seq in sequences:
         seq_dir = root / "sequences" / seq
@@ -270,8 +283,8 @@ def make_kitti(
         ]
         (seq_dir / "calib.txt").write_text("\n".join(lines) + "\n")
         (seq_dir / "times.txt").write_text("".join(f"{0.1 * k:.6e}\n" for k in range(n_frames)))
-        shared = SHARED_POSES / f"{seq}.txt"
-        if shared.is_file():
+        shared = KITTI_POSES / f"{seq}.txt"
+        if use_real and shared.is_file():
             with shared.open() as f:
                 rows = [next(f).split() for _ in range(n_frames)]
             poses = np.tile(np.eye(4), (n_frames, 1, 1))

@@ -74,7 +74,9 @@ def test_a_missing_tree_names_the_path_and_what_to_type(
         instantiate(cfg.dataset).build_dataset("train")
 
 
-def test_conf_local_is_optional_git_ignored_and_overrides(tmp_path: Path) -> None:
+def test_conf_local_is_optional_git_ignored_and_overrides(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     # The repository's conf/local/ holds no YAML of its own: a user's file there is ignored by git.
     local = REPO / "conf" / "local"
     assert (local / ".gitkeep").is_file()
@@ -83,7 +85,9 @@ def test_conf_local_is_optional_git_ignored_and_overrides(tmp_path: Path) -> Non
     )
     assert ignored.returncode == 0
     # On a copy of the configs (not to disturb other tests): a local file sets paths.data_dir
-    # for every entry point that reads data, and the command line still wins over it.
+    # for every entry point that reads data, and the command line still wins over it. The
+    # tests compose no local file (conftest: MFG_LOCAL_CONFIG=none); this one does, as a user.
+    monkeypatch.delenv("MFG_LOCAL_CONFIG")
     conf = tmp_path / "conf"
     shutil.copytree(CONFIG_DIR, conf)
     (conf / "local" / "default.yaml").write_text(

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,10 +12,9 @@ from evo.core import metrics as evo_metrics
 from evo.core.trajectory import PosePath3D
 from scipy.spatial.transform import Rotation
 
+from conftest import KITTI_POSES, NO_KITTI_POSES
 from mfg_lightning.metrics import RelativePoseError, relative_pose_error, relative_pose_errors
 from mfg_lightning.trajectory.pose_io import read_kitti_poses
-
-KITTI_POSES = Path(__file__).parents[2] / "shared" / "data" / "kitti_odometry" / "poses"
 
 
 def _random_trajectory(n: int, seed: int) -> np.ndarray:
@@ -82,7 +80,7 @@ def test_matches_evo_on_random_trajectories(delta: int) -> None:
 @pytest.mark.parametrize("rot_sigma,trans_sigma", [(0.0, 0.0), (1e-3, 0.02), (1e-2, 0.1)])
 def test_matches_evo_on_perturbed_kitti_09(rot_sigma: float, trans_sigma: float) -> None:
     if not KITTI_POSES.is_dir():
-        pytest.skip(f"{KITTI_POSES} not present")
+        pytest.skip(NO_KITTI_POSES)
     gt = read_kitti_poses(KITTI_POSES / "09.txt")
     est = _perturb(gt, 2, rot_sigma, trans_sigma)
     _assert_matches_evo(gt, est, 1)
@@ -91,7 +89,7 @@ def test_matches_evo_on_perturbed_kitti_09(rot_sigma: float, trans_sigma: float)
 def test_identical_kitti_trajectories_have_no_rotation_floor() -> None:
     """The 6-digit rotations of pose files must not turn into ~5e-4 rad of error."""
     if not KITTI_POSES.is_dir():
-        pytest.skip(f"{KITTI_POSES} not present")
+        pytest.skip(NO_KITTI_POSES)
     gt = torch.from_numpy(read_kitti_poses(KITTI_POSES / "09.txt"))
     trans, rot = relative_pose_errors(gt, gt)
     # arccos resolves angles only down to sqrt(2 · 2.2e-16) ≈ 2e-8 rad in float64.

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from conftest import KITTI_POSES, NO_KITTI_POSES
 from mfg_lightning.trajectory import pose_io
 from mfg_lightning.trajectory.pose_io import (
     PoseFileError,
@@ -20,8 +21,6 @@ from mfg_lightning.trajectory.pose_io import (
     write_kitti_poses,
     write_tum_poses,
 )
-
-KITTI_POSES = Path(__file__).parents[2] / "shared" / "data" / "kitti_odometry" / "poses"
 
 KITTI_LINES = (
     "1.000000e+00 1.197625e-11 1.704638e-10 5.551115e-17 1.197625e-11 1.000000e+00 "
@@ -66,7 +65,7 @@ def test_reads_kitti_lines_as_distributed(tmp_path: Path) -> None:
 
 def test_reads_the_real_kitti_09_file(tmp_path: Path) -> None:
     if not KITTI_POSES.is_dir():
-        pytest.skip(f"{KITTI_POSES} not present")
+        pytest.skip(NO_KITTI_POSES)
     source = KITTI_POSES / "09.txt"
     poses = read_kitti_poses(source)
     assert poses.shape == (1591, 4, 4)

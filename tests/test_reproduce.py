@@ -13,12 +13,13 @@ from pathlib import Path
 
 import pytest
 
+from conftest import KITTI_POSES, NO_KITTI_POSES
 from mfg_lightning.study.intervals import HOLDS, INCONCLUSIVE, NO_VERDICT, NOT_HOLD, PARTLY
 from mfg_lightning.study.verdicts import relative_deviation
 
 REPO = Path(__file__).resolve().parents[1]
 VERDICTS = (HOLDS, PARTLY, NOT_HOLD, INCONCLUSIVE, NO_VERDICT)
-POSES = REPO.parent / "shared" / "data" / "kitti_odometry" / "poses"
+POSES = KITTI_POSES
 
 
 def _run(tmp: Path, *args: str) -> subprocess.CompletedProcess:
@@ -44,7 +45,7 @@ def test_bad_config_is_one_error_line(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow  # the whole study, tiny: ~100 s on 2 cores
-@pytest.mark.skipif(not POSES.is_dir(), reason="KITTI poses not found beside the repository")
+@pytest.mark.skipif(not POSES.is_dir(), reason=NO_KITTI_POSES)
 def test_tiny_study_runs_resumes_and_rebuilds_from_committed_results(tmp_path: Path) -> None:
     """The whole tiny study; then again (every stage cached, nothing retrained); then as a fresh
     clone sees it: the committed stage results only (a new, empty work_dir, no checkpoint, no
@@ -293,7 +294,7 @@ def test_main_run_serves_only_a_converged_run_within_the_other_caps() -> None:
     assert main_run_serves(study, {**main, "train_seconds": 3000.0}, "00:01:00:00")
 
 
-@pytest.mark.skipif(not POSES.is_dir(), reason="KITTI poses not found beside the repository")
+@pytest.mark.skipif(not POSES.is_dir(), reason=NO_KITTI_POSES)
 def test_the_size_curve_runs_on_the_main_models_frames_only() -> None:
     """The size curve's points: every stride, then the extra seeds at the largest; a stride off
     the main model's training frames (whose pairs the flow cache has) is refused, by key."""

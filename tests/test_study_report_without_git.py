@@ -13,12 +13,12 @@ from pathlib import Path
 
 import pytest
 
-from conftest import REPO, entry_point_env, run_command
+from conftest import KITTI_POSES, NO_KITTI_POSES, REPO, entry_point_env, run_command
 from mfg_lightning.motion.baselines import VERSION
 from mfg_lightning.study.report import ESSENTIAL_FIX, stale_essential
 
 RESULTS = REPO / "bench" / "results" / "reproduction"
-POSES = REPO.parent / "shared" / "data" / "kitti_odometry" / "poses"
+POSES = KITTI_POSES
 #: The stages whose essential-matrix rows the report checks (report.stale_essential's callers).
 CHECKED = ("methods", "twin", "table2", "table2_exact", "size/classical")
 
@@ -43,7 +43,7 @@ def _stale_named(report: str) -> set[str]:
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not POSES.is_dir(), reason="KITTI poses not found beside the repository")
+@pytest.mark.skipif(not POSES.is_dir(), reason=NO_KITTI_POSES)
 def test_a_copy_without_git_rebuilds_the_report_and_flags_only_what_its_results_say(
     tmp_path: Path,
 ) -> None:

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from conftest import KITTI_POSES, NO_KITTI_POSES
 from mfg_lightning.study.config_findings import input_scale_finding
 from mfg_lightning.study.noise import Spread, print_precision, tolerance
 from mfg_lightning.study.prose import para_run, reading
@@ -17,7 +18,7 @@ from mfg_lightning.study.sentences import judge_all
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "bench" / "results" / "reproduction"
-POSES = REPO.parent / "shared" / "data" / "kitti_odometry" / "poses"
+POSES = KITTI_POSES
 
 
 def test_print_precision_and_tolerance_by_hand() -> None:
@@ -125,7 +126,7 @@ def test_prose_numbers_come_from_the_stage_results() -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not POSES.is_dir(), reason="KITTI poses not found beside the repository")
+@pytest.mark.skipif(not POSES.is_dir(), reason=NO_KITTI_POSES)
 def test_report_text_follows_a_changed_stage_result(tmp_path: Path) -> None:
     """The report written from the committed stage results; a stage result changed by hand
     changes the verdict table's number and the generated prose, with no training."""

@@ -9,6 +9,7 @@ import pytest
 import torch
 from hydra.utils import instantiate
 
+from conftest import KITTI_POSES, NO_KITTI_POSES
 from mfg_lightning.core import geometry
 from mfg_lightning.core.config import compose
 from mfg_lightning.data.base import EmptySplitError
@@ -16,7 +17,7 @@ from mfg_lightning.data.sample import check_sample
 from mfg_lightning.data.synthetic import SyntheticDataModule, SyntheticDrivingDataset
 from mfg_lightning.run.runs import build_model, build_trainer
 
-SHARED_POSES = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti_odometry" / "poses"
+SHARED_POSES = KITTI_POSES
 
 
 def _dm(**kw) -> SyntheticDataModule:
@@ -164,7 +165,7 @@ def test_noise_and_outliers_corrupt_the_flow() -> None:
     assert (diff > 5).float().mean() > 0.02
 
 
-@pytest.mark.skipif(not SHARED_POSES.is_dir(), reason="../shared KITTI poses not present")
+@pytest.mark.skipif(not SHARED_POSES.is_dir(), reason=NO_KITTI_POSES)
 def test_real_kitti_trajectories() -> None:
     dm = _dm(
         trajectory="kitti",

@@ -2,7 +2,8 @@
 ``error:`` line (:mod:`mfg_lightning.core.errors` prints it and exits with status 2) and nothing
 is written; and each entry point's own ``--help``.
 
-:func:`check_command_line` composes the config as Hydra will (about 0.3 s) and refuses:
+:func:`check_command_line` composes the config as Hydra will (about 0.3 s a composition; it
+imports the classes the config builds, which the entry point imports anyway) and refuses:
 
 * a key the config does not have (``model.loss.ws=100``), naming the closest keys it has
   ("did you mean model.loss.w_s?"). Hydra's own advice, ``+model.loss.ws=100``, would add a key
@@ -10,6 +11,11 @@ is written; and each entry point's own ``--help``.
 * a value Hydra cannot compose (an ambiguous ``a=1,2`` without ``-m``, a bad interpolation);
 * a key the config leaves mandatory (``???``, e.g. ``evaluate``'s ``ckpt_path``), saying what to
   type;
+* a value of the wrong type (``dataset.batch_size=abc``, ``seed=abc``): what a setting takes is
+  the annotation of the parameter it becomes (its node's ``_target_``), else its default's type;
+* a setting that the object its node builds does not take: an added key (``+model.foo=1``) or a
+  preset that does not fit (``dataset=kitti debug=tiny`` sets ``dataset.sequence_length``);
+* a run directory that cannot be written (a read-only mount), before Hydra makes it;
 * a fraction for an integer setting (``trainer.max_steps=1.5``). A whole-number float for an
   integer setting (``trainer.max_steps=1e3``, which Hydra reads as ``1000.0``) is accepted as the
   integer: the override is rewritten to ``trainer.max_steps=1000``. Lightning's settings that
@@ -23,6 +29,7 @@ Only the command lines of this package's configs are checked (not ``--config-dir
 from __future__ import annotations
 
 import difflib
+import inspect
 import sys
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -220,13 +227,273 @@ def check_command_line(
         if not known and not key.startswith("hydra"):
             return CommandLine(argv, error=_unknown_key_message(o.input_line, key,
                                                                     list(leaves)))  # fmt: skip
+    groups = set(cfg.hydra.runtime.choices)
+    group_lines = [o.input_line for o in plain if o.key_or_group in groups]
+    try:  # each setting's default, under the groups chosen
+        defaults = dict(config_keys(_container(_compose(config_name, group_lines))))
+    except HydraException:
+        defaults = {}
+    for o in plain:
+        key = o.key_or_group
+        if key in groups or key.startswith("hydra") or o.is_delete() or o in floats:
+            continue
+        message = _wrong_type(o.input_line, key, o.value(), defaults.get(key), container)
+        if message is not None:
+            return CommandLine(argv, error=message)
+    for o in parsed:  # each value of a sweep (-m dataset.batch_size=8,abc)
+        key = o.key_or_group
+        if not o.is_sweep_override() or key in groups or key.startswith("hydra"):
+            continue
+        try:
+            values = list(o.sweep_iterator())
+        except Exception:  # an interval (Optuna's) has no values to list
+            continue
+        for value in values:
+            message = _wrong_type(o.input_line, key, value, leaves.get(key), container)
+            if message is not None:
+                return CommandLine(argv, error=message)
+    message = _unknown_settings(container, plain, dict(cfg.hydra.runtime.choices))
+    if message is not None:
+        return CommandLine(argv, error=message)
     swept = {o.key_or_group for o in parsed if o.is_sweep_override()}
     for key, value in leaves.items():
         if value == "???" and key not in swept and not key.startswith("hydra"):
             placeholder = "<path>" if key.endswith(("path", "dir", "root")) else "<value>"
             typed = f"python -m {module} {key}={placeholder}"
             return CommandLine(argv, error=f"{key} is not set; type: {typed} [...]")
-    return CommandLine(argv)
+    return CommandLine(argv, error=unwritable_run_dir(cfg, multirun=bool(args.multirun)))
+
+
+def unwritable_run_dir(cfg: Any, multirun: bool) -> str | None:
+    """The message for a run directory that cannot be made or written (a read-only mount, a
+    file in its path), or None; checked by making and removing a directory in it, or in the
+    nearest folder above it that exists (Hydra makes the rest). An existing directory that Hydra
+    writes nothing into (``data.check``: ``hydra.run.dir=.`` without ``.hydra/``) is not
+    checked."""
+    import tempfile
+
+    from omegaconf import OmegaConf
+
+    setting = "hydra.sweep.dir" if multirun else "hydra.run.dir"
+    try:
+        run_dir = Path(str(OmegaConf.select(cfg, setting, throw_on_missing=True)))
+    except Exception:  # an interpolation that fails here fails in Hydra too
+        return None
+    if run_dir.is_dir() and OmegaConf.select(cfg, "hydra.output_subdir") is None:
+        return None
+    there = run_dir
+    while not there.exists() and there != there.parent:
+        there = there.parent
+    try:
+        Path(tempfile.mkdtemp(prefix=".mfg-write-check-", dir=there)).rmdir()
+    except OSError as err:
+        why = err.strerror or type(err).__name__
+        return (
+            f"{setting}={run_dir}: cannot write there ({why}: {there}); choose a writable "
+            f"directory with paths.log_dir=<dir> (or MFG_LOG_DIR), or {setting}=<dir>"
+        )
+    return None
+
+
+#: What a value of each plain type is called in a message.
+_KINDS = {int: "a whole number", float: "a number", bool: "true or false", str: "a string",
+          list: "a list", dict: "a mapping", type(None): "null"}  # fmt: skip
+
+
+def _kind(value: Any) -> type:
+    """The plain type of an override's value (Hydra gives lists and dicts as Python's own)."""
+    for kind in (bool, int, float, str, list, dict):
+        if isinstance(value, kind):
+            return kind
+    return type(None) if value is None else object
+
+
+def _kinds_of(annotation: Any) -> set[type] | None:
+    """The plain types a parameter's annotation accepts (``int | None`` → {int, None}; a
+    ``Literal`` → the types of its values; ``Sequence[str]`` → {list}), or None where it names
+    anything else (a class, ``Any``, a tensor): then it is not checked."""
+    import collections.abc
+    import types
+    import typing
+
+    origin = typing.get_origin(annotation)
+    if origin in (typing.Union, types.UnionType):
+        kinds: set[type] = set()
+        for arg in typing.get_args(annotation):
+            sub = _kinds_of(arg)
+            if sub is None:
+                return None
+            kinds |= sub
+        return kinds
+    if origin is typing.Literal:
+        return {_kind(v) for v in typing.get_args(annotation)}
+    if annotation is type(None) or annotation is None:
+        return {type(None)}
+    if annotation is float:
+        return {float, int}
+    if annotation in (int, bool, str):
+        return {annotation}
+    if origin in (list, tuple, collections.abc.Sequence) or annotation in (list, tuple):
+        return {list}
+    if origin is dict or annotation is dict:
+        return {dict}
+    return None
+
+
+def _wants(kinds: set[type]) -> str:
+    order = [int, float, bool, str, list, dict, type(None)]
+    if float in kinds:
+        kinds = kinds - {int}
+    return " or ".join(_KINDS[k] for k in order if k in kinds)
+
+
+def _target_node(container: dict, key: str) -> tuple[dict | None, str]:
+    """The config node holding ``key`` when that node names a ``_target_`` (what it builds
+    receives ``key``'s last part as a keyword), and that last part."""
+    parent, _, leaf = key.rpartition(".")
+    node: Any = container
+    for part in parent.split(".") if parent else []:
+        node = node.get(part) if isinstance(node, dict) else None
+    if isinstance(node, dict) and isinstance(node.get("_target_"), str):
+        return node, leaf
+    return None, leaf
+
+
+def _wrong_type(arg: str, key: str, value: Any, default: Any, container: dict) -> str | None:
+    """The message for an override whose value is not of the type its setting takes, or None.
+
+    What a setting takes: the annotation of the parameter it becomes (the ``_target_`` of its
+    node), else the type of its default. Null and ``${...}`` interpolations are not checked,
+    nor a setting whose annotation or default names no plain type."""
+    if value is None or (isinstance(value, str) and "${" in value):
+        return None
+    kinds: set[type] | None = None
+    node, leaf = _target_node(container, key)
+    if node is not None:
+        found = _parameters(_locate(node["_target_"]))
+        if found is not None and leaf in found:
+            kinds = _kinds_of(found[leaf])
+    if kinds is None and default is not None:
+        kinds = {_kind(default)} | ({int} if isinstance(default, float) else set())
+        if object in kinds or str in kinds:  # a string setting takes what Hydra reads as 1
+            return None
+    got = _kind(value)
+    if kinds is None or got in kinds:
+        return None
+    shown = f"{value!r}" if isinstance(value, str) else str(value)
+    was = "" if default is None else f" (default {default})"
+    return f"{arg}: {key} takes {_wants(kinds)}{was}; got {shown}, {_KINDS.get(got, 'a value')}"
+
+
+def _locate(target: str) -> Any:
+    """The object a ``_target_`` names, or None where it cannot be imported (Hydra says why when
+    it builds it)."""
+    from hydra._internal.utils import _locate as locate
+
+    try:
+        return locate(target)
+    except Exception:  # any import failure: left to Hydra's own message
+        return None
+
+
+def _parameters(target: Any) -> dict[str, Any] | None:
+    """The keyword parameters ``target`` takes (a class: its ``__init__``, following this
+    package's ``**kwargs`` up to the base classes that receive them), each with its annotation
+    (None where unknown); None where it takes any keyword (or cannot be inspected)."""
+    import typing
+
+    if target is None:
+        return None
+    functions = (
+        [c.__dict__["__init__"] for c in target.__mro__ if "__init__" in c.__dict__]
+        if isinstance(target, type)
+        else [target]
+    )
+    found: dict[str, Any] = {}
+    for fn in functions:
+        try:
+            signature = inspect.signature(fn)
+        except (TypeError, ValueError):
+            return None
+        try:
+            hints = typing.get_type_hints(fn)
+        except Exception:  # an unresolvable annotation: that one is not checked
+            hints = {}
+        takes_more = False
+        for name, p in signature.parameters.items():
+            if p.kind is p.VAR_KEYWORD:
+                takes_more = True
+            elif p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY) and name != "self":
+                found.setdefault(name, hints.get(name))
+        if not takes_more:
+            return found
+        if not getattr(fn, "__module__", "").startswith("mfg_lightning."):
+            return None  # another library's **kwargs may go anywhere (DDPStrategy: to DDP)
+    return None  # **kwargs all the way up (object takes them): anything goes
+
+
+def _target_nodes(node: Any, path: str = "") -> Iterator[tuple[str, dict]]:
+    """Every ``(dotted path, node)`` of a config tree whose node names a ``_target_``."""
+    if isinstance(node, dict):
+        if isinstance(node.get("_target_"), str) and "${" not in node["_target_"]:
+            yield path, node
+        for k, v in node.items():
+            yield from _target_nodes(v, f"{path}.{k}" if path else str(k))
+
+
+def _option_sets(group: str, option: str, key: str) -> bool:
+    """Whether the option file ``conf/<group>/<option>.yaml`` sets the dotted ``key``."""
+    import yaml
+
+    from mfg_lightning.core.config import CONFIG_DIR
+
+    path = Path(CONFIG_DIR) / group / f"{option}.yaml"
+    if not path.is_file():
+        return False
+    text = path.read_text(encoding="utf-8")
+    data = yaml.safe_load(text)
+    if not any("@package _global_" in line for line in text.splitlines()[:5]):
+        package = group.replace("/", ".") + "."  # keys relative to the group's package
+        key = key.removeprefix(package) if key.startswith(package) else ""
+    node: Any = data
+    for part in key.split(".") if key else [None]:
+        if not isinstance(node, dict) or part not in node:
+            return False
+        node = node[part]
+    return True
+
+
+def _unknown_settings(container: dict, plain: Sequence[Any], choices: dict[str, Any]) -> str | None:
+    """The message for a setting that the object its node builds does not take (``+model.foo=1``,
+    or a preset such as ``debug=tiny`` that sets ``dataset.sequence_length`` for a dataset
+    without one), or None."""
+    for path, node in _target_nodes({k: v for k, v in container.items() if k != "hydra"}):
+        taken = _parameters(_locate(node["_target_"]))
+        if taken is None:
+            continue
+        unknown = [k for k in node if not str(k).startswith("_") and k not in taken]
+        if not unknown:
+            continue
+        keys = [f"{path}.{k}" if path else str(k) for k in unknown]
+        what = node["_target_"]
+        added = next((o for o in plain if o.key_or_group in keys), None)
+        if added is not None:
+            leaf = added.key_or_group.rpartition(".")[2]
+            close = closest_keys(leaf, list(taken))
+            hint = (f"did you mean {' or '.join(close)}?" if close
+                    else f"it takes {', '.join(sorted(taken))}")  # fmt: skip
+            return f"{added.input_line}: {what} ({path}) takes no setting {leaf}; {hint}"
+        chosen = choices.get(path)
+        fits = f" {path}={chosen}" if chosen else f" {path}"
+        for group, option in choices.items():
+            if group.startswith("hydra") or option is None or group == path:
+                continue
+            setting = [k for k in keys if _option_sets(group, str(option), k)]
+            if setting:
+                return (f"{group}={option} does not fit{fits}: it sets {', '.join(setting)}, "
+                        f"which {what} does not take")  # fmt: skip
+        return f"{', '.join(keys)}: {what} ({path}) takes no such setting"
+    return None
 
 
 def main_module(fn: Any) -> str:

@@ -16,6 +16,13 @@ alone (the same Adam step then still took 100 ms on 2 threads). So :func:`flush_
 called before a training process computes anything, and it checks with one parallel product
 over subnormal values that every thread of the pool flushes.
 
+:func:`denormals_flushed` flushes for one block of code (``train()``) and then sets the calling
+thread's flags back, so that a notebook or a test that trains in-process computes as before.
+Where torch's thread pool started before the block (any parallel torch work first), that is
+the whole process as it was. A pool started inside the block keeps its threads' flags: nothing
+in torch reaches them once they run, so such threads go on flushing (slower subnormals are the
+only thing a flush saves; no result a model computes differs above 1.2e-38).
+
 What it changes: values below 1.2e-38 become zero. Nothing a model computes is meaningful at that
 size; the trained numbers differ from an unflushed run's in the last bits, as with any change of
 kernels (the run records the setting in its ``config.yaml``).
@@ -24,7 +31,8 @@ kernels (the run records the setting in its ``config.yaml``).
 from __future__ import annotations
 
 import logging
-from functools import cache
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import torch
 
@@ -45,20 +53,48 @@ def every_thread_flushes() -> bool:
     return bool((x * 2.0).eq(0).all())
 
 
-@cache
+def calling_thread_flushes() -> bool:
+    """Whether the calling thread reads a subnormal operand as zero (its DAZ flag: a
+    one-element product runs in the calling thread)."""
+    x = torch.ones(1, dtype=torch.int32).view(torch.float32)  # the smallest subnormal
+    return bool((x * 2.0).eq(0).all())
+
+
+#: Whether the warning about a pool that started first was given (once a process).
+_warned = False
+
+
 def flush_denormals() -> bool:
-    """Set FTZ/DAZ for this process's computing threads (once); whether every intra-op thread
-    now flushes. False, with a warning, where the CPU has no such flags or the pool started
-    before the call (a thread then keeps computing subnormals: slower, not wrong)."""
+    """Set FTZ/DAZ for this process's computing threads; whether every intra-op thread now
+    flushes. False, with a warning (once a process), where the CPU has no such flags or the pool
+    started before the call (a thread then keeps computing subnormals: slower, not wrong)."""
+    global _warned
     if not torch.set_flush_denormal(True):
         log.debug("denormals: this CPU cannot flush them; computed as they are")
         return False
     if every_thread_flushes():
         log.debug("denormals: flushed to zero in every intra-op thread")
         return True
+    if _warned:
+        return False
+    _warned = True
     log.warning(
         "denormals: torch's thread pool started before they were flushed, so some of its "
         "threads compute subnormal values at full cost (slower training; call "
         "mfg_lightning.core.denormals.flush_denormals() before any torch work to flush them)"
     )
     return False
+
+
+@contextmanager
+def denormals_flushed(enabled: bool = True) -> Iterator[bool]:
+    """Flush subnormals inside the block (when ``enabled``; yields whether every thread
+    flushes), then set the calling thread's flags back as they were (module docstring)."""
+    if not enabled:
+        yield False
+        return
+    before = calling_thread_flushes()
+    try:
+        yield flush_denormals()
+    finally:
+        torch.set_flush_denormal(before)

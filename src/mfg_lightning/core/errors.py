@@ -50,7 +50,13 @@ def user_error_message(err: BaseException) -> str | None:
         from hydra.errors import InstantiationException
 
         if isinstance(err, InstantiationException) and err.__cause__ is not None:
-            return user_error_message(err.__cause__)
+            cause = err.__cause__
+            if isinstance(cause, TypeError) and "unexpected keyword argument" in str(cause):
+                # a setting the built object does not take (a config the command line check
+                # did not see: --config-dir, a notebook's compose()): Hydra names the node
+                where = " ".join(str(err).split()).partition("full_key: ")[2] or "a config node"
+                return f"{where}: {cause}"
+            return user_error_message(cause)
     if "omegaconf" in sys.modules:  # a mandatory value (???) read while running
         from omegaconf.errors import MissingMandatoryValue
 

@@ -33,7 +33,7 @@ import lightning as L
 import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from mfg_lightning.core.host_memory import keep_freed_memory
+from mfg_lightning.core.host_memory import freed_memory_kept
 from mfg_lightning.models.conv import AUTO, per_layer_impls, switchable_layers
 from mfg_lightning.run.machine_profile import (
     Profile,
@@ -182,12 +182,11 @@ def measure_machine(
     def build_net(conv_impl: str | list[str]) -> torch.nn.Module:
         return instantiate({**plain, "conv_impl": conv_impl})
 
-    if cfg.get("keep_freed_memory", True):
-        # timed as training runs (mfg_lightning.core.host_memory): without it a round may or may
-        # not page-fault its gradients back, and its time with it
-        keep_freed_memory()
     cache_dir = cfg.paths.get("cache_dir")
-    profile, read = machine_profile(cache_dir, key, dtypes, build_net, again, progress)
+    # timed as training runs (mfg_lightning.core.host_memory): without it a round may or may
+    # not page-fault its gradients back, and its time with it; set back afterwards
+    with freed_memory_kept(bool(cfg.get("keep_freed_memory", True))):
+        profile, read = machine_profile(cache_dir, key, dtypes, build_net, again, progress)
     log.info(describe(profile, read, given))
     return profile, None if cache_dir is None else profile_path(cache_dir, key)
 

@@ -25,8 +25,8 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 
 from mfg_lightning.core.atomic import atomic_write_text
-from mfg_lightning.core.denormals import flush_denormals
-from mfg_lightning.core.host_memory import keep_freed_memory
+from mfg_lightning.core.denormals import denormals_flushed
+from mfg_lightning.core.host_memory import freed_memory_kept
 from mfg_lightning.data.resumable_loader import refuse_other_batches, restarting_epochs
 from mfg_lightning.run.callbacks import LastCheckpoint
 from mfg_lightning.run.checkpoints import CheckpointError, peek_checkpoint, saved_loader_places
@@ -174,17 +174,18 @@ def ddp_job_in_multirun(trainer: L.Trainer) -> Iterator[None]:
 
 def train(cfg: DictConfig) -> dict[str, Any]:
     """Fit and test as configured. Returns the final metrics (``val/*`` and ``test/*``)."""
-    if cfg.get("flush_denormals", True):
-        # first, before torch's thread pool starts: its threads copy the flags when they start
-        # (mfg_lightning.core.denormals)
-        flush_denormals()
-    if cfg.get("keep_freed_memory", True):
-        # every step's freed tensors reused, not page-faulted back (mfg_lightning.core.host_memory)
-        keep_freed_memory()
     try:
-        # resume_restart_epoch: a resume inside an epoch with other batches restarts that epoch
-        # instead of being refused (mfg_lightning.data.resumable_loader)
-        with restarting_epochs(bool(cfg.get("resume_restart_epoch"))):
+        # Denormals flushed first, before torch's thread pool starts: its threads copy the flags
+        # when they start (mfg_lightning.core.denormals); every step's freed tensors reused, not
+        # page-faulted back (mfg_lightning.core.host_memory). Both set back when the training
+        # returns, for the process that called it (a notebook, a test). resume_restart_epoch: a
+        # resume inside an epoch with other batches restarts that epoch instead of being refused
+        # (mfg_lightning.data.resumable_loader).
+        with (
+            denormals_flushed(bool(cfg.get("flush_denormals", True))),
+            freed_memory_kept(bool(cfg.get("keep_freed_memory", True))),
+            restarting_epochs(bool(cfg.get("resume_restart_epoch"))),
+        ):
             return _train(cfg)
     finally:
         # the choices handed to this run's own processes must not reach a later run of this
