@@ -562,7 +562,7 @@ def test_unmeasured_auto_precision_is_float32_and_native_bf16_is_read_from_the_c
 
 def test_auto_precision_is_recorded_in_the_run_config(tmp_path: Path) -> None:
     """The default ``trainer.precision=auto`` is made concrete before anything is written: the
-    run's config.yaml says what it trained in, the machine's measurement's choice;
+    run's config.yaml says what it trained in, its CPU kind's row of conf/cpu_defaults.yaml;
     evaluation defaults to float32."""
     import json
 
@@ -570,10 +570,15 @@ def test_auto_precision_is_recorded_in_the_run_config(tmp_path: Path) -> None:
 
     from conftest import tiny_training
     from mfg_lightning.core.config import compose
+    from mfg_lightning.run.precision import cpu_has_native_bf16
+    from mfg_lightning.run.run_choices import cpu_row
 
     assert compose("train").trainer.precision == "auto"
     assert compose("evaluate", ["ckpt_path=x"]).trainer.precision == "32-true"
     run = tiny_training(tmp_path)
     recorded = OmegaConf.load(run / "config.yaml").trainer.precision
-    (profile,) = (tmp_path / "cache" / "machine").glob("*.json")
-    assert recorded == json.loads(profile.read_text())["precision"] != "auto"
+    row, source = cpu_row()
+    wanted = (row or {}).get("precision", "32-true")
+    assert recorded == (wanted if cpu_has_native_bf16() else "32-true")
+    info = json.loads((run / "run_info.json").read_text())
+    assert info["precision_and_kernels_from"] == source
