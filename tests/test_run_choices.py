@@ -183,6 +183,49 @@ def test_the_config_is_not_changed_after_it_is_resolved(
     assert OmegaConf.to_yaml(given) == before  # the caller's config is left as it was
 
 
+def test_unmeasured_auto_precision_is_float32_and_native_bf16_is_read_from_the_cpu(
+    monkeypatch,
+) -> None:
+    """Outside a training run ``auto`` is float32 on any device; whether the CPU has native
+    bfloat16, which decides whether a row's bf16-mixed applies, follows torch's checks and
+    oneDNN's instruction-set cap."""
+    from mfg_lightning.run import precision as mfg_module
+
+    for explicit in ("32-true", "bf16-mixed", "16-mixed", "bf16-true"):
+        assert mfg_module.resolve_precision(explicit, "cpu") == explicit
+    monkeypatch.setattr(mfg_module, "cpu_has_native_bf16", lambda: True)
+    assert mfg_module.resolve_precision("auto", "cpu") == "32-true"
+    assert mfg_module.resolve_precision("auto", "gpu") == "32-true"
+    monkeypatch.undo()
+    assert isinstance(mfg_module.cpu_has_native_bf16(), bool)
+    # oneDNN capped below native bfloat16 (an AVX2 machine imitated): float32.
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "avx2")
+    assert mfg_module.cpu_has_native_bf16() is False
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "AVX512_CORE_BF16")  # a cap that keeps it
+    native = [mfg_module.torch.cpu._is_avx512_bf16_supported(),
+              mfg_module.torch.cpu._is_amx_tile_supported()]  # fmt: skip
+    assert mfg_module.cpu_has_native_bf16() is any(native)
+
+
+def test_auto_precision_is_recorded_in_the_run_config(tmp_path: Path) -> None:
+    """The default ``trainer.precision=auto`` is made concrete before anything is written: the
+    run's config.yaml says what it trained in, its CPU kind's row of conf/cpu_defaults.yaml;
+    evaluation defaults to float32."""
+    from conftest import tiny_training
+    from mfg_lightning.run.precision import cpu_has_native_bf16
+    from mfg_lightning.run.run_choices import cpu_row
+
+    assert compose("train").trainer.precision == "auto"
+    assert compose("evaluate", ["ckpt_path=x"]).trainer.precision == "32-true"
+    run = tiny_training(tmp_path)
+    recorded = OmegaConf.load(run / "config.yaml").trainer.precision
+    row, source = cpu_row()
+    wanted = (row or {}).get("precision", "32-true")
+    assert recorded == (wanted if cpu_has_native_bf16() else "32-true")
+    info = json.loads((run / "run_info.json").read_text())
+    assert info["precision_and_kernels_from"] == source
+
+
 def _test_metrics(run: Path) -> dict[str, float | None]:
     metrics = json.loads((run / "metrics.json").read_text())["metrics"]
     return {k: v for k, v in metrics.items() if k.startswith("test/")}
