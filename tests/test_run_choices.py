@@ -99,11 +99,16 @@ def test_auto_is_the_row_of_this_cpu_kind(tmp_path: Path, on_kind) -> None:
 
 def test_a_kind_missing_from_the_table_gets_the_plain_defaults(tmp_path: Path, on_kind) -> None:
     """32-true and native, even where bfloat16 is native: bf16-mixed only where it was measured
-    faster."""
+    faster, on the network it was measured on."""
     on_kind("aarch64", True)
     cfg = _cfg(tmp_path)
     assert resolve_run_choices(cfg) == "plain defaults (no row for aarch64)"
     assert (cfg.trainer.precision, cfg.model.net.conv_impl) == ("32-true", "native")
+    # a network the rows were not measured on (no switchable convolutions): float32 too
+    on_kind("amx_bf16", True)
+    cfg = _cfg(tmp_path, "~model.net.conv_impl")
+    assert resolve_run_choices(cfg) == "plain defaults (another network)"
+    assert cfg.trainer.precision == "32-true"
 
 
 def test_the_local_row_wins_over_the_committed_one(tmp_path: Path, on_kind) -> None:

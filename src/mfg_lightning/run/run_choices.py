@@ -10,7 +10,8 @@ alike, whatever the load. Where the values come from, first match wins:
 2. on a GPU, ``32-true`` and ``native`` (cuDNN picks its own algorithms: ``trainer.benchmark``);
 3. this CPU kind's row in ``conf/local/cpu_defaults.yaml`` (git-ignored; the measure command
    writes it), then in ``conf/cpu_defaults.yaml``;
-4. a kind in neither: ``32-true`` and ``native``.
+4. a kind in neither, or a model without ``model.net.conv_impl`` (the rows were measured on
+   MFG's network): ``32-true`` and ``native``.
 
 A row's precision is ``bf16-mixed`` only where the CPU computes bfloat16 natively. Its kernels
 apply to the network it was measured on (``net``); another network computes ``native``.
@@ -132,6 +133,8 @@ def resolve_run_choices(cfg: DictConfig, ckpt_path: str | None = None) -> str | 
         source = "the run resumed from"
     elif not on_cpu(cfg.trainer):
         precision, kernels, source = "32-true", "native", "a GPU"
+    elif net is None or "conv_impl" not in net:  # not the network the rows were measured on
+        precision, kernels, source = "32-true", None, "plain defaults (another network)"
     else:
         row, source = cpu_row()
         precision, kernels = _from_row(cfg, row)
