@@ -38,7 +38,9 @@ def test_two_by_two_multirun_and_its_report(tmp_path: Path) -> None:
     sweep = tmp_path / "sweep"
     run_module("mfg_lightning.train", "-m", "debug=tiny", "model.loss.w_s=0,100",
                "model.top_k=1.0,0.5", f"hydra.sweep.dir={sweep}", cwd=tmp_path)  # fmt: skip
-    assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == ["0", "1", "2", "3"]
+    jobs = sorted(p.name for p in sweep.iterdir() if p.is_dir() and not p.name.startswith("."))
+    assert jobs == ["0", "1", "2", "3"]
+    assert len(list((sweep / ".trainings").glob("*.json"))) == 2  # one per w_s
 
     proc = run_module("mfg_lightning.report", str(sweep), cwd=tmp_path)
     out = sweep / "report"
@@ -112,7 +114,7 @@ def test_the_sparsity_search_trains_once_per_w_s_and_every_job_reports_as_if_alo
     run_module("mfg_lightning.train", "-m", "hparams_search=sparsity", "debug=tiny",
                *SPARSITY_GRID, f"hydra/launcher={launcher}", f"hydra.sweep.dir={sweep}",
                cwd=tmp_path, timeout=900)  # fmt: skip
-    assert len(list((sweep / "trainings").glob("*.json"))) == 2
+    assert len(list((sweep / ".trainings").glob("*.json"))) == 2
     trained = [job for job in sweep.iterdir() if (job / "checkpoints").is_dir()]
     assert len(trained) == 2
     evaluated = [job for job in sweep.iterdir() if (job / "metrics.json").is_file()]

@@ -3,7 +3,7 @@
 A job's training config is its resolved config without the settings that change only what is
 evaluated (:data:`EVALUATION_ONLY`: ``model.top_k``, the test, figures, loggers, the best
 checkpoint's rule) and without its own directory. The first such job trains, under a file lock
-in ``<sweep dir>/trainings/``, as an independent run would, and also keeps the weights of every
+in ``<sweep dir>/.trainings/``, as an independent run would, and also keeps the weights of every
 validation. The other jobs wait for the lock, then evaluate: each validates every kept
 checkpoint with its own settings, picks its best by its own ``callbacks.model_checkpoint`` rule
 (as Lightning's ``ModelCheckpoint`` does), tests it and writes its own ``metrics.json``. On a
@@ -73,7 +73,7 @@ def training_config(cfg: DictConfig) -> dict[str, Any]:
 
 
 def shared_folder(cfg: DictConfig) -> Path | None:
-    """``<sweep dir>/trainings`` where this job may share its training, else None: outside a
+    """``<sweep dir>/.trainings`` where this job may share its training, else None: outside a
     multirun, with ``share_trainings=false``, a trainer of several processes, or no validation
     metric to pick the best checkpoint by."""
     from hydra.core.hydra_config import HydraConfig
@@ -85,7 +85,7 @@ def shared_folder(cfg: DictConfig) -> Path | None:
     one_process = str(trainer.get("devices", 1)) == "1" and int(trainer.get("num_nodes") or 1) == 1
     if not (cfg.get("share_trainings", True) and one_process and best):
         return None
-    return Path(HydraConfig.get().sweep.dir) / "trainings"
+    return Path(HydraConfig.get().sweep.dir) / ".trainings"
 
 
 def training_id(cfg: DictConfig) -> str:
