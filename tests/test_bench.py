@@ -196,9 +196,9 @@ def test_quick_start_benchmark(tmp_path: Path) -> None:
     ]  # fmt: skip
     assert all(_number(r[1]) > 0 and _number(r[3]) > 0 for r in rows)
     assert rows[0][2] == "1.00" and len({(r[5], r[6]) for r in rows}) == 1, rows
-    # the machine measured once before the runs, the work against the machine's limit, and
-    # where a profiled run of the defaults spent its time (Lightning's SimpleProfiler)
-    assert "`python -m mfg_lightning.measure`: " in text
+    # the precision and kernels read from the committed table, the work against the machine's
+    # limit, and where a profiled run of the defaults spent its time (Lightning's SimpleProfiler)
+    assert "kernels from this CPU kind's row of conf/cpu_defaults.yaml" in text
     limit = next(line for line in text.splitlines() if "the limit: all of it at the peak" in line)
     assert _number(limit.split("|")[2]) > 0
     assert "`fit: run_training_batch`" in text

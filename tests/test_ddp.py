@@ -72,7 +72,7 @@ def test_ddp_metrics_equal_single_process_metrics_of_the_same_checkpoint(tmp_pat
 def test_a_ddp_multirun_runs_each_job_once_in_its_own_directory(tmp_path: Path) -> None:
     """``-m`` with ``trainer=ddp``: Lightning starts each job's second process with the parent's
     command line, which held ``-m`` and the whole sweep (every child ran the sweep again).
-    ``run.training.ddp_job_in_multirun`` hands the children the job's own overrides and
+    ``run.training.children_run_this_job`` hands the children the job's own overrides and
     directory: the sweep is launched once, and each job's directory has its own results."""
     sweep = tmp_path / "sweep"
     proc = run_module(

@@ -1,8 +1,7 @@
-"""Precision as a setting: float32 geometry, losses, object motion and metrics under
-any autocast; ``*-true`` refused; ``16-mixed`` from its first step; no host synchronisation in a
-training step outside the logging steps; the GPU configs (``bench/gpu_check.py`` on a CPU:
-tests/test_gpu_path.py).
-"""
+"""Precision as a setting: float32 geometry, losses, object motion and metrics under any
+autocast; a true low precision refused at setup; ``16-mixed`` from its first step; no host
+synchronisation in a training step outside the logging steps. The accepted values and the GPU
+configs: tests/test_trainer_settings.py."""
 
 from __future__ import annotations
 
@@ -23,7 +22,6 @@ from torchmetrics import MeanMetric
 from conftest import quiet_trainer
 from mfg_lightning.core import geometry as G
 from mfg_lightning.core.config import compose
-from mfg_lightning.core.errors import user_error_message
 from mfg_lightning.data.sample import SampleError, sanitize_flow
 from mfg_lightning.data.synthetic import SyntheticDataModule
 from mfg_lightning.metrics.frame_errors import FiniteMean
@@ -37,11 +35,9 @@ from mfg_lightning.run.checkpoints import module_from_checkpoint
 from mfg_lightning.run.precision import (
     FP16_INIT_SCALE,
     PrecisionSetup,
-    check_precision,
     fit_grad_scaler,
 )
 from mfg_lightning.run.runs import build_model
-from mfg_lightning.run.training import check_trainer_settings, train
 from module_helpers import corrupt_datamodule, read_as_on_a_gpu, small_datamodule, small_module
 
 #: torch.autocast dtypes on the CPU: what bf16-mixed and 16-mixed run the encoder in.
@@ -133,33 +129,6 @@ def test_finite_mean_is_mean_metric_without_its_host_check() -> None:
         theirs.update(v, weight=4 if v.dtype == torch.float64 else 1)
     assert ours.compute().item() == pytest.approx(theirs.compute().item(), rel=1e-6)
     assert int(ours.nan_count) == 1
-
-
-@pytest.mark.parametrize("value", ["bf16-true", "16-true", "64-true", "transformer-engine"])
-def test_unsupported_precisions_are_refused_naming_the_key(value: str, tmp_path: Path) -> None:
-    with pytest.raises(ValueError, match=rf"^trainer\.precision={value} is refused") as err:
-        check_precision(value)
-    if value.endswith("-true") and value != "64-true":
-        assert "poses, intrinsics and depth" in str(err.value)
-    # The training run refuses it before it builds or writes anything: one error line.
-    cfg = compose("train", ["debug=tiny", f"paths.output_dir={tmp_path / 'r'}"])
-    cfg.trainer.precision = value
-    with pytest.raises(ValueError) as err:
-        train(cfg)
-    assert user_error_message(err.value).startswith(f"trainer.precision={value} is refused")
-    assert not (tmp_path / "r").exists()
-
-
-def test_accepted_precisions_and_lightning_aliases() -> None:
-    for value, name in [
-        ("32-true", "32-true"),
-        (32, "32-true"),
-        ("bf16", "bf16-mixed"),
-        ("bf16-mixed", "bf16-mixed"),
-        ("16", "16-mixed"),
-        ("16-mixed", "16-mixed"),
-    ]:
-        assert check_precision(value) == name
 
 
 def test_a_trainer_with_a_true_low_precision_is_refused_at_setup() -> None:
@@ -502,78 +471,3 @@ def test_the_deterministic_upsampling_is_bilinear_interpolation(align_corners: b
     assert (grad_ours - grad_ref).abs().max() < 1e-4
     # the CPU keeps F.interpolate
     assert torch.equal(upsample_bilinear(f, (48, 128), align_corners), ref)
-
-
-def _raw(node: Any, key: str) -> Any:
-    """``node[key]`` as written, interpolations unresolved."""
-    from omegaconf import OmegaConf
-
-    return OmegaConf.to_container(node, resolve=False)[key]
-
-
-def test_gpu_trainer_configs() -> None:
-    cfg = compose("train", ["trainer=gpu", "paths.output_dir=/tmp/unused"])
-    assert cfg.trainer.accelerator == "gpu" and cfg.trainer.benchmark is True
-    assert cfg.dataset.pin_memory and cfg.dataset.persistent_workers
-    # the workers follow the usable cores (mfg_lightning.core.machine.loader_workers), at most 6
-    assert _raw(cfg.dataset, "num_workers") == "${loader_workers:6}"
-    assert 0 <= cfg.dataset.num_workers <= 6
-    assert cfg.dataset._target_.endswith("SyntheticDataModule")  # merged into the dataset
-    user = compose("train", ["trainer=gpu", "dataset.num_workers=1", "paths.output_dir=/tmp/u"])
-    assert user.dataset.num_workers == 1  # the command line wins
-    ddp = compose("train", ["trainer=ddp_gpu", "paths.output_dir=/tmp/unused"])
-    assert ddp.trainer.strategy.process_group_backend == "nccl"
-    assert ddp.trainer.accelerator == "gpu" and ddp.dataset.pin_memory
-    # several nodes: the same loader settings and cuDNN benchmark as one node, num_nodes set
-    nodes = compose("train", ["trainer=ddp_slurm", "paths.output_dir=/tmp/unused"])
-    assert nodes.trainer.strategy.process_group_backend == "nccl" and nodes.trainer.num_nodes == 2
-    assert nodes.trainer.benchmark is True and nodes.dataset.pin_memory
-    assert nodes.dataset.persistent_workers
-    assert _raw(nodes.dataset, "num_workers") == _raw(ddp.dataset, "num_workers")
-    assert _raw(ddp.dataset, "num_workers") == "${loader_workers:4,${trainer.devices}}"
-    det = compose("train", ["trainer=gpu", "trainer.deterministic=true", "paths.output_dir=/tmp/u"])
-    check_trainer_settings(det)
-    assert det.trainer.benchmark is False
-
-
-def test_unmeasured_auto_precision_is_float32_and_native_bf16_is_read_from_the_cpu(
-    monkeypatch,
-) -> None:
-    """Outside a training run (nothing measured) ``auto`` is float32 on any device; whether the
-    CPU has native bfloat16, which decides whether a training run measures bf16-mixed at all,
-    follows torch's checks and oneDNN's instruction-set cap."""
-    from mfg_lightning.run import precision as mfg_module
-
-    for explicit in ("32-true", "bf16-mixed", "16-mixed", "bf16-true"):
-        assert mfg_module.resolve_precision(explicit, "cpu") == explicit
-    monkeypatch.setattr(mfg_module, "cpu_has_native_bf16", lambda: True)
-    assert mfg_module.resolve_precision("auto", "cpu") == "32-true"
-    assert mfg_module.resolve_precision("auto", "gpu") == "32-true"
-    monkeypatch.undo()
-    assert isinstance(mfg_module.cpu_has_native_bf16(), bool)
-    # oneDNN capped below native bfloat16 (an AVX2 machine imitated): float32.
-    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "avx2")
-    assert mfg_module.cpu_has_native_bf16() is False
-    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "AVX512_CORE_BF16")  # a cap that keeps it
-    native = [mfg_module.torch.cpu._is_avx512_bf16_supported(),
-              mfg_module.torch.cpu._is_amx_tile_supported()]  # fmt: skip
-    assert mfg_module.cpu_has_native_bf16() is any(native)
-
-
-def test_auto_precision_is_recorded_in_the_run_config(tmp_path: Path) -> None:
-    """The default ``trainer.precision=auto`` is made concrete before anything is written: the
-    run's config.yaml says what it trained in, the machine's measurement's choice;
-    evaluation defaults to float32."""
-    import json
-
-    from omegaconf import OmegaConf
-
-    from conftest import tiny_training
-    from mfg_lightning.core.config import compose
-
-    assert compose("train").trainer.precision == "auto"
-    assert compose("evaluate", ["ckpt_path=x"]).trainer.precision == "32-true"
-    run = tiny_training(tmp_path)
-    recorded = OmegaConf.load(run / "config.yaml").trainer.precision
-    (profile,) = (tmp_path / "cache" / "machine").glob("*.json")
-    assert recorded == json.loads(profile.read_text())["precision"] != "auto"

@@ -39,7 +39,9 @@ def test_two_by_two_multirun_and_its_report(tmp_path: Path) -> None:
     sweep = tmp_path / "sweep"
     run_module("mfg_lightning.train", "-m", "debug=tiny", "model.loss.w_s=0,100",
                "model.top_k=1.0,0.5", f"hydra.sweep.dir={sweep}", cwd=tmp_path)  # fmt: skip
-    assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == ["0", "1", "2", "3"]
+    jobs = sorted(p.name for p in sweep.iterdir() if p.is_dir() and not p.name.startswith("."))
+    assert jobs == ["0", "1", "2", "3"]
+    assert len(list((sweep / ".trainings").glob("*.json"))) == 2  # one per w_s
 
     proc = run_module("mfg_lightning.report", str(sweep), cwd=tmp_path)
     out = sweep / "report"
@@ -71,6 +73,62 @@ def test_two_by_two_multirun_and_its_report(tmp_path: Path) -> None:
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
     assert "| job | status |" in proc.stdout
     assert not list(out.glob(".*.tmp"))  # atomic writes leave no temporary files
+
+
+def _job_metrics(sweep: Path) -> dict[tuple[str, ...], dict]:
+    """Every job's metrics.json ``metrics``, by its swept values."""
+    found = {}
+    for job in sweep.iterdir():
+        if (job / "metrics.json").is_file():
+            overrides = yaml.safe_load((job / ".hydra" / "overrides.yaml").read_text())
+            swept = tuple(
+                sorted(o for o in overrides if o.startswith(("model.loss.w_s", "model.top_k")))
+            )
+            found[swept] = json.loads((job / "metrics.json").read_text())["metrics"]
+    return found
+
+
+@pytest.fixture(scope="module")
+def independent_sparsity_jobs(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """The 2 × 3 grid's jobs each trained on its own (``share_trainings=false``)."""
+    tmp = tmp_path_factory.mktemp("independent")
+    run_module("mfg_lightning.train", "-m", "hparams_search=sparsity", "debug=tiny",
+               *SPARSITY_GRID, "share_trainings=false", f"hydra.sweep.dir={tmp / 'sweep'}",
+               cwd=tmp, timeout=900)  # fmt: skip
+    return _job_metrics(tmp / "sweep")
+
+
+#: 2 w_s × 3 top_k
+SPARSITY_GRID = ("model.loss.w_s=0,100", "model.top_k=1.0,0.5,0.25")
+SWEPT = ("model.loss.w_s=", "model.top_k=")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("launcher", ["basic", "joblib"])
+def test_the_sparsity_search_trains_once_per_w_s_and_every_job_reports_as_if_alone(
+    tmp_path: Path, launcher: str, independent_sparsity_jobs: dict
+) -> None:
+    """``hparams_search=sparsity`` on a 2 × 3 grid: 2 trainings (one per w_s, the top_k jobs
+    share it), and every job's metrics.json equals that of the job trained on its own, to the
+    bit (each job picks its own best checkpoint by its own val/ate, at its own top_k)."""
+    sweep = tmp_path / "sweep"
+    run_module("mfg_lightning.train", "-m", "hparams_search=sparsity", "debug=tiny",
+               *SPARSITY_GRID, f"hydra/launcher={launcher}", f"hydra.sweep.dir={sweep}",
+               cwd=tmp_path, timeout=900)  # fmt: skip
+    assert len(list((sweep / ".trainings").glob("*.json"))) == 2
+    trained = [job for job in sweep.iterdir() if (job / "checkpoints").is_dir()]
+    assert len(trained) == 2
+    evaluated = [job for job in sweep.iterdir() if (job / "metrics.json").is_file()]
+    assert len(evaluated) == 6
+    for job in evaluated:
+        info = json.loads((job / "metrics.json").read_text())
+        assert info["global_step"] == 4 and info["train_seconds"] > 0
+    shared = _job_metrics(sweep)
+    assert shared.keys() == independent_sparsity_jobs.keys() and len(shared) == 6
+    for swept, metrics in shared.items():
+        assert metrics == independent_sparsity_jobs[swept], swept
+    # the top_k jobs of one w_s differ in what they evaluate
+    assert len({m["test/active_fraction"] for m in shared.values()}) > 2
 
 
 @pytest.mark.slow

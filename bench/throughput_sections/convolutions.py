@@ -92,7 +92,7 @@ def section(
     dtype training may compute in on this CPU, what ``model.net.conv_impl=auto`` picks, and the
     bare training step with that choice against all native. Written as its own section of
     throughput.md (the rest kept); returns its path."""
-    from mfg_lightning.run.machine_profile import needs_bf16
+    from mfg_lightning.run.run_choices import needs_bf16
 
     batch_size = 4 if args.tiny else int(cfg.dataset.batch_size)
     if samples is None:

@@ -31,26 +31,32 @@ HEADER = [
 ]
 
 
-def default_kernels(run: Run, batch_size: int) -> dict[str, list[str]]:
+def default_kernels(run: Run, batch_size: int) -> dict[str, list[str] | str]:
     """The convolutions a training run at ``batch_size`` computes with by default, per precision
-    label: this machine's measurement (read from the user's cache, or made once;
-    :func:`mfg_lightning.run.run_choices.measure_machine`)."""
-    from mfg_lightning.run.machine_profile import needs_bf16
-    from mfg_lightning.run.run_choices import measure_machine
+    label: this CPU kind's row of conf/cpu_defaults.yaml
+    (:func:`mfg_lightning.run.run_choices.resolve_run_choices`)."""
+    import copy
+
+    from mfg_lightning.run.run_choices import resolve_run_choices
 
     from .measure import _config
 
-    cfg = _config(tuple(with_overrides(run.base, [f"dataset.batch_size={batch_size}",
-                                                  "model.net.conv_impl=auto",
-                                                  "trainer.precision=auto"])))  # fmt: skip
-    profile, _ = measure_machine(cfg)
-    bf16 = "bfloat16" if needs_bf16("bf16-mixed") and "bfloat16" in profile.conv else "float32"
-    return {"float32": profile.kernels("float32"), "bf16-mixed": profile.kernels(bf16)}
+    kernels = {}
+    for label, precision in (("float32", "32-true"), ("bf16-mixed", "bf16-mixed")):
+        cfg = copy.deepcopy(_config(tuple(with_overrides(
+            run.base, [f"dataset.batch_size={batch_size}", "model.net.conv_impl=auto",
+                       f"trainer.precision={precision}"]))))  # fmt: skip
+        resolve_run_choices(cfg)
+        impl = cfg.model.net.conv_impl
+        kernels[label] = impl if isinstance(impl, str) else list(impl)
+    return kernels
 
 
-def kernel_overrides(run: Run, kernels: dict[str, list[str]], name: str) -> list[str]:
+def kernel_overrides(run: Run, kernels: dict[str, list[str] | str], name: str) -> list[str]:
     """The run's overrides with precision ``name``'s convolutions of ``kernels``."""
-    return with_overrides(run.base, [f"model.net.conv_impl=[{','.join(kernels[name])}]"])
+    impl = kernels[name]
+    value = impl if isinstance(impl, str) else f"[{','.join(impl)}]"
+    return with_overrides(run.base, [f"model.net.conv_impl={value}"])
 
 
 def step_paired_ratios(run: Run) -> dict[tuple[int, str], list[float]]:

@@ -63,35 +63,15 @@ def _train(
     return wall, result, OmegaConf.load(run_dir / "config.yaml").trainer.precision
 
 
-def measure_machine(tmp: str, tiny: bool, threads: int) -> tuple[float, Path]:
-    """``python -m mfg_lightning.measure`` once (what a first run on a machine does before it
-    trains): its wall seconds and the ``machine/`` folder every quick start then reads."""
-    cache = Path(tmp) / "cache-machine"
-    cmd = [sys.executable, "-m", "mfg_lightning.measure", f"hydra.run.dir={tmp}/measure",
-           f"paths.cache_dir={cache}", *(["debug=tiny"] if tiny else [])]  # fmt: skip
-    start = time.perf_counter()
-    proc = subprocess.run(cmd, cwd=tmp, env={**os.environ, "OMP_NUM_THREADS": str(threads)},
-                          capture_output=True, text=True, check=False)  # fmt: skip
-    if proc.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd)} failed: {proc.stderr[-3000:]}")
-    return time.perf_counter() - start, cache / "machine"
-
-
 def quick_start_wall(tiny: bool, threads: int) -> tuple[list[list[str]], float, list[list[str]]]:
     """Wall time of ``python -m mfg_lightning.train`` (the quick start; ``debug=tiny`` when
     ``tiny``) for each of :data:`RUNS`, each with its training time, the precision ``auto``
-    chose and its test metrics (table rows); the seconds of the machine's one measurement (each
-    run finds its file); and the fit's and test's profile (Lightning's ``SimpleProfiler``) of a
-    last run of the defaults: the actions that take the most time."""
-    import shutil
-
+    chose and its test metrics (table rows); and the fit's and test's profile (Lightning's
+    ``SimpleProfiler``) of a last run of the defaults: the actions that take the most time."""
     results = []
     with tempfile.TemporaryDirectory() as tmp:
-        measured, machine = measure_machine(tmp, tiny, threads)
         for i, (label, (extra, cache)) in enumerate(RUNS.items()):
             cache_dir = Path(tmp) / f"cache-{cache}"
-            if not (cache_dir / "machine").exists():
-                shutil.copytree(machine, cache_dir / "machine")
             wall, result, precision = _train(Path(tmp) / f"run{i}", cache_dir, tmp, tiny,
                                              threads, extra)  # fmt: skip
             results.append((label, wall, result, precision))
@@ -109,7 +89,7 @@ def quick_start_wall(tiny: bool, threads: int) -> tuple[list[list[str]], float, 
          fmt(result["metrics"]["test/ate"], 5), fmt(result["metrics"]["test/rpe_rot"], 6)]
         for label, wall, result, precision in results
     ]  # fmt: skip
-    return rows, measured, actions
+    return rows, actions
 
 
 def action_name(name: str) -> str:
@@ -186,14 +166,13 @@ def limit_rows(tiny: bool, precision: str, wall: float, train_seconds: float) ->
 
 def section(args: argparse.Namespace) -> Path:
     """:func:`quick_start_wall` as a section of its own, one per instruction set torch's kernels
-    run (its marker and heading name it, and an instruction-set cap), with the machine's one
-    measurement, the limit (:func:`limit_rows`) and the profile of a run of the defaults;
-    returns the path."""
+    run (its marker and heading name it, and an instruction-set cap), with the limit
+    (:func:`limit_rows`) and the profile of a run of the defaults; returns the path."""
     caps = isa_caps()
     capability = torch.backends.cpu.get_cpu_capability()
     report = throughput_report(args.out)
     imitated = ", ".join(f"`{k}={v}`" for k, v in caps.items())
-    rows, measured, actions = quick_start_wall(args.tiny, torch.get_num_threads())
+    rows, actions = quick_start_wall(args.tiny, torch.get_num_threads())
     defaults = rows[2]  # the defaults, disk tier filled: what a user's second run is
     limits = limit_rows(args.tiny, defaults[4], float(defaults[1].replace(",", "")),
                         float(defaults[3].replace(",", "")))  # fmt: skip
@@ -213,9 +192,8 @@ def section(args: argparse.Namespace) -> Path:
         "the same order (tests/test_device_resident.py): the test metrics differ only by the "
         "training's own run-to-run variation. The device-resident runs read the whole training "
         "split before their first step (on a CPU the device is the host's memory), where the "
-        "others render the first epoch while they train. Before them the machine was measured "
-        "once, as a first run on a machine does (`python -m mfg_lightning.measure`: "
-        f"{measured:.1f} s, precision and kernels); every run above read that file."
+        "others render the first epoch while they train. Every run read its precision and "
+        "kernels from this CPU kind's row of conf/cpu_defaults.yaml."
     )  # fmt: skip
     report.add(
         "Against the limit (the defaults, disk tier filled):\n\n"

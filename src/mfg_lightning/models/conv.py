@@ -16,10 +16,10 @@ parameters (checkpoints are the same whatever runs) whose forward is one of:
   layout.
 
 ``model.net.conv_impl`` is one of them for every layer, a list with one per layer (in module
-order), or ``auto``: a training run resolves ``auto`` into the list measured once per machine
-(:mod:`mfg_lightning.run.machine_profile`) before it builds the network, and records the list in
-its ``config.yaml`` and checkpoints. A network built with ``auto`` outside a training run
-computes ``native``.
+order), or ``auto``: a training run resolves ``auto`` from its CPU kind's row of
+``conf/cpu_defaults.yaml`` (:mod:`mfg_lightning.run.run_choices`) before it builds the network,
+and records the value in its ``config.yaml``. A network built with ``auto`` outside a training
+run computes ``native``.
 """
 
 from __future__ import annotations
@@ -121,8 +121,8 @@ class SwitchableConv2d(nn.Conv2d):
     """An ``nn.Conv2d`` whose forward runs one of :data:`CONV_IMPLS` on its own weights.
 
     Same constructor, parameters and ``state_dict`` as ``nn.Conv2d``; ``impl`` (``native``,
-    ``im2col``, ``channels_last``, or ``auto``: ``native`` until :func:`choose_conv_impls` picks
-    one) can change at any time, between steps or after loading a checkpoint.
+    ``im2col``, ``channels_last``, or ``auto``, which computes ``native``) can change at any
+    time, between steps or after loading a checkpoint.
     Input ``(N, C, H, W)``, output ``(N, C_out, Ho, Wo)``; its memory format depends on ``impl``
     (``native`` NCHW, the other two NHWC), and each implementation converts its input itself.
     """

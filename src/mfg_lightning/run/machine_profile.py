@@ -1,61 +1,45 @@
-"""What a training run may choose by timing, measured once per machine and then fixed:
-``trainer.precision=auto`` (float32 or bf16-mixed) and ``model.net.conv_impl=auto`` (each
-convolution's implementation, :mod:`mfg_lightning.models.conv`).
+"""This machine measured on purpose, for ``python -m mfg_lightning.measure``: what
+``trainer.precision=auto`` and ``model.net.conv_impl=auto`` should be on a CPU of its kind.
 
-Why once: the choices change a run's numbers (the kernels round differently, bfloat16 more so),
-so two runs of one config and seed agree only if they choose alike, and timings taken at the
-start of every run do not: two runs started together time each other's load. So the machine is
-measured once, under a file lock (a run that starts while another measures waits for that
-measurement and reads it), and the result is kept in ``<paths.cache_dir>/machine/<digest>.json``,
-keyed by everything the answer depends on (:func:`profile_key`: the CPU's model and flags, the
-instruction-set caps, torch's and oneDNN's versions, the thread count, the network's geometry and
-input, the batch). A training run measures only where no such file exists;
-``python -m mfg_lightning.measure`` measures on purpose and prints the table.
+The result is a row of the table a training run reads (``conf/cpu_defaults.yaml``,
+:mod:`mfg_lightning.run.run_choices`); no training run times anything.
 
-How, so that a loaded machine cannot pick a slow kernel (:func:`time_interleaved`,
-:func:`clearly_faster`): the candidates are timed in interleaved rounds (the order rotated each
-round) after a warm-up; a candidate replaces the default (``native``, ``32-true``) only if its
-best time beats the default's best by a margin (with steady rounds, or all its rounds but one
-beating that best) *and* it is faster than the default in every round, each against the
-default's time of the same round. Load that comes and goes hits the
-candidates of a round alike, or makes the rounds disagree, and the default stays. If the
-process got less than :data:`BUSY_CPU_SHARE` of its threads' CPU time while timing, other work
-had the cores: every choice is the default and the file says the measurement was disturbed
-(``python -m mfg_lightning.measure`` on a quiet machine measures again).
+How, so that load cannot pick a slow kernel (:func:`time_interleaved`, :func:`clearly_faster`):
+the candidates are timed in interleaved rounds (the order rotated each round) after a warm-up.
+A candidate replaces the default (``native``, ``32-true``) only if it beats the default's best by
+a margin, with steady rounds or all its rounds but one, *and* it is faster than the default in
+every round, each against the default's time of the same round. If the process got less than
+:data:`BUSY_CPU_SHARE` of its threads' CPU time, other work had the cores: every choice is the
+default, and the command says to measure again on a quiet machine.
 
 The precision compares whole training steps of the network (forward, a loss over both fields
 and the hidden units, backward) in float32 and under bfloat16 autocast, each with its own
 measured convolutions. bfloat16 is measured only where the CPU computes it natively
-(AVX512-BF16 or AMX, :func:`~mfg_lightning.run.precision.cpu_has_native_bf16`); elsewhere
-``auto`` is ``32-true`` unmeasured, as on a GPU (where ``conv_impl=auto`` is ``native``).
+(AVX512-BF16 or AMX, :func:`~mfg_lightning.run.precision.cpu_has_native_bf16`).
 """
 
 from __future__ import annotations
 
-import hashlib
-import json
 import logging
-import re
+import os
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import torch
-from filelock import FileLock
+from omegaconf import DictConfig, OmegaConf
 from torch import Tensor, nn
 
-from mfg_lightning.core.atomic import atomic_write_text
-from mfg_lightning.core.machine import cpu_flags, cpu_model, describe_cpu, isa_caps
+from mfg_lightning.core.host_memory import freed_memory_kept
+from mfg_lightning.core.machine import describe_cpu
 from mfg_lightning.models.conv import SwitchableConv2d, layer_inputs, switchable_layers
 from mfg_lightning.run.precision import PRECISION_AUTO, cpu_has_native_bf16
+from mfg_lightning.run.run_choices import needs_bf16, net_geometry
 
 log = logging.getLogger(__name__)
 
-#: Bumped when what is measured or how it is decided changes: older files are measured again.
-PROFILE_VERSION = 6  # 6: a dominant candidate wins over unsteady rounds (clearly_faster)
 #: Timed rounds per candidate, after one warm-up round.
 ROUNDS = 5
 #: A convolution replaces ``native`` only this much faster (fraction of native's best time).
@@ -68,10 +52,8 @@ PRECISION_MARGIN = 0.10
 BUSY_CPU_SHARE = 0.3
 #: Rounds whose second-slowest is over this many times their best (:func:`spread`) are unsteady:
 #: a close call (best against best) counts only where the candidate's and the default's rounds
-#: are steady, so a change of load while timing keeps the default unless the candidate dominates
-#: (:func:`clearly_faster`). Short timings are unsteady on a quiet machine too: there (2 cores,
-#: bench/results/throughput.md) 7 of 144 timings of the quick start's network at batches 1, 16
-#: and 32 were, all under 8 ms; those layers keep the default, which costs little.
+#: are steady (:func:`clearly_faster`). On a quiet 2-core machine (bench/results/throughput.md)
+#: 7 of 144 timings of the quick start's network at batches 1, 16 and 32 were, all under 8 ms.
 MAX_SPREAD = 1.5
 #: A convolution this many times slower than native in the first timed round is not timed again.
 GIVE_UP = 2.0
@@ -79,44 +61,6 @@ GIVE_UP = 2.0
 DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
 #: The precision each measured dtype trains under.
 PRECISION_OF = {"float32": "32-true", "bfloat16": "bf16-mixed"}
-#: The geometry keys of ``model.net`` that decide the layers' shapes.
-NET_GEOMETRY = ("height", "width", "hidden_units", "channels", "kernels", "strides",
-                "double_blocks", "decoder_scale")  # fmt: skip
-
-
-def onednn_version() -> str:
-    """oneDNN's version as torch's build reports it (``"3.12.0"``), or ``"unknown"``."""
-    found = re.search(r"(?:MKL-DNN|oneDNN) v([0-9][0-9.]*)", torch.__config__.show())
-    return found.group(1) if found else "unknown"
-
-
-def profile_key(net_cfg: Mapping[str, Any], batch: int, threads: int) -> dict[str, Any]:
-    """Everything a measured time depends on: the machine (CPU model, a digest of its flags,
-    torch's CPU capability, instruction-set caps in the environment, torch's and oneDNN's
-    versions), the thread count, the network's geometry and input, and the batch."""
-    capability = getattr(torch.backends.cpu, "get_cpu_capability", lambda: "unknown")()
-    return {
-        "cpu": cpu_model(),
-        "cpu_flags": hashlib.sha256(" ".join(sorted(cpu_flags())).encode()).hexdigest()[:16],
-        "torch_cpu_capability": capability,
-        "isa_caps": isa_caps(),
-        "torch": torch.__version__,
-        "onednn": onednn_version(),
-        "threads": int(threads),
-        "net": {k: _plain(net_cfg[k]) for k in NET_GEOMETRY if k in net_cfg},
-        "batch": int(batch),
-        "version": PROFILE_VERSION,
-    }
-
-
-def _plain(value: Any) -> Any:
-    return list(value) if isinstance(value, Sequence) and not isinstance(value, str) else value
-
-
-def profile_path(cache_dir: str | Path, key: Mapping[str, Any]) -> Path:
-    """``<cache_dir>/machine/<digest of the key>.json``."""
-    digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
-    return Path(cache_dir).expanduser() / "machine" / f"{digest}.json"
 
 
 def time_interleaved(
@@ -261,30 +205,28 @@ def _net_step(net: nn.Module, flow: Tensor, dtype: torch.dtype) -> Callable:
 
 
 @dataclass
-class Profile:
-    """One machine's measurement (:func:`machine_profile`).
+class Measurement:
+    """One measurement of this machine (:func:`measure`).
 
     Attributes:
-        key: :func:`profile_key`.
-        conv: per dtype name, ``{layer name: {"ms": {impl: ms}, "choice": impl}}``.
+        conv: per dtype name, ``{layer name: {"ms": {impl: ms}, "spread": {...}, "choice": impl}}``.
         step_ms: the network's training step per precision, best milliseconds.
-        step_spread: its :func:`spread`, per precision.
         precision: ``auto``'s choice (``32-true`` or ``bf16-mixed``).
         disturbed: the process was starved while timing: every choice is the default.
         seconds: how long measuring took.
     """
 
-    key: dict[str, Any]
     conv: dict[str, dict[str, dict[str, Any]]] = field(default_factory=dict)
     step_ms: dict[str, float] = field(default_factory=dict)
-    step_spread: dict[str, float] = field(default_factory=dict)
     precision: str = "32-true"
     disturbed: bool = False
     seconds: float = 0.0
 
-    def kernels(self, dtype: str) -> list[str]:
-        """The implementation of every convolution in module order, measured in ``dtype``."""
-        return [entry["choice"] for entry in self.conv[dtype].values()]
+    def kernels(self, dtype: str) -> list[str] | str:
+        """The implementation of every convolution in module order, measured in ``dtype``
+        (``"native"`` where every one is)."""
+        found = [entry["choice"] for entry in self.conv[dtype].values()]
+        return "native" if set(found) <= {"native"} else found
 
     def table(self) -> str:
         """The measurement as a Markdown table: a row per layer and dtype, then the steps."""
@@ -295,8 +237,9 @@ class Profile:
                 ms = [f"{entry['ms'][i]:.3f}" if i in entry["ms"] else "-"
                       for i in ("native", "im2col", "channels_last")]  # fmt: skip
                 rows.append(f"| {dtype} | `{name}` | {' | '.join(ms)} | {entry['choice']} |")
-        rows += ["", "| precision | training step of the network (ms) |", "|---|---:|"]
-        rows += [f"| {p} | {ms:.2f} |" for p, ms in self.step_ms.items()]
+        if self.step_ms:
+            rows += ["", "| precision | training step of the network (ms) |", "|---|---:|"]
+            rows += [f"| {p} | {ms:.2f} |" for p, ms in self.step_ms.items()]
         note = " (disturbed: the defaults)" if self.disturbed else ""
         return "\n".join([*rows, "", f"precision=auto: {self.precision}{note}"])
 
@@ -313,147 +256,103 @@ def _threads(threads: int) -> Iterator[None]:
 
 def measure(
     build_net: Callable[[str | list[str]], nn.Module],
-    key: Mapping[str, Any],
+    flow_shape: tuple[int, ...],
     dtypes: Sequence[str],
+    threads: int,
     rounds: int = ROUNDS,
     min_cpu_share: float = BUSY_CPU_SHARE,
     progress: Callable[[str], None] | None = None,
-) -> Profile:
-    """Measure this machine for ``key``: the convolutions in each of ``dtypes`` (names of
-    :data:`DTYPES`), then, with two dtypes, the network's step in each with its own kernels.
+) -> Measurement:
+    """Measure this machine: the convolutions in each of ``dtypes`` (names of :data:`DTYPES`),
+    then, with two dtypes, the network's step in each with its own kernels.
 
     Args:
         build_net: ``conv_impl`` (one setting or a list per layer) → the network (same seed).
-        key: :func:`profile_key` (its ``threads`` and ``batch`` are used).
+        flow_shape: the training input ``(batch, 2, height, width)``.
         dtypes: ``["float32"]``, ``["bfloat16"]`` or both (then the precision is measured).
+        threads: torch threads while timing (those of one training process).
         rounds: timed rounds per candidate.
         min_cpu_share: below this CPU share the measurement counts as disturbed (0: never).
         progress: called with a line before each part (the command prints it).
     """
     say = progress or (lambda line: None)
-    profile = Profile(dict(key))
-    batch, net_key = int(key["batch"]), key["net"]
-    flow_shape = (batch, 2, int(net_key["height"]), int(net_key["width"]))
+    found = Measurement()
     start, cpu = time.perf_counter(), time.process_time()
-    with _threads(int(key["threads"])), torch.random.fork_rng(devices=[]):
-        torch.manual_seed(0)  # the global generator is restored after: a run's seed is intact
+    with _threads(threads), torch.random.fork_rng(devices=[]):
+        torch.manual_seed(0)  # the global generator is restored after
         for name in dtypes:
-            say(f"convolutions in {name} at batch {batch}")
-            profile.conv[name] = measure_convolutions(
+            say(f"convolutions in {name} at batch {flow_shape[0]}")
+            found.conv[name] = measure_convolutions(
                 build_net("native"), flow_shape, DTYPES[name], rounds
             )
         if len(dtypes) > 1:
             say("a training step of the network per precision")
             flow = torch.randn(flow_shape)
-            steps = {PRECISION_OF[n]: _net_step(build_net(profile.kernels(n)), flow, DTYPES[n])
+            steps = {PRECISION_OF[n]: _net_step(build_net(found.kernels(n)), flow, DTYPES[n])
                      for n in dtypes}  # fmt: skip
             times = time_interleaved(steps, rounds)
-            profile.step_ms = {p: round(1e3 * min(t), 3) for p, t in times.items()}
-            profile.step_spread = {p: round(spread(t), 3) for p, t in times.items()}
-            profile.precision = clearly_faster(times, "32-true", PRECISION_MARGIN)
+            found.step_ms = {p: round(1e3 * min(t), 3) for p, t in times.items()}
+            found.precision = clearly_faster(times, "32-true", PRECISION_MARGIN)
         else:
-            profile.precision = PRECISION_OF[dtypes[0]]
-    profile.seconds = round(time.perf_counter() - start, 2)
-    spreads = [v for layers in profile.conv.values() for e in layers.values()
-               for v in e["spread"].values()] + list(profile.step_spread.values())  # fmt: skip
-    unsteady = sum(v > MAX_SPREAD for v in spreads)
-    if unsteady:
-        log.warning(
-            "%d of %d timings were unsteady (two rounds over %.1f× their best: short ones, or "
-            "load that changed while they ran): where they decide, the defaults are kept; on a "
-            "busy machine `python -m mfg_lightning.measure` measures again once it is quiet",
-            unsteady, len(spreads), MAX_SPREAD,
-        )  # fmt: skip
-    share = (time.process_time() - cpu) / max(1e-9, profile.seconds * int(key["threads"]))
+            found.precision = PRECISION_OF[dtypes[0]]
+    found.seconds = round(time.perf_counter() - start, 2)
+    share = (time.process_time() - cpu) / max(1e-9, found.seconds * threads)
     if share < min_cpu_share:
-        profile.disturbed = True
-        profile.precision = "32-true" if len(dtypes) > 1 else profile.precision
-        for layers in profile.conv.values():
+        found.disturbed = True
+        found.precision = "32-true" if len(dtypes) > 1 else found.precision
+        for layers in found.conv.values():
             for entry in layers.values():
                 entry["choice"] = "native"
         log.warning(
             "the machine was busy while it was measured (this process got %.0f %% of its %d "
             "threads' CPU time): the defaults (native convolutions, float32 where both were "
-            "measured) are recorded; `python -m mfg_lightning.measure` on a quiet machine "
-            "measures again", 100 * share, key["threads"],
+            "measured) are kept; measure again on a quiet machine", 100 * share, threads,
         )  # fmt: skip
-    return profile
+    return found
 
 
-def read_profile(path: Path, key: Mapping[str, Any], dtypes: Sequence[str]) -> Profile | None:
-    """The profile in ``path`` if it holds ``key`` and every one of ``dtypes`` (and the precision
-    where two are needed); None otherwise (absent, another key, unreadable: measured again)."""
-    try:
-        data = json.loads(path.read_text())
-        profile = Profile(**data)
-    except FileNotFoundError:
-        return None
-    except (OSError, ValueError, TypeError) as err:
-        log.warning("%s is unreadable (%s): the machine is measured again", path, err)
-        return None
-    if profile.key != dict(key) or not set(dtypes) <= set(profile.conv):
-        return None
-    if len(dtypes) > 1 and not profile.step_ms:
-        return None
-    return profile
+def training_threads(trainer_cfg: DictConfig) -> int:
+    """The torch threads each training process of ``trainer_cfg`` runs with on a CPU: Lightning
+    gives each of several processes ``usable cores // processes`` unless ``OMP_NUM_THREADS`` is
+    set; one process keeps this process's count."""
+    devices = trainer_cfg.get("devices", "auto")
+    processes = int(devices) if str(devices).isdigit() else 1
+    if processes > 1 and "OMP_NUM_THREADS" not in os.environ:
+        return max(1, len(os.sched_getaffinity(0)) // processes)
+    return torch.get_num_threads()
 
 
-def machine_profile(
-    cache_dir: str | Path | None,
-    key: Mapping[str, Any],
-    dtypes: Sequence[str],
-    build_net: Callable[[str | list[str]], nn.Module],
-    again: bool = False,
-    progress: Callable[[str], None] | None = None,
-) -> tuple[Profile, bool]:
-    """This machine's profile for ``key``: read from ``cache_dir`` or measured (and written)
-    under a file lock, so that processes starting together make one measurement. Returns the
-    profile and whether it was read rather than measured now.
+def measure_run(
+    cfg: DictConfig, progress: Callable[[str], None] | None = None
+) -> tuple[Measurement, dict[str, Any]]:
+    """Measure this machine for the training run ``cfg`` describes (its network, batch and
+    thread count; both dtypes where ``trainer.precision=auto`` may choose bfloat16). Returns
+    the measurement and its row of ``conf/cpu_defaults.yaml``."""
+    from hydra.utils import instantiate
 
-    Args:
-        cache_dir: ``paths.cache_dir``; None: measured every time, nothing kept.
-        key, dtypes, build_net, progress: as :func:`measure`.
-        again: measure even where a file exists (the command; the file is replaced).
-    """
-    if cache_dir is None:
-        return measure(build_net, key, dtypes, progress=progress), False
-    path = profile_path(cache_dir, key)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with FileLock(str(path) + ".lock"):
-        found = None if again else read_profile(path, key, dtypes)
-        if found is not None:
-            return found, True
-        old = read_profile(path, key, ())
-        missing = [d for d in dtypes if again or old is None or d not in old.conv]
-        profile = measure(build_net, key, list(dtypes) if len(dtypes) > 1 else missing,
-                          progress=progress)  # fmt: skip
-        if old is not None and not again:  # another dtype measured before: kept
-            profile.conv = {**old.conv, **profile.conv}
-            if not profile.step_ms:
-                profile.step_ms, profile.precision = old.step_ms, old.precision
-        try:
-            atomic_write_text(path, json.dumps(profile.__dict__, indent=1) + "\n")
-        except OSError as err:  # a read-only cache: the choice still holds for this run
-            log.warning("could not keep the machine's measurement in %s (%s)", path, err)
-        return profile, False
-
-
-def describe(profile: Profile, read: bool, given: str = PRECISION_AUTO) -> str:
-    """One log line: where the choice came from and what it is (``given``: the run's
-    ``trainer.precision``; only ``auto`` is resolved by the profile, any other value just picks
-    the kernels' dtype)."""
-    how = "read" if read else f"measured in {profile.seconds:.1f} s"
-    choice = (f"precision=auto -> {profile.precision}" if given == PRECISION_AUTO
-              else f"precision={given} as given, {'/'.join(profile.conv)} kernels")  # fmt: skip
-    return (
-        f"machine profile ({how}; {describe_cpu()}, {profile.key['threads']} threads, batch "
-        f"{profile.key['batch']}): {choice}{', disturbed: defaults' if profile.disturbed else ''}"
-    )
-
-
-def needs_bf16(precision: str, native_bf16: bool | None = None) -> bool:
-    """Whether a run under ``precision`` computes its convolutions in bfloat16 on this CPU:
-    a mixed precision where bfloat16 is native (elsewhere it is emulated, and the choice is made
-    for float32)."""
-    native = cpu_has_native_bf16() if native_bf16 is None else native_bf16
-    return str(precision).endswith("-mixed") and native
+    given = str(cfg.trainer.precision)
+    if given == PRECISION_AUTO:
+        dtypes = ["float32", "bfloat16"] if cpu_has_native_bf16() else ["float32"]
+    else:
+        dtypes = ["bfloat16"] if needs_bf16(given) else ["float32"]
+    plain = OmegaConf.to_container(cfg.model.net, resolve=True)
+    batch, threads = int(cfg.dataset.batch_size), training_threads(cfg.trainer)
+    # timed as training runs (mfg_lightning.core.host_memory), then set back
+    with freed_memory_kept(bool(cfg.get("keep_freed_memory", True))):
+        found = measure(
+            lambda conv_impl: instantiate({**plain, "conv_impl": conv_impl}),
+            (batch, 2, int(plain["height"]), int(plain["width"])),
+            dtypes,
+            threads,
+            progress=progress,
+        )
+    row = {
+        "cpu": f"{describe_cpu()}, {threads} threads, torch {torch.__version__}",
+        "measured": f"python -m mfg_lightning.measure, {found.seconds:.0f} s"
+        + (", disturbed" if found.disturbed else ""),
+        "precision": found.precision,
+        "batch": batch,
+        "net": net_geometry(plain),
+        "conv_impl": {name: found.kernels(name) for name in dtypes},
+    }
+    return found, row

@@ -37,9 +37,9 @@ _PRECISION_ALIASES = {"32": "32-true", "bf16": "bf16-mixed", "16": "16-mixed"}
 FP16_INIT_SCALE = 16.0
 _TORCH_DEFAULT_INIT_SCALE = 2.0**16
 
-#: ``trainer.precision=auto`` (the default): ``bf16-mixed`` where this machine's measurement
-#: found it clearly faster (:mod:`mfg_lightning.run.machine_profile`) on a CPU that runs it
-#: natively, at float32's accuracy (bench/results/precision.md: the quick start under
+#: ``trainer.precision=auto`` (the default): ``bf16-mixed`` where the CPU kind's row of
+#: ``conf/cpu_defaults.yaml`` says so (:mod:`mfg_lightning.run.run_choices`) on a CPU that runs
+#: it natively, at float32's accuracy (bench/results/precision.md: the quick start under
 #: ``bf16-mixed``, 3 seeds, test ATE 0.0079 ± 0.0004 m against float32's 0.0084 ± 0.0004 m),
 #: float32 elsewhere.
 PRECISION_AUTO = "auto"
@@ -76,10 +76,10 @@ def resolve_precision(precision: Any, accelerator: Any = "auto") -> Any:
     """``trainer.precision`` with ``auto`` made concrete without measuring: ``32-true``; any
     other value as it is.
 
-    A training run resolves ``auto`` by measuring this machine instead
+    A training run resolves ``auto`` from its CPU kind's row instead
     (:mod:`mfg_lightning.run.run_choices`: ``bf16-mixed`` only on a CPU with native bfloat16
-    where it measured clearly faster); where nothing is measured (evaluation, prediction, the
-    flow network's training) float32 is the safe answer.
+    where it measured clearly faster); elsewhere (evaluation, prediction, the flow network's
+    training) float32 is the safe answer.
 
     Args:
         precision: the configured ``trainer.precision``.
