@@ -40,8 +40,12 @@ def _dataset(fake: FakeVkitti, worlds=("0001",), **kw) -> VirtualKittiDataset:
 
 @pytest.mark.parametrize("version", [1, 2])
 def test_extrinsics_and_intrinsics_writers_round_trip_exactly(tmp_path: Path, version: int) -> None:
+    from scipy.spatial.transform import Rotation
+
     rng = np.random.default_rng(version)
-    mats = rng.normal(size=(5, 4, 4))
+    mats = np.tile(np.eye(4), (5, 1, 1))  # rigid transforms, every digit random
+    mats[:, :3, :3] = Rotation.random(5, random_state=version).as_matrix()
+    mats[:, :3, 3] = rng.normal(size=(5, 3))
     vkitti_files.write_vkitti_extrinsics(tmp_path / "extrinsic.txt", mats, version)
     header = (tmp_path / "extrinsic.txt").read_text().splitlines()[0].split()
     ids = ["frame"] if version == 1 else ["frame", "cameraID"]  # then the 16 matrix entries
