@@ -111,6 +111,8 @@ def _camera_rows(path: Path, table: np.ndarray, lines: np.ndarray) -> np.ndarray
     for camera in np.unique(cameras):
         mine = cameras == camera
         _check_frames(path, table[mine, 0], lines[mine])
+    if not (cameras == 0).any():
+        raise DataLineError(path, 1, "no rows of camera 0 (Camera_0, the camera read)")
     return cameras == 0
 
 
