@@ -30,6 +30,7 @@ import contextlib
 import inspect
 import logging
 import pickletools
+import warnings
 import zipfile
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
@@ -130,7 +131,9 @@ def _legacy_safe_globals() -> tuple[Any, ...]:
 def safe_unpickling() -> Iterator[None]:
     """Within this context ``torch.load(weights_only=True)`` also accepts
     :func:`_legacy_safe_globals` (what Lightning's checkpoint loading needs to resume a run)."""
-    with torch.serialization.safe_globals(list(_legacy_safe_globals())):
+    with torch.serialization.safe_globals(list(_legacy_safe_globals())), warnings.catch_warnings():
+        # torch warns before refusing a pickle of another protocol; the refusal says it all
+        warnings.filterwarnings("ignore", "Detected pickle protocol", UserWarning)
         yield
 
 
