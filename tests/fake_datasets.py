@@ -14,11 +14,17 @@ decode with what was written:
   find it), ``calib.txt`` with distinct P0–P3, and KITTI's real poses from the shared data
   (``conftest.KITTI_POSES``, under ``MFG_SHARED_DIR``): without them a test that asks for real
   poses skips, naming where it looked, and any other gets a synthetic drive with a warning.
+
+:func:`png_header_only` and :func:`npy_header_only` write files whose header claims a size their
+data does not have (a corrupt download, or a file meant to exhaust memory).
 """
 
 from __future__ import annotations
 
+import io
+import struct
 import warnings
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -307,3 +313,34 @@ def tree_snapshot(root: Path) -> dict[str, tuple[int, int]]:
         for p in sorted(root.rglob("*"))
         if p.is_file()
     }
+
+
+# --------------------------------------------------------------------------------------------
+# Files whose header claims a size their data does not have
+# --------------------------------------------------------------------------------------------
+
+
+def _png_chunk(tag: bytes, payload: bytes) -> bytes:
+    crc = struct.pack(">I", zlib.crc32(tag + payload))
+    return struct.pack(">I", len(payload)) + tag + payload + crc
+
+
+def png_header_only(width: int, height: int, depth: int = 16, channels: int = 3) -> bytes:
+    """A PNG whose IHDR claims ``width × height`` (``depth`` bits, 1, 3 or 4 channels) and
+    whose image data is a few zero bytes: what a corrupt or hostile file looks like."""
+    colour = {1: 0, 3: 2, 4: 6}[channels]
+    ihdr = struct.pack(">IIBBBBB", width, height, depth, colour, 0, 0, 0)
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + _png_chunk(b"IHDR", ihdr)
+        + _png_chunk(b"IDAT", zlib.compress(b"\0" * 64))
+        + _png_chunk(b"IEND", b"")
+    )
+
+
+def npy_header_only(shape: tuple[int, ...], dtype: str = "<f4", data: bytes = b"\0" * 64) -> bytes:
+    """A ``.npy`` whose header claims ``shape`` and ``dtype``, followed by ``data`` only."""
+    buf = io.BytesIO()
+    header = {"descr": dtype, "fortran_order": False, "shape": tuple(shape)}
+    np.lib.format.write_array_header_1_0(buf, header)
+    return buf.getvalue() + data

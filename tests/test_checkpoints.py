@@ -6,6 +6,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 import yaml
@@ -354,3 +355,45 @@ def test_synthetic_test_offsets_is_read_as_offsets(tmp_path: Path, caplog) -> No
     assert "dataset.test_offsets is now dataset.offsets" in caplog.text
     dm = SyntheticDataModule(**{k: v for k, v in read.items() if k != "_target_"})
     assert {b - a for _, a, b in dm.dataset("test").samples} == {-2, -1, 1, 2}
+
+
+def test_random_bytes_are_called_corrupt_and_a_payload_unsafe(tmp_path: Path) -> None:
+    """Random bytes given to ``evaluate ckpt_path=`` were described as a file that "holds Python
+    objects … could run code", and ``train`` said "truncated?". What ``evaluate``
+    (:func:`load_checkpoint`) and ``train`` (``resolve_ckpt_path``) read now says corrupt for
+    bytes that are not a checkpoint, and unsafe for a pickle that would run code."""
+    import pickle
+
+    from mfg_lightning.run.training import resolve_ckpt_path
+
+    rng = np.random.default_rng(0)
+    random = tmp_path / "random.ckpt"
+    random.write_bytes(rng.integers(0, 256, 4096, dtype=np.uint8).tobytes())
+    for read in (load_checkpoint, lambda p: resolve_ckpt_path(str(p), tmp_path)):
+        with pytest.raises(CheckpointError) as err:
+            read(random)
+        message = str(err.value)
+        assert f"checkpoint {random} is corrupt: not a readable checkpoint" in message
+        assert "unsafe" not in message and "run code" not in message
+    # a checkpoint cut short is corrupt too, in one line without torch's advice
+    whole = tmp_path / "whole.ckpt"
+    _tiny_checkpoint(whole)
+    cut = tmp_path / "cut.ckpt"
+    cut.write_bytes(whole.read_bytes()[:-100])
+    with pytest.raises(CheckpointError) as err:
+        load_checkpoint(cut)
+    assert str(err.value) == (
+        f"checkpoint {cut} is corrupt: not a readable checkpoint (truncated, or not written by "
+        "torch.save: PytorchStreamReader failed reading zip archive: failed finding central "
+        "directory); it was not loaded"
+    )
+    # a bare pickle (no zip archive) that would run code is unsafe in every protocol, read by
+    # either; torch's safe loader stops at protocol 4's first opcode before it sees the global
+    marker = tmp_path / "marker.txt"
+    for protocol in range(pickle.HIGHEST_PROTOCOL + 1):
+        bare = tmp_path / f"bare{protocol}.ckpt"
+        bare.write_bytes(pickle.dumps({"state_dict": WritesAFile(marker)}, protocol=protocol))
+        for read in (load_checkpoint, lambda p: resolve_ckpt_path(str(p), tmp_path)):
+            with pytest.raises(CheckpointError, match=f"checkpoint {bare} is unsafe: it holds"):
+                read(bare)
+    assert not marker.exists()

@@ -73,3 +73,48 @@ def test_missing_root_is_one_error_and_a_json_line(tmp_path: Path) -> None:
     assert not report["ok"] and "is not a directory" in report["error"]
     assert "vkitti_1.3.1_flowgt/0001/clone/00000.png" in proc.stderr
     assert "Traceback" not in proc.stderr
+
+
+def _replace_line(path: Path, line: int, edit) -> None:
+    lines = path.read_text().splitlines()
+    lines[line - 1] = " ".join(edit(lines[line - 1].split()))
+    path.write_text("\n".join(lines) + "\n")
+
+
+def _scale_rotation_by_5(fields: list[str]) -> list[str]:
+    m = [float(v) for v in fields[1:]]
+    return [fields[0]] + [repr(v * 5 if i < 11 and i % 4 != 3 else v) for i, v in enumerate(m)]
+
+
+def test_check_reports_a_scaled_rotation_and_a_duplicate_frame_with_file_and_line(
+    tmp_path: Path,
+) -> None:
+    """Frame 2's rotation block scaled by 5 in ``0002_clone.txt`` printed OK (and made the
+    ground truth 5.5× too long), and a duplicate frame was merged by ``int(frame)``."""
+    fake = make_vkitti(tmp_path / "vk", worlds=("0001", "0002"), n_frames=4)
+    scaled = fake.extrinsics_file("0002")
+    _replace_line(scaled, 4, _scale_rotation_by_5)  # line 1 is the header: frame 2 is line 4
+    duplicate = fake.extrinsics_file("0001")
+    _replace_line(duplicate, 4, lambda fields: ["1", *fields[1:]])
+    proc = run_module(
+        "mfg_lightning.data.check", "dataset=vkitti", f"dataset.data_root={fake.root}",
+        "dataset.train_worlds=[0002]", "dataset.test_worlds=[0001]", cwd=tmp_path, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 1, proc.stderr[-2000:]
+    problems = [line for line in proc.stdout.splitlines() if line.startswith("PROBLEM ")]
+    assert f"PROBLEM train: {scaled}:4: the 3×3 block is not a rotation" in "\n".join(problems)
+    assert f"PROBLEM test: {duplicate}:4: frame 1 does not follow 1 (line 3)" in "\n".join(problems)
+    assert not json.loads(proc.stdout.strip().splitlines()[-1])["ok"]
+
+
+def test_check_reports_a_focal_length_of_0_with_file_and_line(tmp_path: Path) -> None:
+    """``calib.txt`` with ``fx = 0`` passed ``read_kitti_calib`` and ``data.check``."""
+    fake = make_kitti(tmp_path / "kitti", n_frames=4)
+    calib = fake.root / "sequences" / "09" / "calib.txt"
+    _replace_line(calib, 3, lambda fields: [fields[0], "0.0", *fields[2:]])  # P2 is line 3
+    cfg = compose("train", ["dataset=kitti", f"dataset.data_root={fake.root}"])
+    report = check_dataset(cfg.dataset, n_samples=1)
+    assert not report["ok"]
+    line = f"{calib}:3: P2: focal lengths must be positive, got fx = 0, fy = 180"
+    assert report["splits"]["test"]["error"] == line
+    assert f"test: {line}" in report["problems"]

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from fake_datasets import npy_header_only, png_header_only
 from mfg_lightning.core import geometry
 from mfg_lightning.core.data_errors import DataFileError
 from mfg_lightning.data import transforms
@@ -261,3 +262,93 @@ def test_holdout_ranges_are_a_contiguous_disjoint_tail() -> None:
     train, val = transforms.holdout_ranges(20, 0.01, span=2)  # at least span + 1 frames
     assert (train, val) == (range(0, 17), range(17, 20))
     assert transforms.holdout_ranges(10, 0.0) == (range(0, 10), range(10, 10))
+
+
+# --------------------------------------------------------------------------------------------
+# Sizes read from the header, before decoding
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "read",
+    [
+        flow_io.read_kitti_flow_png,
+        flow_io.read_vkitti_flow_png,
+        flow_io.read_vkitti_depth,
+        flow_io.read_rgb,
+        flow_io.image_size,
+        flow_io.read_flow,
+    ],
+)
+def test_a_png_header_claiming_30000_by_30000_is_refused_before_decoding(
+    tmp_path: Path, read
+) -> None:
+    """OpenCV tried to allocate 5.4 GB for it and cv2.error escaped ``_decode_png``."""
+    path = tmp_path / "huge.png"
+    path.write_bytes(png_header_only(30_000, 30_000, depth=16, channels=3))
+    with pytest.raises(DataFileError) as err:
+        read(path)
+    assert str(err.value) == (
+        f"{path}: the header claims 30000×30000 pixels, more than the 33,554,432 a reader "
+        "decodes (mfg_lightning.flow.io.MAX_PIXELS): corrupt?"
+    )
+
+
+def test_an_npy_header_claiming_1e5_by_1e5_is_refused_before_reading(tmp_path: Path) -> None:
+    """np.load raised an uncaught MemoryError (149 GiB) for it."""
+    path = tmp_path / "huge.npy"
+    path.write_bytes(npy_header_only((100_000, 100_000, 2)))
+    with pytest.raises(DataFileError, match=rf"^{path}: the header claims 100000×100000 pixels"):
+        flow_io.read_npy_flow(path)
+    # a header that fits but whose data is short is called truncated, naming both sizes
+    path.write_bytes(npy_header_only((4, 5, 2), "<f4", b"\0" * 100))
+    with pytest.raises(DataFileError, match=r"truncated: 228 bytes, its header's \(4, 5, 2\)"):
+        flow_io.read_npy_flow(path)
+
+
+def test_sizes_other_than_the_datasets_frames_are_refused_before_decoding(tmp_path: Path) -> None:
+    flow = _random_flow(7, 11)
+    flow_io.write_vkitti_flow_png(tmp_path / "f.png", flow)
+    flow_io.write_flo(tmp_path / "f.flo", flow)
+    flow_io.write_npy_flow(tmp_path / "f.npy", flow)
+    for name in ("f.png", "f.flo", "f.npy"):
+        got, _ = flow_io.read_flow(tmp_path / name, "vkitti", size=(7, 11))
+        assert got.shape == (7, 11, 2)
+        with pytest.raises(DataFileError) as err:
+            flow_io.read_flow(tmp_path / name, "vkitti", size=(375, 1242))
+        assert str(err.value) == (
+            f"{tmp_path / name}: the header claims 11×7 pixels, but this dataset's frames are "
+            "1242×375"
+        )
+
+
+def test_a_directory_where_a_file_should_be_is_not_file_not_found(tmp_path: Path) -> None:
+    for name in ("flow.npy", "flow.npz", "flow.flo", "flow.png", "frame.jpg"):
+        (tmp_path / name).mkdir()
+        read = flow_io.image_size if name.endswith("jpg") else flow_io.read_flow
+        with pytest.raises(DataFileError) as err:
+            read(tmp_path / name)
+        assert str(err.value) == f"{tmp_path / name}: a directory, not a file"
+
+
+def test_a_decoders_own_errors_become_the_one_line_data_error(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """OpenCV raises cv2.error (and an allocation MemoryError) instead of returning None for
+    some files; what it raises is simulated here, the reading around it is real."""
+    flow_io.write_kitti_flow_png(tmp_path / "f.png", _random_flow())
+    for error in (cv2.error("OpenCV(4.10) error: (-215:Assertion failed) in imdecode_"),
+                  MemoryError()):  # fmt: skip
+
+        def decode(*args, error=error):
+            raise error
+
+        monkeypatch.setattr(cv2, "imdecode", decode)
+        with pytest.raises(DataFileError, match=rf"^{tmp_path / 'f.png'}: not a readable image"):
+            flow_io.read_kitti_flow_png(tmp_path / "f.png")
+    # a corrupt .npz (its archive cut short) is one line naming it, not a zipfile error
+    np.savez(tmp_path / "f.npz", flow=_random_flow())
+    data = (tmp_path / "f.npz").read_bytes()
+    (tmp_path / "f.npz").write_bytes(data[: len(data) - 30])
+    with pytest.raises(DataFileError, match=rf"^{tmp_path / 'f.npz'}: not a readable numpy file"):
+        flow_io.read_npy_flow(tmp_path / "f.npz")

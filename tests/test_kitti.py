@@ -278,3 +278,39 @@ def test_training_runs_end_to_end(fk: FakeKitti, tmp_path: Path) -> None:
     cache = tmp_path / "cache" / "kitti_flow"
     assert len(list(cache.glob("*/*@*/*.npy"))) == 2 * 45 + 9 + 14  # flow of every pair
     assert len(list(cache.glob("*/*_rgb/*.npy"))) == 11 * 8  # and every frame's small RGB
+
+
+def _replace_p2(path: Path, index: int, value: float) -> int:
+    """Set entry ``index`` of the row-major 3×4 ``P2`` in ``calib.txt``; returns P2's line."""
+    lines = path.read_text().splitlines()
+    number = next(i for i, line in enumerate(lines) if line.startswith("P2:"))
+    P = lines[number].split()[1:]
+    P[index] = repr(value)
+    lines[number] = "P2: " + " ".join(P)
+    path.write_text("\n".join(lines) + "\n")
+    return number + 1
+
+
+@pytest.mark.parametrize(
+    ("index", "value", "words"),
+    [
+        (0, 0.0, "P2: focal lengths must be positive, got fx = 0, fy = 115.2"),
+        (5, -115.2, "P2: focal lengths must be positive, got fx = 115.2, fy = -115.2"),
+        (2, 400.0, "P2: principal point (cx, cy) = (400, 30.5) is outside the 128×64 image"),
+    ],
+)
+def test_a_calib_with_a_focal_length_of_0_is_refused_naming_file_and_line(
+    tmp_path: Path, index: int, value: float, words: str
+) -> None:
+    """``fx = 0`` passed read_kitti_calib and data.check; training then failed late without
+    naming the file. Now the reader refuses it, naming the file and P2's line."""
+    fake = make_kitti(tmp_path / "root", sequences=("09",), n_frames=3, width=128)
+    calib = fake.root / "sequences" / "09" / "calib.txt"
+    line = _replace_p2(calib, index, value)
+    if index != 2:  # without the image size only the focal lengths can be checked
+        with pytest.raises(DataFileError) as err:
+            kitti.read_kitti_calib(calib)
+        assert str(err.value) == f"{calib}:{line}: {words}"
+    with pytest.raises(DataFileError) as err:
+        _dataset(fake, tmp_path / "cache")
+    assert str(err.value) == f"{calib}:{line}: {words}"

@@ -40,8 +40,12 @@ def _dataset(fake: FakeVkitti, worlds=("0001",), **kw) -> VirtualKittiDataset:
 
 @pytest.mark.parametrize("version", [1, 2])
 def test_extrinsics_and_intrinsics_writers_round_trip_exactly(tmp_path: Path, version: int) -> None:
+    from scipy.spatial.transform import Rotation
+
     rng = np.random.default_rng(version)
-    mats = rng.normal(size=(5, 4, 4))
+    mats = np.tile(np.eye(4), (5, 1, 1))  # rigid transforms, every digit random
+    mats[:, :3, :3] = Rotation.random(5, random_state=version).as_matrix()
+    mats[:, :3, 3] = rng.normal(size=(5, 3))
     vkitti_files.write_vkitti_extrinsics(tmp_path / "extrinsic.txt", mats, version)
     header = (tmp_path / "extrinsic.txt").read_text().splitlines()[0].split()
     ids = ["frame"] if version == 1 else ["frame", "cameraID"]  # then the 16 matrix entries
@@ -245,3 +249,77 @@ def test_a_flow_source_it_cannot_give_is_one_error(
     assert len(errors) == 1 and f"flow.source={source}: dataset=vkitti" in errors[0], proc.stderr
     assert "flow=ground_truth" in errors[0]
     assert not (tmp_path / "r" / "metrics.json").exists()
+
+
+def _edit_row(path: Path, frame: int, edit, camera: int | None = None) -> int:
+    """Apply ``edit(fields) -> fields`` to the row of ``frame`` (and ``camera``, 2.0.3) of a
+    Virtual KITTI text file; returns its 1-based line number."""
+    lines = path.read_text().splitlines()
+    for number, line in enumerate(lines[1:], start=2):
+        fields = line.split()
+        if int(fields[0]) == frame and (camera is None or int(fields[1]) == camera):
+            lines[number - 1] = " ".join(edit(fields))
+            path.write_text("\n".join(lines) + "\n")
+            return number
+    raise AssertionError(f"no row of frame {frame} in {path}")
+
+
+def _scale_rotation(fields: list[str], by: float = 5.0) -> list[str]:
+    """The 16 matrix entries are the last 16 fields; the rotation block is rows 0–2, cols 0–2."""
+    head, m = fields[:-16], [float(v) for v in fields[-16:]]
+    for r in range(3):
+        for c in range(3):
+            m[4 * r + c] *= by
+    return head + [repr(v) for v in m]
+
+
+@pytest.mark.parametrize(
+    ("version", "edit", "words"),
+    [
+        (1, _scale_rotation, "the 3×3 block is not a rotation (max |RᵀR − I| = 24"),
+        (2, _scale_rotation, "the 3×3 block is not a rotation (max |RᵀR − I| = 24"),
+        (1, lambda f: ["1", *f[1:]], "frame 1 does not follow 1 (line 3): frame numbers must be"),
+        (1, lambda f: ["1.5", *f[1:]], "frame 1.5 is not a whole number >= 0"),
+        (2, lambda f: ["1", *f[1:]], "frame 1 does not follow 1 (line 4): frame numbers must be"),
+        (1, lambda f: [*f[:-4], "0", "0", "0.5", "1"], "the bottom row is 0 0 0.5 1, not 0 0 0 1"),
+    ],
+    ids=["scaled-1", "scaled-2", "duplicate-1", "fractional-1", "duplicate-2", "bottom-row"],
+)
+def test_extrinsics_that_are_not_rigid_or_whose_frames_repeat_are_refused(
+    tmp_path: Path, version: int, edit, words: str
+) -> None:
+    """Frame 2's rotation block scaled by 5 passed (``_numeric_rows`` checked finiteness only)
+    and made the ground-truth translation 5.5× too long; a duplicate or fractional frame was
+    merged by ``int(frame)``. Each is now refused, naming the file and the line."""
+    fake = make_vkitti(tmp_path, version=version, worlds=("0001",), n_frames=4)
+    ext = fake.extrinsics_file("0001")
+    line = _edit_row(ext, 2, edit, camera=0 if version == 2 else None)
+    with pytest.raises(DataFileError) as err:
+        vkitti_files.read_vkitti_extrinsics(ext, version)
+    assert str(err.value).startswith(f"{ext}:{line}: {words}"), str(err.value)
+    assert "\n" not in str(err.value)
+    with pytest.raises(DataFileError, match=f"^{ext}:{line}: "):
+        _dataset(fake)
+
+
+@pytest.mark.parametrize(
+    ("column", "value", "words"),
+    [
+        (2, 0.0, "focal lengths must be positive, got fx = 0, fy = 160"),
+        (4, 250.0, "principal point (cx, cy) = (250, 31.5) is outside the 200×64 image"),
+    ],
+)
+def test_intrinsics_with_a_focal_length_of_0_or_outside_the_image_are_refused(
+    tmp_path: Path, column: int, value: float, words: str
+) -> None:
+    fake = make_vkitti(tmp_path, version=2, worlds=("0001",), n_frames=4)
+    intr = fake.extrinsics_file("0001").parent / "intrinsic.txt"
+
+    def edit(fields: list[str]) -> list[str]:
+        fields[column] = repr(value)
+        return fields
+
+    line = _edit_row(intr, 1, edit, camera=0)
+    with pytest.raises(DataFileError, match=f"^{intr}:{line}: ") as err:
+        _dataset(fake)
+    assert str(err.value) == f"{intr}:{line}: {words}"

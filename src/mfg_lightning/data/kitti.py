@@ -66,7 +66,12 @@ from typing import Any
 import numpy as np
 import torch
 
-from mfg_lightning.core.data_errors import DataFileError, DataRootError
+from mfg_lightning.core.data_errors import (
+    DataFileError,
+    DataLineError,
+    DataRootError,
+    intrinsics_problem,
+)
 from mfg_lightning.data.base import (
     MFGDataModule,
     check_split,
@@ -122,26 +127,41 @@ KITTI_LAYOUT = """\
 # --------------------------------------------------------------------------------------------
 
 
-def read_kitti_calib(path: str | os.PathLike) -> np.ndarray:
+def read_kitti_calib(
+    path: str | os.PathLike, image_hw: tuple[int, int] | None = None
+) -> np.ndarray:
     """``(fx, fy, cx, cy)`` of the left colour camera (``P2``) from a KITTI ``calib.txt``.
+
+    Args:
+        path: the file.
+        image_hw: ``(height, width)`` of the sequence's images, or None.
 
     Returns:
         ``(4,)`` float64 in pixels of the native image.
+
+    Raises:
+        DataFileError: no ``P2`` line; :class:`~mfg_lightning.core.data_errors.DataLineError`
+            naming the line of a ``P2`` without 12 finite numbers, with a focal length that is
+            not positive or (with ``image_hw``) a principal point outside the image
+            (:func:`~mfg_lightning.core.data_errors.intrinsics_problem`).
     """
     for number, line in enumerate(read_text_lines(path), start=1):
         key, _, rest = line.partition(":")
         if key.strip() == "P2":
-            where = f"{path}: line {number}: P2"
             try:
                 P = np.array([float(x) for x in rest.split()], np.float64)
             except ValueError:
-                raise DataFileError(f"{where} has a non-numeric entry") from None
+                raise DataLineError(path, number, "P2 has a non-numeric entry") from None
             if P.size != 12:
-                raise DataFileError(f"{where} has {P.size} numbers, expected 12")
+                raise DataLineError(path, number, f"P2 has {P.size} numbers, expected 12")
             if not np.isfinite(P).all():
-                raise DataFileError(f"{where} has a non-finite entry")
+                raise DataLineError(path, number, "P2 has a non-finite entry")
             P = P.reshape(3, 4)
-            return np.array([P[0, 0], P[1, 1], P[0, 2], P[1, 2]])
+            K = np.array([P[0, 0], P[1, 1], P[0, 2], P[1, 2]])
+            problem = intrinsics_problem(K, image_hw)
+            if problem is not None:
+                raise DataLineError(path, number, f"P2: {problem[1]}")
+            return K
     raise DataFileError(f"{path}: no 'P2:' line (the left colour camera's projection matrix)")
 
 
@@ -276,11 +296,11 @@ class KittiOdometryDataset(ImageSequenceDataset):
         seq_dir = self.root / "sequences" / seq
         image_dir = seq_dir / "image_2"
         pose_file = self.root / "poses" / f"{seq}.txt"
-        intrinsics = read_kitti_calib(seq_dir / "calib.txt")
         frames = list_numbered(image_dir)
         if not frames:
             raise DataFileError(f"{image_dir}: no frames (expected 000000.png, 000001.png, …)")
         native_hw = flow_io.image_size(image_dir / f"{frames[0]:06d}.png")
+        intrinsics = read_kitti_calib(seq_dir / "calib.txt", native_hw)
         if not self.require_poses and not pose_file.exists():
             info = ImageSequence(seq, image_dir, intrinsics, native_hw, None, frames[-1] + 1)
             return info, frames, []

@@ -118,6 +118,7 @@ class _World:
     name: str
     extrinsics: dict[int, np.ndarray]  # frame → world-to-camera
     intrinsics: dict[int, np.ndarray] | None  # frame → (fx, fy, cx, cy) native (2.0.3)
+    native_hw: tuple[int, int] | None  # (height, width) of its frames, from a flow file's header
 
 
 class VirtualKittiDataset(FileMotionDataset):
@@ -172,15 +173,16 @@ class VirtualKittiDataset(FileMotionDataset):
 
     def _index_world(self, world: str, val_fraction: float) -> list[str]:
         L, var = self.layout, self.variation
-        ext_file = L.extrinsics_file(world, var)
-        extrinsics = read_vkitti_extrinsics(ext_file, self.version)
-        intr_file = L.intrinsics_file(world, var)
-        intrinsics = read_vkitti_intrinsics(intr_file) if intr_file is not None else None
-        self._worlds[world] = _World(world, extrinsics, intrinsics)
         present = {
             kind: set(list_numbered(L.directory(kind, world, var), *prefix_suffix))
             for kind, prefix_suffix in L.names().items()
         }
+        native_hw = self._frame_size(world, present["flow"])
+        ext_file = L.extrinsics_file(world, var)
+        extrinsics = read_vkitti_extrinsics(ext_file, self.version)
+        intr_file = L.intrinsics_file(world, var)
+        intrinsics = None if intr_file is None else read_vkitti_intrinsics(intr_file, native_hw)
+        self._worlds[world] = _World(world, extrinsics, intrinsics, native_hw)
         n = max(present["rgb"], default=-1) + 1
         problems: list[str] = []
         if n == 0:
@@ -219,6 +221,19 @@ class VirtualKittiDataset(FileMotionDataset):
                 continue
             self.samples.append((world, src, tgt))
         return problems
+
+    def _frame_size(self, world: str, flow_frames: set[int]) -> tuple[int, int] | None:
+        """``(height, width)`` of a world's frames from its first flow file's header (every
+        flow, depth and image file of the world must have it), or None when it has no readable
+        one (the samples that need it report their files)."""
+        if not flow_frames:
+            return None
+        try:
+            return flow_io.image_size(
+                self.layout.file("flow", world, self.variation, min(flow_frames))
+            )
+        except DataFileError:
+            return None
 
     # -- MotionDataset -----------------------------------------------------------------------
 
@@ -268,8 +283,9 @@ class VirtualKittiDataset(FileMotionDataset):
         L, var = self.layout, self.variation
         flow_path = L.file("flow", world, var, src)
         depth_path = L.file("depth", world, var, src)
-        flow, valid = flow_io.read_vkitti_flow_png(flow_path)
-        depth, far = flow_io.read_vkitti_depth(depth_path)
+        size = self._worlds[world].native_hw
+        flow, valid = flow_io.read_vkitti_flow_png(flow_path, size)
+        depth, far = flow_io.read_vkitti_depth(depth_path, size)
         if depth.shape != flow.shape[:2]:
             raise DataFileError(
                 f"{depth_path}: depth is {depth.shape[1]}×{depth.shape[0]} but the flow "
@@ -303,7 +319,8 @@ class VirtualKittiDataset(FileMotionDataset):
             **self.sample_identity(index),
         }
         if self.load_rgb:
-            rgb = transforms.resize_rgb(flow_io.read_rgb(L.file("rgb", world, var, src)), *hw)
+            rgb = flow_io.read_rgb(L.file("rgb", world, var, src), size)
+            rgb = transforms.resize_rgb(rgb, *hw)
             sample["rgb"] = torch.from_numpy(np.ascontiguousarray(rgb.transpose(2, 0, 1)))
         return sample
 

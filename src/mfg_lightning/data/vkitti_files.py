@@ -13,7 +13,13 @@ from typing import Any
 
 import numpy as np
 
-from mfg_lightning.core.data_errors import DataFileError, DataRootError
+from mfg_lightning.core.data_errors import (
+    DataLineError,
+    DataRootError,
+    frame_problem,
+    intrinsics_problem,
+    rigid_problem,
+)
 from mfg_lightning.data.file_datasets import check_data_root, read_text_lines, some_of
 
 __all__ = [
@@ -62,50 +68,113 @@ def normalize_version(version: Any) -> int:
 # --------------------------------------------------------------------------------------------
 
 
-def _numeric_rows(path: Path, width: int) -> np.ndarray:
-    """The rows after the header line of a whitespace-separated table, as float64 ``(N, width)``."""
-    lines = read_text_lines(path)
-    rows = [line.split() for line in lines[1:] if line.strip()]
-    for i, row in enumerate(rows):
-        if len(row) != width:
-            raise DataFileError(f"{path}: line {i + 2} has {len(row)} fields, expected {width}")
-    try:
-        table = np.array(rows, np.float64).reshape(-1, width)
-    except ValueError:
-        raise DataFileError(f"{path}: non-numeric entries") from None
-    if not np.isfinite(table).all():
-        raise DataFileError(f"{path}: non-finite entries (nan, inf or out of range)")
-    return table
+def _numeric_rows(path: Path, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """The rows after the header line of a whitespace-separated table.
+
+    Returns:
+        ``(table, lines)``: float64 ``(N, width)`` and the 1-based line number of each row.
+
+    Raises:
+        DataLineError: a row with another number of fields, a field that is not a number or a
+            non-finite one, naming the file and the line.
+    """
+    rows, lines = [], []
+    for number, line in enumerate(read_text_lines(path)[1:], start=2):
+        fields = line.split()
+        if not fields:
+            continue
+        if len(fields) != width:
+            raise DataLineError(path, number, f"{len(fields)} fields, expected {width}")
+        try:
+            values = [float(f) for f in fields]
+        except ValueError:
+            raise DataLineError(path, number, "a field is not a number") from None
+        if not np.isfinite(values).all():
+            raise DataLineError(path, number, "non-finite entries (nan, inf or out of range)")
+        rows.append(values)
+        lines.append(number)
+    if not rows:
+        raise DataLineError(path, 1, "no rows after the header line")
+    return np.array(rows, np.float64).reshape(-1, width), np.array(lines, np.int64)
+
+
+def _camera_rows(path: Path, table: np.ndarray, lines: np.ndarray) -> np.ndarray:
+    """The rows of camera 0 of a 2.0.3 table (``frame cameraID …``); every camera ID must be a
+    whole number ≥ 0 and every camera's frames unique and increasing."""
+    cameras = table[:, 1]
+    bad = np.flatnonzero((cameras != np.round(cameras)) | (cameras < 0))
+    if bad.size:
+        i = int(bad[0])
+        raise DataLineError(
+            path, int(lines[i]), f"camera ID {float(cameras[i])!r} is not a whole number >= 0"
+        )
+    for camera in np.unique(cameras):
+        mine = cameras == camera
+        _check_frames(path, table[mine, 0], lines[mine])
+    if not (cameras == 0).any():
+        raise DataLineError(path, 1, "no rows of camera 0 (Camera_0, the camera read)")
+    return cameras == 0
+
+
+def _check_frames(path: Path, frames: np.ndarray, lines: np.ndarray) -> None:
+    problem = frame_problem(frames, lines)
+    if problem is not None:
+        raise DataLineError(path, int(lines[problem[0]]), problem[1])
 
 
 def read_vkitti_extrinsics(path: str | os.PathLike, version: int = 1) -> dict[int, np.ndarray]:
     """World-to-camera extrinsics per frame (camera 0 for 2.0.3).
 
-    1.3.1: ``frame`` then 16 numbers per line; 2.0.3: ``frame cameraID`` then 16 numbers.
+    1.3.1: ``frame`` then 16 numbers per line; 2.0.3: ``frame cameraID`` then 16 numbers. Frame
+    numbers must be whole, unique and increasing (per camera), and every matrix a rigid
+    transform (:func:`~mfg_lightning.core.data_errors.rigid_problem`).
 
     Returns:
         frame → ``(4, 4)`` float64 world-to-camera matrix (``T_cam_world``, metres).
+
+    Raises:
+        DataLineError: naming the file and the line of the first bad row.
     """
     path = Path(path)
     if version == 1:
-        table = _numeric_rows(path, 17)
-        frames, mats = table[:, 0], table[:, 1:]
+        table, lines = _numeric_rows(path, 17)
+        _check_frames(path, table[:, 0], lines)
+        mine = np.ones(len(table), bool)
     else:
-        table = _numeric_rows(path, 18)
-        table = table[table[:, 1] == 0]
-        frames, mats = table[:, 0], table[:, 2:]
-    return {int(f): m.reshape(4, 4) for f, m in zip(frames, mats, strict=True)}
+        table, lines = _numeric_rows(path, 18)
+        mine = _camera_rows(path, table, lines)
+    mats = table[:, -16:].reshape(-1, 4, 4)
+    problem = rigid_problem(mats)
+    if problem is not None:
+        raise DataLineError(path, int(lines[problem[0]]), problem[1])
+    return {int(f): m for f, m in zip(table[mine, 0], mats[mine], strict=True)}
 
 
-def read_vkitti_intrinsics(path: str | os.PathLike) -> dict[int, np.ndarray]:
-    """2.0.3 ``intrinsic.txt``: ``frame cameraID K[0,0] K[1,1] K[0,2] K[1,2]`` per line.
+def read_vkitti_intrinsics(
+    path: str | os.PathLike, image_hw: tuple[int, int] | None = None
+) -> dict[int, np.ndarray]:
+    """2.0.3 ``intrinsic.txt``: ``frame cameraID K[0,0] K[1,1] K[0,2] K[1,2]`` per line. Frame
+    numbers must be whole, unique and increasing (per camera), focal lengths positive and, with
+    ``image_hw``, the principal point inside the image
+    (:func:`~mfg_lightning.core.data_errors.intrinsics_problem`).
+
+    Args:
+        path: the file.
+        image_hw: ``(height, width)`` of the world's images, or None.
 
     Returns:
         frame → ``(4,)`` ``(fx, fy, cx, cy)`` of camera 0 in native pixels.
+
+    Raises:
+        DataLineError: naming the file and the line of the first bad row.
     """
-    table = _numeric_rows(Path(path), 6)
-    table = table[table[:, 1] == 0]
-    return {int(row[0]): row[2:].copy() for row in table}
+    path = Path(path)
+    table, lines = _numeric_rows(path, 6)
+    mine = _camera_rows(path, table, lines)
+    problem = intrinsics_problem(table[:, 2:], image_hw)
+    if problem is not None:
+        raise DataLineError(path, int(lines[problem[0]]), problem[1])
+    return {int(row[0]): row[2:].copy() for row in table[mine]}
 
 
 _MATRIX_HEADER = "r1,1 r1,2 r1,3 t1 r2,1 r2,2 r2,3 t2 r3,1 r3,2 r3,3 t3 0 0 0 1"
@@ -132,12 +201,15 @@ def write_vkitti_extrinsics(path: str | os.PathLike, extrinsics: Any, version: i
     Args:
         path: the file (replaced atomically).
         extrinsics: ``(N, 4, 4)`` world-to-camera matrices ``T_cam_world`` of frames 0 … N−1
-            (metres), finite.
+            (metres), finite rigid transforms.
         version: 1 (1.3.1) or 2 (2.0.3).
     """
     mats = np.asarray(extrinsics, np.float64)
     if mats.ndim != 3 or mats.shape[1:] != (4, 4) or not np.isfinite(mats).all():
         raise ValueError(f"{path}: extrinsics must be finite (N, 4, 4), got {mats.shape}")
+    problem = rigid_problem(mats)
+    if problem is not None:  # a file no reader takes
+        raise ValueError(f"{path}: extrinsics[{problem[0]}]: {problem[1]}")
     frames = np.arange(len(mats), dtype=np.float64)[:, None]
     if normalize_version(version) == 1:
         _write_table(path, f"frame {_MATRIX_HEADER}", np.hstack([frames, mats.reshape(-1, 16)]), 1)
@@ -152,11 +224,15 @@ def write_vkitti_intrinsics(path: str | os.PathLike, intrinsics: Any) -> None:
 
     Args:
         path: the file (replaced atomically).
-        intrinsics: ``(N, 4)`` ``(fx, fy, cx, cy)`` of frames 0 … N−1 in pixels, finite.
+        intrinsics: ``(N, 4)`` ``(fx, fy, cx, cy)`` of frames 0 … N−1 in pixels, finite,
+            ``fx, fy > 0``.
     """
     K = np.asarray(intrinsics, np.float64)
     if K.ndim != 2 or K.shape[1] != 4 or not np.isfinite(K).all():
         raise ValueError(f"{path}: intrinsics must be finite (N, 4), got {K.shape}")
+    problem = intrinsics_problem(K)
+    if problem is not None:  # a file no reader takes
+        raise ValueError(f"{path}: intrinsics[{problem[0]}]: {problem[1]}")
     frames = np.arange(len(K), dtype=np.float64)[:, None]
     table = np.hstack([frames, np.zeros_like(frames), K])
     _write_table(path, "frame cameraID K[0,0] K[1,1] K[0,2] K[1,2]", table, 2)

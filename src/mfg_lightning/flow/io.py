@@ -23,11 +23,16 @@ Virtual KITTI depth         16-bit, one channel, centimetres; 65535 (655.35 m) i
 
 OpenCV decodes colour PNGs as B, G, R, so "R" above is channel 2 of what ``cv2`` returns.
 Files are read through Python (``open``) and decoded with ``cv2.imdecode`` so that a missing file,
-a truncated PNG or a wrong bit depth become one
+a directory, a truncated PNG or a wrong bit depth become one
 :class:`~mfg_lightning.core.data_errors.DataFileError`
-naming the file, never a ``None`` that fails later. Writers exist for the tests, the flow cache
-and the export (:mod:`mfg_lightning.data.export`); they write to a temporary file beside the
-target and ``os.replace`` it, so a reader never sees half a file.
+naming the file, never a ``None`` that fails later. Sizes are read from the header first (a PNG's
+IHDR, another image's header through Pillow, a ``.npy`` header through ``numpy.lib.format``, a
+``.flo``'s two integers) and checked before anything is decoded: at most :data:`MAX_PIXELS`
+pixels, and the dataset's frame size where the caller gives one (``size``). A decoder's own
+failure (``cv2.error``, ``MemoryError``, a zip error) is the same one-line error naming the file.
+Writers exist for the tests, the flow cache and the export (:mod:`mfg_lightning.data.export`);
+they write to a temporary file beside the target and ``os.replace`` it, so a reader never sees
+half a file.
 """
 
 from __future__ import annotations
@@ -35,18 +40,21 @@ from __future__ import annotations
 import io
 import os
 import struct
+import warnings
 import zipfile
 import zlib
 from pathlib import Path
+from typing import BinaryIO
 
 import cv2
 import numpy as np
 
 from mfg_lightning.core.atomic import atomic_write_bytes
-from mfg_lightning.core.data_errors import DataFileError, read_bytes
+from mfg_lightning.core.data_errors import DataFileError, file_error, read_bytes
 
 __all__ = [
     "FLO_MAGIC",
+    "MAX_PIXELS",
     "VKITTI_FAR_PLANE_M",
     "atomic_write_bytes",
     "image_size",
@@ -72,6 +80,25 @@ VKITTI_FAR_PLANE_M = 655.35
 _VKITTI_FAR_CODE = 65535
 # Middlebury's convention for unknown flow in .flo files.
 _FLO_UNKNOWN = 1e9
+#: The most pixels (height × width) an image or flow file may claim: 2**25, 72 times a KITTI
+#: frame (1242 × 375) and 4 times an 8K UHD one. A decoded 16-bit, 4-channel image of this size
+#: takes 256 MiB, a float32 flow field 256 MiB; a header claiming more is refused before decoding.
+MAX_PIXELS = 1 << 25
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+# What a decoder raises on a file it cannot decode, besides returning None: OpenCV's error, an
+# allocation that fails, and numpy's and zipfile's errors on a corrupt .npy or .npz.
+_DECODER_ERRORS = (
+    cv2.error,
+    MemoryError,
+    ValueError,
+    OSError,
+    EOFError,
+    zipfile.BadZipFile,
+    zipfile.LargeZipFile,
+    zlib.error,
+    NotImplementedError,  # a zip compression method zipfile does not have
+    RuntimeError,  # an encrypted zip member
+)
 
 
 # --------------------------------------------------------------------------------------------
@@ -79,20 +106,89 @@ _FLO_UNKNOWN = 1e9
 # --------------------------------------------------------------------------------------------
 
 
-def _decode_png(path: str | os.PathLike, *, flags: int = cv2.IMREAD_UNCHANGED) -> np.ndarray:
-    """Decode an image file; raise :class:`DataFileError` if it is missing or unreadable."""
+def check_size(
+    path: str | os.PathLike, height: int, width: int, size: tuple[int, int] | None = None
+) -> None:
+    """Refuse a file whose header claims an empty size, more than :data:`MAX_PIXELS` pixels, or
+    (with ``size``) another size than the dataset's frames.
+
+    Args:
+        path: the file, for the message.
+        height, width: what its header says, in pixels.
+        size: ``(height, width)`` the dataset's frames have, or None.
+
+    Raises:
+        DataFileError: naming the file, both sizes, before anything is allocated.
+    """
+    if height <= 0 or width <= 0:
+        raise DataFileError(f"{path}: the header claims an empty {width}×{height} image")
+    if height * width > MAX_PIXELS:
+        raise DataFileError(
+            f"{path}: the header claims {width}×{height} pixels, more than the {MAX_PIXELS:,} "
+            "a reader decodes (mfg_lightning.flow.io.MAX_PIXELS): corrupt?"
+        )
+    if size is not None and (height, width) != tuple(size):
+        raise DataFileError(
+            f"{path}: the header claims {width}×{height} pixels, but this dataset's frames are "
+            f"{size[1]}×{size[0]}"
+        )
+
+
+def _header_size(path: str | os.PathLike, data: bytes) -> tuple[int, int]:
+    """``(height, width)`` of an encoded image from its header: a PNG's IHDR chunk (8 + 8 + 13
+    bytes), any other format through Pillow (which reads the header only)."""
+    if data[:8] == _PNG_SIGNATURE:
+        if len(data) < 24 or data[12:16] != b"IHDR":
+            raise DataFileError(f"{path}: not a readable image (a PNG without its IHDR header)")
+        width, height = struct.unpack(">II", data[16:24])
+        return int(height), int(width)
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with warnings.catch_warnings():
+            # Pillow's own limit warns from 89 M pixels; ours (MAX_PIXELS) is lower.
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(io.BytesIO(data)) as image:
+                width, height = image.size
+    except Image.DecompressionBombError:
+        raise DataFileError(
+            f"{path}: the header claims more than {MAX_PIXELS:,} pixels, the most a reader "
+            "decodes (mfg_lightning.flow.io.MAX_PIXELS): corrupt?"
+        ) from None
+    except (UnidentifiedImageError, *_DECODER_ERRORS, SyntaxError):  # SyntaxError: Pillow's
+        raise DataFileError(  # word for a malformed header
+            f"{path}: not a readable image (no image header: truncated or corrupt?)"
+        ) from None
+    return int(height), int(width)
+
+
+def _decode_png(
+    path: str | os.PathLike,
+    *,
+    flags: int = cv2.IMREAD_UNCHANGED,
+    size: tuple[int, int] | None = None,
+) -> np.ndarray:
+    """Decode an image file; raise :class:`DataFileError` if it is missing or unreadable, or if
+    its header claims a size :func:`check_size` refuses (checked before decoding)."""
     data = read_bytes(path)
     if not data:
         raise DataFileError(f"{path}: empty file")
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+    check_size(path, *_header_size(path, data), size)
+    try:
+        image = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+    except (cv2.error, MemoryError) as err:
+        reason = " ".join(str(err).split()) or type(err).__name__
+        raise DataFileError(f"{path}: not a readable image ({reason[:200]})") from None
     if image is None:
         raise DataFileError(f"{path}: not a readable image (truncated or corrupt?)")
     return image
 
 
-def _decode_png16(path: str | os.PathLike, channels: int) -> np.ndarray:
+def _decode_png16(
+    path: str | os.PathLike, channels: int, size: tuple[int, int] | None = None
+) -> np.ndarray:
     """A 16-bit PNG with ``channels`` channels, as OpenCV returns it (BGR order for 3)."""
-    image = _decode_png(path)
+    image = _decode_png(path, size=size)
     if image.dtype != np.uint16:
         raise DataFileError(f"{path}: expected a 16-bit PNG, got {image.dtype} ({image.shape})")
     got = 1 if image.ndim == 2 else image.shape[2]
@@ -125,8 +221,15 @@ def _valid_or_finite(flow: np.ndarray, valid: np.ndarray | None) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 
 
-def read_flo(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+def read_flo(
+    path: str | os.PathLike, size: tuple[int, int] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Read a Middlebury ``.flo`` file.
+
+    Args:
+        path: the file.
+        size: ``(height, width)`` the header must claim, or None (any, up to
+            :data:`MAX_PIXELS`).
 
     Returns:
         ``(flow, valid)``: ``(H, W, 2)`` float32 pixels and ``(H, W)`` bool; pixels with a
@@ -140,8 +243,7 @@ def read_flo(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     if magic != np.float32(FLO_MAGIC):
         raise DataFileError(f"{path}: wrong .flo magic number {magic!r} (expected {FLO_MAGIC})")
     width, height = (int(x) for x in np.frombuffer(data, "<i4", count=2, offset=4))
-    if width <= 0 or height <= 0 or width * height > 1 << 28:
-        raise DataFileError(f"{path}: implausible .flo size {width}×{height}")
+    check_size(path, height, width, size)
     expected = 12 + 8 * width * height
     if len(data) != expected:
         raise DataFileError(
@@ -168,13 +270,17 @@ def write_flo(path: str | os.PathLike, flow: np.ndarray, valid: np.ndarray | Non
 # --------------------------------------------------------------------------------------------
 
 
-def read_kitti_flow_png(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+def read_kitti_flow_png(
+    path: str | os.PathLike, size: tuple[int, int] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Read a KITTI flow PNG (file channels u, v, valid; OpenCV returns them as B=valid, G=v, R=u).
+
+    ``size``: ``(height, width)`` the header must claim, or None (any, up to :data:`MAX_PIXELS`).
 
     Returns:
         ``(flow, valid)``: ``(H, W, 2)`` float32 pixels (0 where invalid), ``(H, W)`` bool.
     """
-    bgr = _decode_png16(path, 3)
+    bgr = _decode_png16(path, 3, size)
     valid = bgr[..., 0] > 0
     flow = (bgr[..., [2, 1]].astype(np.float32) - 32768.0) / 64.0
     flow[~valid] = 0.0
@@ -198,14 +304,18 @@ def write_kitti_flow_png(
 # --------------------------------------------------------------------------------------------
 
 
-def read_vkitti_flow_png(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+def read_vkitti_flow_png(
+    path: str | os.PathLike, size: tuple[int, int] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Read a Virtual KITTI (1.3.1 or 2.0.3) forward-flow PNG.
+
+    ``size``: ``(height, width)`` the header must claim, or None (any, up to :data:`MAX_PIXELS`).
 
     Returns:
         ``(flow, valid)``: ``(H, W, 2)`` float32 pixels (0 where invalid), ``(H, W)`` bool
         (``B == 0`` is invalid: the sky and pixels leaving the image).
     """
-    bgr = _decode_png16(path, 3)
+    bgr = _decode_png16(path, 3, size)
     height, width = bgr.shape[:2]
     valid = bgr[..., 0] > 0
     scale = np.array([width - 1, height - 1], np.float32)
@@ -229,14 +339,18 @@ def write_vkitti_flow_png(
     _encode_png(path, bgr)
 
 
-def read_vkitti_depth(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+def read_vkitti_depth(
+    path: str | os.PathLike, size: tuple[int, int] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Read a Virtual KITTI depth PNG (16-bit centimetres along z).
+
+    ``size``: ``(height, width)`` the header must claim, or None (any, up to :data:`MAX_PIXELS`).
 
     Returns:
         ``(depth, far)``: ``(H, W)`` float32 metres (the far plane reads as 655.35 m, as stored)
         and ``(H, W)`` bool marking far-plane pixels (sky), which have no usable depth.
     """
-    raw = _decode_png16(path, 1)
+    raw = _decode_png16(path, 1, size)
     far = raw == _VKITTI_FAR_CODE
     return raw.astype(np.float32) / 100.0, far
 
@@ -256,48 +370,103 @@ def write_vkitti_depth(path: str | os.PathLike, depth_m: np.ndarray) -> None:
 # --------------------------------------------------------------------------------------------
 
 
-def read_npy_flow(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+def _npy_header(
+    path: Path, f: BinaryIO, stored: int, size: tuple[int, int] | None
+) -> tuple[tuple[int, ...], np.dtype]:
+    """Shape and dtype of the ``.npy`` stream ``f`` (at its start) from its header, checked as
+    flow before the array is read: a float dtype, ``(2, H, W)`` or ``(H, W, 2)`` with at most
+    :data:`MAX_PIXELS` pixels (and ``size``, if given), and as many bytes after the header as the
+    shape needs.
+
+    Args:
+        path: the file, for messages.
+        f: the stream, positioned at the magic string.
+        stored: bytes in the stream (the file's size, an archive member's uncompressed size).
+        size: ``(height, width)`` the flow must have, or None.
+    """
+    version = np.lib.format.read_magic(f)
+    if version == (1, 0):
+        shape, _, dtype = np.lib.format.read_array_header_1_0(f)
+    elif version == (2, 0):
+        shape, _, dtype = np.lib.format.read_array_header_2_0(f)
+    else:  # 3.0 only adds UTF-8 field names: a structured dtype, never flow
+        raise DataFileError(f"{path}: .npy format version {version} is not one flow is saved in")
+    if not np.issubdtype(dtype, np.floating):
+        raise DataFileError(f"{path}: flow must be a float array, got dtype {dtype}")
+    if len(shape) == 3 and shape[2] == 2:
+        check_size(path, shape[0], shape[1], size)
+    elif len(shape) == 3 and shape[0] == 2:
+        check_size(path, shape[1], shape[2], size)
+    else:
+        raise DataFileError(f"{path}: flow must be (2, H, W) or (H, W, 2), got {shape}")
+    needed = f.tell() + int(np.prod(shape)) * dtype.itemsize
+    if stored < needed:
+        raise DataFileError(
+            f"{path}: truncated: {stored} bytes, its header's {shape} {dtype} needs {needed}"
+        )
+    return shape, dtype
+
+
+def read_npy_flow(
+    path: str | os.PathLike, size: tuple[int, int] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Read flow saved with numpy: ``.npy``, or ``.npz`` holding one array (or one named
     ``flow``), shaped ``(2, H, W)`` or ``(H, W, 2)``.
+
+    The header is read first (``numpy.lib.format``) and its dtype, shape and size checked
+    before the array is (:func:`check_size`).
+
+    Args:
+        path: the file.
+        size: ``(height, width)`` the flow must have, or None (any, up to :data:`MAX_PIXELS`).
 
     Returns:
         ``(flow, valid)``: ``(H, W, 2)`` float32 (0 where non-finite) and ``(H, W)`` bool.
     """
     path = Path(path)
-    if not path.is_file():
-        raise DataFileError(f"{path}: file not found")
     try:
-        loaded = np.load(path, allow_pickle=False)
-        if isinstance(loaded, np.lib.npyio.NpzFile):
-            with loaded:
-                keys = list(loaded.keys())
-                if "flow" in keys:
-                    array = loaded["flow"]
-                elif len(keys) == 1:
-                    array = loaded[keys[0]]
-                else:
-                    raise DataFileError(
-                        f"{path}: .npz holds {keys}; expected one array or one named 'flow'"
-                    )
-        else:
-            array = loaded
+        with open(path, "rb") as f:
+            if f.read(4) in (b"PK\x03\x04", b"PK\x05\x06"):  # a zip archive, as numpy tells
+                array = _read_npz_member(path, size)
+            else:
+                f.seek(0)
+                _npy_header(path, f, os.fstat(f.fileno()).st_size, size)
+                f.seek(0)
+                array = np.lib.format.read_array(f, allow_pickle=False)
     except DataFileError:
         raise
-    except (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as err:
-        # zipfile/zlib: a corrupt or truncated .npz archive
-        raise DataFileError(f"{path}: not a readable numpy file ({err})") from None
-    if not np.issubdtype(array.dtype, np.floating):
-        raise DataFileError(f"{path}: flow must be a float array, got dtype {array.dtype}")
-    if array.ndim == 3 and array.shape[2] == 2:
-        flow = array
-    elif array.ndim == 3 and array.shape[0] == 2:
-        flow = np.moveaxis(array, 0, 2)
-    else:
-        raise DataFileError(f"{path}: flow must be (2, H, W) or (H, W, 2), got {array.shape}")
+    except (FileNotFoundError, IsADirectoryError, PermissionError) as err:
+        raise DataFileError(file_error(path, err)) from None
+    except _DECODER_ERRORS as err:
+        reason = " ".join(str(err).split()) or type(err).__name__
+        raise DataFileError(f"{path}: not a readable numpy file ({reason[:200]})") from None
+    flow = array if array.shape[2] == 2 else np.moveaxis(array, 0, 2)
     flow = np.ascontiguousarray(flow, dtype=np.float32)
     valid = np.isfinite(flow).all(axis=2)
     flow[~valid] = 0.0
     return flow, valid
+
+
+def _read_npz_member(path: Path, size: tuple[int, int] | None) -> np.ndarray:
+    """The flow array of an ``.npz``: its one array, or the one named ``flow``, header first."""
+    with zipfile.ZipFile(path) as archive:
+        names = archive.namelist()
+        keys = [n.removesuffix(".npy") for n in names]
+        if "flow" in keys:
+            name = names[keys.index("flow")]
+        elif len(names) == 1:
+            name = names[0]
+        else:
+            raise DataFileError(
+                f"{path}: .npz holds {keys}; expected one array or one named 'flow'"
+            )
+        if not name.endswith(".npy"):
+            raise DataFileError(f"{path}: .npz member {name!r} is not a numpy array (.npy)")
+        stored = archive.getinfo(name).file_size
+        with archive.open(name) as member:
+            _npy_header(path, member, stored, size)
+        with archive.open(name) as member:
+            return np.lib.format.read_array(member, allow_pickle=False)
 
 
 def write_npy_flow(
@@ -317,32 +486,38 @@ def write_npy_flow(
 # --------------------------------------------------------------------------------------------
 
 
-def read_flow(path: str | os.PathLike, png_format: str = "kitti") -> tuple[np.ndarray, np.ndarray]:
+def read_flow(
+    path: str | os.PathLike, png_format: str = "kitti", size: tuple[int, int] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Read any supported flow file, choosing the reader by extension.
 
     ``.png`` is ambiguous (KITTI and Virtual KITTI encode flow differently): ``png_format``
     says which, ``"kitti"`` (default, the format of user-supplied flow) or ``"vkitti"``.
+    ``size``: ``(height, width)`` the file must hold, or None (any, up to :data:`MAX_PIXELS`).
 
     Returns:
         ``(flow, valid)``: ``(H, W, 2)`` float32 pixels, ``(H, W)`` bool.
     """
     suffix = Path(path).suffix.lower()
     if suffix == ".flo":
-        return read_flo(path)
+        return read_flo(path, size)
     if suffix in (".npy", ".npz"):
-        return read_npy_flow(path)
+        return read_npy_flow(path, size)
     if suffix == ".png":
         if png_format == "kitti":
-            return read_kitti_flow_png(path)
+            return read_kitti_flow_png(path, size)
         if png_format == "vkitti":
-            return read_vkitti_flow_png(path)
+            return read_vkitti_flow_png(path, size)
         raise ValueError(f"png_format must be 'kitti' or 'vkitti', got {png_format!r}")
     raise DataFileError(f"{path}: unknown flow file extension {suffix!r} (.flo, .png, .npy, .npz)")
 
 
-def read_rgb(path: str | os.PathLike) -> np.ndarray:
-    """Read an 8-bit colour (or grey) image as ``(H, W, 3)`` uint8 RGB."""
-    image = _decode_png(path)
+def read_rgb(path: str | os.PathLike, size: tuple[int, int] | None = None) -> np.ndarray:
+    """Read an 8-bit colour (or grey) image as ``(H, W, 3)`` uint8 RGB.
+
+    ``size``: ``(height, width)`` the header must claim, or None (any, up to :data:`MAX_PIXELS`).
+    """
+    image = _decode_png(path, size=size)
     if image.dtype != np.uint8:
         raise DataFileError(f"{path}: expected an 8-bit image, got {image.dtype}")
     if image.ndim == 2:
@@ -374,21 +549,22 @@ def write_rgb(path: str | os.PathLike, rgb: np.ndarray, jpeg_quality: int = 95) 
 def image_size(path: str | os.PathLike) -> tuple[int, int]:
     """``(height, width)`` of an image file, raising :class:`DataFileError` if unreadable.
 
-    PNG sizes are read from the IHDR header (24 bytes) without decoding the pixels; other
-    formats (Virtual KITTI 2's JPEG) are decoded.
+    Read from the header without decoding the pixels: a PNG's IHDR (its first 24 bytes), other
+    formats (Virtual KITTI 2's JPEG) through Pillow. A size :func:`check_size` refuses (empty,
+    more than :data:`MAX_PIXELS`) is an error here too.
     """
     try:
         with open(path, "rb") as f:
             head = f.read(24)
-    except FileNotFoundError:
-        raise DataFileError(f"{path}: file not found") from None
     except OSError as err:
-        raise DataFileError(f"{path}: cannot read ({err.strerror or err})") from None
-    if len(head) == 24 and head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
+        raise DataFileError(file_error(path, err)) from None
+    if len(head) == 24 and head[:8] == _PNG_SIGNATURE and head[12:16] == b"IHDR":
         width, height = struct.unpack(">II", head[16:24])
-        return int(height), int(width)
-    image = _decode_png(path)
-    return int(image.shape[0]), int(image.shape[1])
+        hw = int(height), int(width)
+    else:
+        hw = _header_size(path, read_bytes(path))
+    check_size(path, *hw)
+    return hw
 
 
 def quick_check(path: str | os.PathLike) -> str | None:

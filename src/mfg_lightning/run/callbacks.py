@@ -146,11 +146,7 @@ class AtomicCheckpointIO(TorchCheckpointIO):
     def load_checkpoint(
         self, path: Any, map_location: Any = lambda storage, loc: storage, weights_only: Any = None
     ) -> dict[str, Any]:
-        from mfg_lightning.run.checkpoints import (
-            CheckpointError,
-            describe_load_error,
-            safe_unpickling,
-        )
+        from mfg_lightning.run.checkpoints import safe_unpickling, unreadable_checkpoint
 
         weights_only = True if weights_only is None else weights_only
         try:
@@ -161,9 +157,7 @@ class AtomicCheckpointIO(TorchCheckpointIO):
         except FileNotFoundError:
             raise
         except Exception as err:  # torch/zip/pickle errors of a truncated, foreign or unsafe file
-            raise CheckpointError(
-                f"cannot read checkpoint {path}: {describe_load_error(err)}"
-            ) from err
+            raise unreadable_checkpoint(path, err) from err
 
 
 # --------------------------------------------------------------------------------------------

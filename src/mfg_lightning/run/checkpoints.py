@@ -7,6 +7,10 @@ Researchers share checkpoints, so reading one must never run its author's code:
   hold (:func:`_legacy_safe_globals`: OmegaConf nodes and Hydra's partial of the optimiser class,
   none of which runs anything when it is rebuilt). A pickle that names any other global (a
   payload calling ``os.system``, say) is refused before it runs: :class:`CheckpointError`.
+  A file that cannot be read says which of two things it is (:func:`unreadable_checkpoint`, the
+  one message every reader of a checkpoint raises): **unsafe**, a pickle naming anything but
+  plain data, or **corrupt**, bytes that are not a whole checkpoint (truncated, random, another
+  format).
 * **Configs** read from a checkpoint (``mfg_model_config``, ``mfg_dataset_config``) or from a run
   directory's ``config.yaml`` are instantiated only if every ``_target_`` in them, at any depth,
   resolves to one of the classes the project's own configs build (:func:`allowed_targets`: every
@@ -25,6 +29,9 @@ from __future__ import annotations
 import contextlib
 import inspect
 import logging
+import pickletools
+import warnings
+import zipfile
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from functools import cache
@@ -59,6 +66,7 @@ __all__ = [
     "model_size",
     "module_from_checkpoint",
     "safe_unpickling",
+    "unreadable_checkpoint",
     "with_legacy_dataset_settings",
     "with_legacy_settings",
     "with_moved_targets",
@@ -127,7 +135,9 @@ def _legacy_safe_globals() -> tuple[Any, ...]:
 def safe_unpickling() -> Iterator[None]:
     """Within this context ``torch.load(weights_only=True)`` also accepts
     :func:`_legacy_safe_globals` (what Lightning's checkpoint loading needs to resume a run)."""
-    with torch.serialization.safe_globals(list(_legacy_safe_globals())):
+    with torch.serialization.safe_globals(list(_legacy_safe_globals())), warnings.catch_warnings():
+        # torch warns before refusing a pickle of another protocol; the refusal says it all
+        warnings.filterwarnings("ignore", "Detected pickle protocol", UserWarning)
         yield
 
 
@@ -146,7 +156,7 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
         with safe_unpickling():
             ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # truncated, not a torch file, or an unsafe pickle
-        raise CheckpointError(f"cannot read checkpoint {path}: {describe_load_error(err)}") from err
+        raise unreadable_checkpoint(path, err) from err
     if not isinstance(ckpt, dict) or "state_dict" not in ckpt:
         raise CheckpointError(f"{path} is not a Lightning checkpoint (no state_dict)")
     if "mfg_model_config" not in ckpt:
@@ -168,7 +178,7 @@ def peek_checkpoint(path: str | Path) -> dict[str, Any]:
         with safe_unpickling():
             ckpt = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
     except Exception as err:  # truncated, not a torch file, or an unsafe pickle
-        raise CheckpointError(f"cannot read checkpoint {path}: {describe_load_error(err)}") from err
+        raise unreadable_checkpoint(path, err) from err
     if not isinstance(ckpt, dict):
         raise CheckpointError(f"{path} is not a Lightning checkpoint")
     return ckpt
@@ -181,20 +191,99 @@ def saved_loader_places(ckpt: dict[str, Any]) -> list[dict[str, Any]]:
     return [p for p in places if isinstance(p, dict)]
 
 
-def describe_load_error(err: BaseException) -> str:
-    """One line on why ``torch.load`` failed; an unsafe pickle says which global it named."""
-    text = str(err)
-    if "Unsupported global" in text or "Weights only load failed" in text:
-        detail = next(
-            (line.strip() for line in text.splitlines() if "Unsupported global" in line), ""
+def unreadable_checkpoint(path: str | Path, err: BaseException | None = None) -> CheckpointError:
+    """The one error for a checkpoint that was not loaded: unsafe, or corrupt.
+
+    **Unsafe**: its pickle names a global that safe loading refuses (``torch.load`` says so, or,
+    where torch stopped earlier on an opcode it does not take, the pickle's own opcodes name one
+    outside torch and :func:`_legacy_safe_globals`: read with ``pickletools``, nothing unpickled).
+    **Corrupt**: anything else, bytes that are not a whole checkpoint (truncated, random, another
+    format).
+
+    Args:
+        path: the checkpoint file.
+        err: what ``torch.load`` raised, or None (the caller found the file is no zip archive,
+            which ``torch.save`` writes).
+
+    Returns:
+        A :class:`CheckpointError` whose one line names the file and says which it is.
+    """
+    text = str(err) if err is not None else ""
+    refused = next(
+        (line.strip() for line in text.splitlines() if "GLOBAL" in line or "allowlisted" in line),
+        None,
+    )
+    if refused is None:
+        named = [g for g in _pickle_globals(Path(path)) if not _plain_global(g)]
+        refused = f"it names {named[0]}" if named else None
+    if refused is not None:
+        detail = refused.removeprefix("WeightsUnpickler error: ").split(" was not an allowed")[0]
+        return CheckpointError(
+            f"checkpoint {path} is unsafe: it holds Python objects other than tensors and plain "
+            f"data ({detail}), which could run code when unpickled; it was not loaded"
         )
-        detail = detail.removeprefix("WeightsUnpickler error: ").split(" was not an allowed")[0]
-        return (
-            "it holds Python objects other than tensors and plain data"
-            + (f" ({detail})" if detail else "")
-            + ", which could run code when unpickled; it was not loaded"
-        )
-    return (text.strip().splitlines() or [type(err).__name__])[0]
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    detail = next((line for line in lines if line.startswith("Unsupported operand")), None)
+    if detail is None:
+        # the first sentence: torch's zip reader adds advice that does not fit on one line
+        detail = lines[0].split(". ")[0] if lines else "not a zip archive, which torch.save writes"
+    if len(detail) > 160:
+        detail = detail[:159] + "…"
+    return CheckpointError(
+        f"checkpoint {path} is corrupt: not a readable checkpoint (truncated, or not written by "
+        f"torch.save: {detail}); it was not loaded"
+    )
+
+
+def _pickle_globals(path: Path) -> list[str]:
+    """The globals (``module.name``) that the pickles of a checkpoint name, read opcode by
+    opcode with ``pickletools`` (nothing is unpickled): the ``*.pkl`` members of a zip
+    checkpoint, or the pickles at the start of another file (torch's legacy format holds a few in
+    a row). ``[]`` where the bytes are not a pickle."""
+    found: list[str] = []
+    try:
+        if zipfile.is_zipfile(path):
+            with zipfile.ZipFile(path) as archive:
+                for name in archive.namelist():
+                    if name.endswith(".pkl"):
+                        with archive.open(name) as stream:
+                            found += _stream_globals(stream)
+        else:
+            with open(path, "rb") as stream:
+                found += _stream_globals(stream)
+    except (OSError, zipfile.BadZipFile, RuntimeError, NotImplementedError):
+        pass  # an unreadable archive member: nothing more to learn from it
+    return found
+
+
+def _stream_globals(stream: Any, pickles: int = 8) -> list[str]:
+    """The globals named by up to ``pickles`` pickles in a row at the start of ``stream``."""
+    found: list[str] = []
+    for _ in range(pickles):
+        strings: list[str] = []
+        ops = 0
+        try:
+            for op, arg, _ in pickletools.genops(stream):
+                ops += 1
+                if op.name in ("GLOBAL", "INST"):
+                    found.append(str(arg).replace(" ", "."))
+                elif op.name == "STACK_GLOBAL":
+                    found.append(".".join(strings[-2:]) or "a global")
+                elif isinstance(arg, str):
+                    strings.append(arg)
+        except Exception:  # not (or no longer) a pickle: random bytes, a tensor's data
+            break
+        if ops == 0:
+            break
+    return found
+
+
+def _plain_global(name: str) -> bool:
+    """Whether safe loading may name ``name``: torch's own types and rebuild functions, and
+    the legacy types :func:`_legacy_safe_globals` allows."""
+    if name.startswith("torch.") or name == "collections.OrderedDict":
+        return True
+    return name in {f"{t.__module__}.{t.__qualname__}" for t in _legacy_safe_globals()}
 
 
 # --------------------------------------------------------------------------------------------

@@ -30,7 +30,12 @@ from mfg_lightning.core.denormals import denormals_flushed
 from mfg_lightning.core.host_memory import freed_memory_kept
 from mfg_lightning.data.resumable_loader import refuse_other_batches, restarting_epochs
 from mfg_lightning.run.callbacks import LastCheckpoint
-from mfg_lightning.run.checkpoints import CheckpointError, peek_checkpoint, saved_loader_places
+from mfg_lightning.run.checkpoints import (
+    CheckpointError,
+    peek_checkpoint,
+    saved_loader_places,
+    unreadable_checkpoint,
+)
 from mfg_lightning.run.precision import PRECISION_AUTO, check_precision
 from mfg_lightning.run.run_choices import choice_overrides, resolve_run_choices
 from mfg_lightning.run.runs import (
@@ -65,7 +70,8 @@ def resolve_ckpt_path(ckpt_path: str | None, output_dir: Path, resume: bool = Fa
 
     ``ckpt_path="last"`` means ``<run dir>/checkpoints/last.ckpt``; without ``ckpt_path``,
     ``resume=True`` picks that file up if it exists (a requeued job resumes, a first one starts).
-    A missing file named by ``ckpt_path`` or an unreadable (truncated) one is a clear error.
+    A missing file named by ``ckpt_path`` or an unreadable one is a clear error: corrupt or
+    unsafe, as :func:`~mfg_lightning.run.checkpoints.unreadable_checkpoint` says.
     """
     last = output_dir / "checkpoints" / "last.ckpt"
     if ckpt_path is None:
@@ -79,7 +85,7 @@ def resolve_ckpt_path(ckpt_path: str | None, output_dir: Path, resume: bool = Fa
     # torch.save writes a zip archive whose directory sits at the end of the file, so a file cut
     # short (a save killed by an older, non-atomic writer) fails this cheap check.
     if not zipfile.is_zipfile(path):
-        raise CheckpointError(f"ckpt_path: {path} is not a readable checkpoint (truncated?)")
+        raise CheckpointError(f"ckpt_path: {unreadable_checkpoint(path)}")
     log.info("resuming from %s", path)
     return str(path)
 

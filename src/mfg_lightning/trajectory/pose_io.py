@@ -17,8 +17,12 @@ every format (TUM files carry ``#`` headers; skipping them in KITTI files too co
 Poses are returned as float64 numpy arrays ``(N, 4, 4)``; quaternions are converted with
 :class:`scipy.spatial.transform.Rotation` (whose ``(x, y, z, w)`` order is TUM's).
 
-Bad input raises :class:`PoseFileError`, a :class:`ValueError` whose message is one line
-``<file>:<line>: <reason>`` with a 1-based line number. Problems with the file as a whole (missing,
+Bad input raises :class:`PoseFileError`, the project's data error
+(:class:`~mfg_lightning.core.data_errors.DataLineError`, a :class:`ValueError`) whose message is
+one line ``<file>:<line>: <reason>`` with a 1-based line number. Every pose must be a rigid
+transform and frame indices whole, unique and increasing: the checks every camera-file reader
+shares (:func:`~mfg_lightning.core.data_errors.rigid_problem`,
+:func:`~mfg_lightning.core.data_errors.frame_problem`). Problems with the file as a whole (missing,
 unreadable, no poses) point at line 1, where reading stopped. Writes are atomic: the text goes to a
 temporary file in the target's directory, which then replaces the target, so a failed write leaves
 the previous file (or none) and never a half-written one.
@@ -38,6 +42,13 @@ from typing import Literal
 import numpy as np
 
 from mfg_lightning.core.atomic import atomic_write_text
+from mfg_lightning.core.data_errors import (
+    RIGID_TOLERANCE,
+    DataLineError,
+    file_error,
+    frame_problem,
+    rigid_problem,
+)
 
 __all__ = [
     "PoseFile",
@@ -58,13 +69,12 @@ __all__ = [
 PoseFormat = Literal["kitti", "tum"]
 
 _COLUMNS: dict[str, int] = {"kitti": 12, "tum": 8}
-# Pose files are written with as few as 4–6 decimals; anything this far from a rotation (or a
-# unit quaternion) is not a rounded one but a wrong column, a wrong format or garbage.
-_UNIT_TOLERANCE = 1e-2
+# A unit quaternion, like a rotation block, is checked to the rounding of a text file.
+_UNIT_TOLERANCE = RIGID_TOLERANCE
 _QUOTE_LIMIT = 60
 
 
-class PoseFileError(ValueError):
+class PoseFileError(DataLineError):
     """A pose or times file that cannot be read as its format says.
 
     Attributes:
@@ -72,12 +82,6 @@ class PoseFileError(ValueError):
         line: 1-based line number of the problem (1 for problems with the file as a whole).
         reason: what is wrong, one line.
     """
-
-    def __init__(self, path: str | os.PathLike[str], line: int, reason: str) -> None:
-        self.path = str(path)
-        self.line = line
-        self.reason = " ".join(reason.split())  # one line, whatever the reason quoted
-        super().__init__(f"{self.path}:{self.line}: {self.reason}")
 
 
 @dataclass(frozen=True)
@@ -125,6 +129,8 @@ def _data_lines(path: Path) -> list[tuple[int, list[str]]]:
     """``(line number, whitespace-split fields)`` of every non-blank, non-comment line."""
     try:
         raw = path.read_bytes()
+    except IsADirectoryError as exc:
+        raise PoseFileError(path, 1, file_error(path, exc).removeprefix(f"{path}: ")) from None
     except OSError as exc:
         raise PoseFileError(path, 1, f"cannot read file: {exc.strerror or exc}") from None
     rows: list[tuple[int, list[str]]] = []
@@ -194,19 +200,11 @@ def _format_of(path: Path, number: int, fields: list[str]) -> PoseFormat:
     )
 
 
-def _check_rotations(path: Path, lines: Sequence[int], R: np.ndarray) -> None:
-    """Every ``(3, 3)`` block must be a rotation up to the rounding of a text file."""
-    gram = np.einsum("nji,njk->nik", R, R) - np.eye(3)
-    deviation = np.abs(gram).max(axis=(1, 2))
-    bad = np.flatnonzero((deviation > _UNIT_TOLERANCE) | (np.linalg.det(R) <= 0))
-    if bad.size:
-        i = int(bad[0])
-        raise PoseFileError(
-            path,
-            int(lines[i]),
-            f"the 3×3 block is not a rotation (max |RᵀR − I| = {deviation[i]:.3g}, "
-            f"det = {np.linalg.det(R[i]):.3g})",
-        )
+def _check_rigid(path: Path, lines: Sequence[int], poses: np.ndarray) -> None:
+    """Every pose must be a rigid transform up to the rounding of a text file."""
+    problem = rigid_problem(poses)
+    if problem is not None:
+        raise PoseFileError(path, int(lines[problem[0]]), problem[1])
 
 
 def _parse_kitti(path: Path, rows: list[tuple[int, list[str]]]) -> PoseFile:
@@ -221,21 +219,16 @@ def _parse_kitti(path: Path, rows: list[tuple[int, list[str]]]) -> PoseFile:
     frames = _frame_indices(path, lines, values[:, 0]) if indexed else None
     poses = np.tile(np.eye(4), (len(values), 1, 1))
     poses[:, :3, :] = values[:, int(indexed) :].reshape(-1, 3, 4)
-    _check_rotations(path, lines, poses[:, :3, :3])
+    _check_rigid(path, lines, poses[:, :3, :])
     return PoseFile(path, "kitti", poses, None, lines, frames)
 
 
 def _frame_indices(path: Path, lines: np.ndarray, column: np.ndarray) -> np.ndarray:
     """The index column of a 13-number KITTI file as int64: whole numbers ≥ 0, increasing."""
-    bad = np.flatnonzero((column != np.round(column)) | (column < 0) | (column > 2**53))
-    if bad.size:
-        i = int(bad[0])
-        raise PoseFileError(
-            path, int(lines[i]), f"frame index {float(column[i])!r} is not a whole number >= 0"
-        )
-    frames = column.astype(np.int64)
-    check_increasing(path, lines, frames, "frame index", "frame indices must increase")
-    return frames
+    problem = frame_problem(column, lines, "frame index", "frame indices")
+    if problem is not None:
+        raise PoseFileError(path, int(lines[problem[0]]), problem[1])
+    return column.astype(np.int64)
 
 
 def check_increasing(
