@@ -9,13 +9,12 @@ against 3,743–8,106 by default; with every block from the heap (``M_MMAP_MAX``
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 import subprocess
 import sys
 
 import pytest
 
+from allocator import has_mallinfo2
 from conftest import REPO
 
 STEPS = """
@@ -64,48 +63,33 @@ def test_the_default_training_keeps_freed_memory() -> None:
     assert compose("train_flow").keep_freed_memory is True
 
 
-class _Mallinfo2(ctypes.Structure):
-    """glibc's ``struct mallinfo2`` (2.33 and later): the allocator's counters."""
+SET_BACK = """
+from allocator import big_block_from_mmap
+from mfg_lightning.core.host_memory import (
+    KEPT, allocator_settings, freed_memory_kept, starting_settings)
 
-    _fields_ = [(name, ctypes.c_size_t) for name in (
-        "arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks",
-        "fordblks", "keepcost")]  # fmt: skip
-
-
-def big_block_from_mmap() -> bool:
-    """Whether glibc serves a 40 MiB block with ``mmap`` (its own settings: always, being above
-    the largest threshold) or from the heap (freed memory kept: ``M_MMAP_MAX`` 0), read from
-    ``mallinfo2``'s count of mmapped blocks: what ``mallopt``, which has no getter, set."""
-    libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-    if not hasattr(libc, "mallinfo2"):
-        pytest.skip("this C library has no mallinfo2 (glibc 2.33 and later)")
-    libc.mallinfo2.restype = _Mallinfo2
-    libc.malloc.argtypes, libc.malloc.restype = [ctypes.c_size_t], ctypes.c_void_p
-    libc.free.argtypes = [ctypes.c_void_p]
-    before = libc.mallinfo2().hblks
-    block = libc.malloc(40 << 20)
-    mapped = libc.mallinfo2().hblks > before
-    libc.free(block)
-    return mapped
+assert allocator_settings() == starting_settings() and big_block_from_mmap()
+with freed_memory_kept() as applied:
+    assert applied and allocator_settings() == KEPT and not big_block_from_mmap()
+    with freed_memory_kept():  # nested (a training inside a study): the outer one restores
+        pass
+    assert allocator_settings() == KEPT and not big_block_from_mmap()
+assert allocator_settings() == starting_settings() and big_block_from_mmap()
+with freed_memory_kept(enabled=False) as applied:
+    assert not applied and big_block_from_mmap()
+print("set back")
+"""
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
 def test_kept_memory_serves_every_block_from_the_heap_and_is_set_back() -> None:
     """A block above the largest mmap threshold (oneDNN's scratch on an AVX2 machine) comes from
-    the heap while memory is kept, and from mmap again, as glibc's own settings have it, after."""
-    from mfg_lightning.core.host_memory import (
-        KEPT,
-        allocator_settings,
-        freed_memory_kept,
-        starting_settings,
-    )
-
-    assert allocator_settings() == starting_settings() and big_block_from_mmap()
-    with freed_memory_kept() as applied:
-        assert applied and allocator_settings() == KEPT and not big_block_from_mmap()
-        with freed_memory_kept():  # nested (a training inside a study): the outer one restores
-            pass
-        assert allocator_settings() == KEPT and not big_block_from_mmap()
-    assert allocator_settings() == starting_settings() and big_block_from_mmap()
-    with freed_memory_kept(enabled=False) as applied:
-        assert not applied and big_block_from_mmap()
+    the heap while memory is kept, and from mmap again, as glibc's own settings have it, after.
+    In a fresh process: in one that trained before, glibc serves a large block from a free chunk
+    its heap kept, whatever the settings."""
+    if not has_mallinfo2():
+        pytest.skip("this C library has no mallinfo2 (glibc 2.33 and later)")
+    proc = subprocess.run([sys.executable, "-c", SET_BACK], capture_output=True, text=True,
+                          cwd=REPO / "tests", timeout=120)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "set back"

@@ -201,6 +201,30 @@ def check_command_line(
         return CommandLine(argv, error=_unknown_key_message(arg, key, keys))
     container = _container(cfg)
     leaves = dict(config_keys(container))
+    message = (
+        _whole_number_error(floats, leaves, argv)
+        or _unknown_sweep_key(parsed, leaves, set(cfg.hydra.runtime.choices))
+        or _type_error(config_name, parsed, plain, floats, cfg, leaves, container)
+    )
+    if message is not None:
+        return CommandLine(argv, error=message)
+    message = _unknown_settings(container, plain, dict(cfg.hydra.runtime.choices))
+    if message is not None:
+        return CommandLine(argv, error=message)
+    swept = {o.key_or_group for o in parsed if o.is_sweep_override()}
+    for key, value in leaves.items():
+        if value == "???" and key not in swept and not key.startswith("hydra"):
+            placeholder = "<path>" if key.endswith(("path", "dir", "root")) else "<value>"
+            typed = f"python -m {module} {key}={placeholder}"
+            return CommandLine(argv, error=f"{key} is not set; type: {typed} [...]")
+    return CommandLine(argv, error=unwritable_run_dir(cfg, multirun=bool(args.multirun)))
+
+
+def _whole_number_error(
+    floats: Sequence[Any], leaves: dict[str, Any], argv: list[str]
+) -> str | None:
+    """A float given for a whole-number setting: refused unless it is a whole number, which is
+    then written into ``argv`` as the integer (``trainer.max_steps=1e3``)."""
     for o in floats:
         default, value = leaves.get(o.key_or_group), o.value()
         if o.is_add() or o.is_force_add() or isinstance(default, bool):
@@ -208,25 +232,42 @@ def check_command_line(
         if o.key_or_group.rpartition(".")[2] in FRACTION_OR_COUNT:
             continue
         if o.key_or_group not in leaves:
-            return CommandLine(argv, error=_unknown_key_message(o.input_line, o.key_or_group,
-                                                                list(leaves)))  # fmt: skip
+            return _unknown_key_message(o.input_line, o.key_or_group, list(leaves))
         if isinstance(default, int):
             if not float(value).is_integer():
-                return CommandLine(argv, error=(
-                    f"{o.input_line}: {o.key_or_group} is a whole number (default {default}); "
-                    f"give one, e.g. {o.key_or_group}={round(value)}"))  # fmt: skip
+                return (f"{o.input_line}: {o.key_or_group} is a whole number (default {default}); "
+                        f"give one, e.g. {o.key_or_group}={round(value)}")  # fmt: skip
             prefix = o.input_line[: len(o.input_line) - len(o.input_line.lstrip("+~"))]
-            rewritten = f"{prefix}{o.key_or_group}={int(value)}"
-            argv[argv.index(o.input_line)] = rewritten
-    # Sweeps: their keys must exist too (a group's options were checked by unknown_choice).
+            argv[argv.index(o.input_line)] = f"{prefix}{o.key_or_group}={int(value)}"
+    return None
+
+
+def _unknown_sweep_key(
+    parsed: Sequence[Any], leaves: dict[str, Any], groups: set[str]
+) -> str | None:
+    """A swept key the config does not have (a group's options were checked by Hydra)."""
     for o in parsed:
         key = o.key_or_group
         if not o.is_sweep_override() or o.is_add() or o.is_force_add() or "/" in key:
             continue
-        known = key in leaves or key in dict(cfg.hydra.runtime.choices)
-        if not known and not key.startswith("hydra"):
-            return CommandLine(argv, error=_unknown_key_message(o.input_line, key,
-                                                                    list(leaves)))  # fmt: skip
+        if key not in leaves and key not in groups and not key.startswith("hydra"):
+            return _unknown_key_message(o.input_line, key, list(leaves))
+    return None
+
+
+def _type_error(
+    config_name: str,
+    parsed: Sequence[Any],
+    plain: Sequence[Any],
+    floats: Sequence[Any],
+    cfg: Any,
+    leaves: dict[str, Any],
+    container: dict,
+) -> str | None:
+    """A value, or a value of a sweep (``-m dataset.batch_size=8,abc``), of a type its setting
+    does not take."""
+    from hydra.errors import HydraException
+
     groups = set(cfg.hydra.runtime.choices)
     group_lines = [o.input_line for o in plain if o.key_or_group in groups]
     try:  # each setting's default, under the groups chosen
@@ -239,8 +280,8 @@ def check_command_line(
             continue
         message = _wrong_type(o.input_line, key, o.value(), defaults.get(key), container)
         if message is not None:
-            return CommandLine(argv, error=message)
-    for o in parsed:  # each value of a sweep (-m dataset.batch_size=8,abc)
+            return message
+    for o in parsed:
         key = o.key_or_group
         if not o.is_sweep_override() or key in groups or key.startswith("hydra"):
             continue
@@ -251,17 +292,8 @@ def check_command_line(
         for value in values:
             message = _wrong_type(o.input_line, key, value, leaves.get(key), container)
             if message is not None:
-                return CommandLine(argv, error=message)
-    message = _unknown_settings(container, plain, dict(cfg.hydra.runtime.choices))
-    if message is not None:
-        return CommandLine(argv, error=message)
-    swept = {o.key_or_group for o in parsed if o.is_sweep_override()}
-    for key, value in leaves.items():
-        if value == "???" and key not in swept and not key.startswith("hydra"):
-            placeholder = "<path>" if key.endswith(("path", "dir", "root")) else "<value>"
-            typed = f"python -m {module} {key}={placeholder}"
-            return CommandLine(argv, error=f"{key} is not set; type: {typed} [...]")
-    return CommandLine(argv, error=unwritable_run_dir(cfg, multirun=bool(args.multirun)))
+                return message
+    return None
 
 
 def unwritable_run_dir(cfg: Any, multirun: bool) -> str | None:
