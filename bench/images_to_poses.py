@@ -30,7 +30,7 @@ ATE on both test sequences in ``accuracy.md``'s DIS-flow table and ``reproductio
 
 Written as the section between ``<!-- images-to-poses:start/end -->`` of ``<out>/throughput.md``
 (which ``bench/throughput.py`` keeps), and by a full run into ``bench/results`` as one line of
-README.md between the same markers.
+docs/evaluation.md between the same markers.
 
 ``python bench/images_to_poses.py`` (about 4 minutes on 2 quiet CPU cores); ``--tiny`` for a
 smoke run.
@@ -59,8 +59,10 @@ from _common import (
     write_marked,
 )
 
-#: The marker of this script's section in throughput.md and of its line in README.md.
+#: The marker of this script's section in throughput.md and of its line in docs/evaluation.md.
 MARKER = "images-to-poses"
+#: The page whose line a full run rewrites.
+DOCS_PAGE = REPO / "docs" / "evaluation.md"
 HEADING = "Images to poses: `predict` on a folder of PNG frames, against DIS + MAGSAC++"
 #: The classical row: its name in the accuracy tables and OpenCV's robust estimator.
 CLASSICAL = ("essential matrix + MAGSAC++ (OpenCV)", "USAC_MAGSAC")
@@ -89,8 +91,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--learned-sizes", nargs="*", default=["192x512"],
                    help="image sizes at which flow=learned (the shipped weights) and an "
                    "end-to-end checkpoint's network run, HxW (none: DIS only)")  # fmt: skip
-    p.add_argument("--readme", type=Path, default=None, help="README to update (default: the "
-                   "repository's when writing into bench/results, else none)")  # fmt: skip
+    p.add_argument("--readme", type=Path, default=None, help="page to update (default: "
+                   "docs/evaluation.md when writing into bench/results, else none)")  # fmt: skip
     add_common_arguments(p, "torch and OpenCV threads (default: all)")
     args = p.parse_args(argv)
     args.sizes = [parse_size(s) for s in args.sizes]
@@ -397,9 +399,10 @@ def stages_table(r: SizeResult) -> str:
     return markdown_table(header, rows)
 
 
-def readme_line(results: list[SizeResult], kind: str, cores: int) -> str:
-    """The README's one line: the first size's end-to-end rate beside the classical one (and
-    the learned flow's and the end-to-end network's at that size, when measured)."""
+def readme_line(results: list[SizeResult], kind: str, cores: int, date: str, link: str) -> str:
+    """The docs' one line: the first size's end-to-end rate beside the classical one (and the
+    learned flow's and the end-to-end network's at that size, when measured), with the machine
+    and ``date`` (YYYY-MM-DD) beside every rate; ``link``: throughput.md, relative to the page."""
     r = results[0]
     classical_ms = sum(r.ms(r.classical).values())
     words = {"learned": "with `flow=learned`", "end_to_end": "end to end"}
@@ -409,9 +412,9 @@ def readme_line(results: list[SizeResult], kind: str, cores: int) -> str:
     )  # fmt: skip
     return (
         f"Images to poses: `predict` on a folder of {r.height} × {r.width} PNG frames runs at "
-        f"{rate(r.marginal_ms())} frames/s after a {r.startup_s:.1f} s start-up (DIS + "
-        f"MAGSAC++: {rate(classical_ms)} frames/s{also}) on {cores} {kind} CPU cores "
-        "([bench/results/throughput.md](bench/results/throughput.md)).\n"
+        f"{rate(r.marginal_ms())} frames/s after a {r.startup_s:.1f} s start-up, on {cores} "
+        f"{kind} CPU cores ({date}). DIS + MAGSAC++ runs at {rate(classical_ms)} frames/s{also} "
+        f"there ([throughput]({link})).\n"
     )
 
 
@@ -487,10 +490,12 @@ def main(argv: list[str] | None = None) -> Path:
                "(classical). *The rest of `predict`*: its time after start-up less its stages. "
                "Read and flow are one measurement shared by both pipelines.")  # fmt: skip
     path = report.write_section(MARKER, HEADING)
-    # The README's line only from a real run into bench/results (or a README named).
-    readme = args.readme or (REPO / "README.md" if args.out is None and not args.tiny else None)
+    # The docs' line only from a real run into bench/results (or a page named).
+    readme = args.readme or (DOCS_PAGE if args.out is None and not args.tiny else None)
     if readme is not None:
-        write_marked(readme, MARKER, readme_line(results, kind, cores))
+        link = os.path.relpath(REPO / "bench" / "results" / "throughput.md", readme.parent)
+        date = time.strftime("%Y-%m-%d", time.gmtime())
+        write_marked(readme, MARKER, readme_line(results, kind, cores, date, link))
     return path
 
 

@@ -6,6 +6,7 @@ the file as it was, and replaces its README line; ``bench/throughput.py``'s rewr
 from __future__ import annotations
 
 import math
+import re
 import sys
 from pathlib import Path
 
@@ -86,6 +87,7 @@ def test_images_to_poses_writes_its_section(
     assert lines[:3] == ["# x", "", "<!-- images-to-poses:start -->"]
     assert lines[3].startswith("Images to poses: `predict` on a folder of 48 × 128 PNG frames")
     assert "with `flow=learned`" in lines[3] and "; end to end " in lines[3]
+    assert re.search(r"CPU cores \(20\d\d-\d\d-\d\d\)\.", lines[3]), "each rate's date"
     assert lines[4:] == ["<!-- images-to-poses:end -->", "", "end"]
     # bench/throughput.py rewriting the file keeps the section
     common = bench_module("_common")

@@ -24,22 +24,27 @@ def test_dataset_configs_default_below_the_data_dir(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.setenv("MFG_DATA_DIR", str(tmp_path))
-    for name, sub in (("kitti", "kitti"), ("vkitti", "vkitti"), ("vkitti_objects", "vkitti")):
+    for name, sub in (
+        ("kitti", "kitti/dataset"),
+        ("vkitti", "vkitti"),
+        ("vkitti_objects", "vkitti"),
+    ):
         cfg = compose("train", [f"dataset={name}"])
         assert cfg.paths.data_dir == str(tmp_path)
         assert cfg.dataset.data_root == f"{tmp_path}/{sub}", name
     # unset: ./data, read from the directory the command starts in
     monkeypatch.delenv("MFG_DATA_DIR")
-    assert compose("train", ["dataset=kitti"]).dataset.data_root == "data/kitti"
+    assert compose("train", ["dataset=kitti"]).dataset.data_root == "data/kitti/dataset"
     # a data_root given on the command line still wins
-    cfg = compose("train", ["dataset=kitti", "dataset.data_root=/elsewhere/kitti"])
-    assert cfg.dataset.data_root == "/elsewhere/kitti"
+    cfg = compose("train", ["dataset=kitti", "dataset.data_root=/elsewhere/kitti/dataset"])
+    assert cfg.dataset.data_root == "/elsewhere/kitti/dataset"
 
 
 def test_a_kitti_tree_in_the_data_dir_is_found_without_data_root(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    fake = make_kitti(tmp_path / "data" / "kitti")  # 00–10, 8 frames each
+    # KITTI odometry's zips unpacked in data/kitti/: data/kitti/dataset/{sequences,poses}
+    fake = make_kitti(tmp_path / "data" / "kitti" / "dataset")  # 00–10, 8 frames each
     monkeypatch.setenv("MFG_DATA_DIR", str(tmp_path / "data"))
     cfg = compose("train", ["dataset=kitti", f"paths.cache_dir={tmp_path / 'cache'}"])
     datamodule = instantiate(cfg.dataset)
@@ -64,7 +69,8 @@ def test_a_missing_tree_names_the_path_and_what_to_type(
     with pytest.raises(DataRootError) as err:
         instantiate(cfg.dataset).build_dataset("train")
     text = str(err.value)
-    assert f"dataset.data_root={tmp_path / 'nowhere' / 'kitti'} is not a directory" in text
+    missing = tmp_path / "nowhere" / "kitti" / "dataset"
+    assert f"dataset.data_root={missing} is not a directory" in text
     assert "dataset.data_root=/data/kitti/dataset" in text and "MFG_DATA_DIR" in text
     # a relative default is shown with the directory it is read from
     monkeypatch.chdir(tmp_path)
@@ -96,8 +102,8 @@ def test_conf_local_is_optional_git_ignored_and_overrides(
     with initialize_config_dir(version_base="1.3", config_dir=str(conf)):
         for name in ("train", "check", "evaluate", "predict"):
             cfg = hydra_compose(config_name=name, overrides=["dataset=kitti", "ckpt_path=x"])
-            assert cfg.dataset.data_root == "/mnt/datasets/kitti", name
+            assert cfg.dataset.data_root == "/mnt/datasets/kitti/dataset", name
         for name in ("analyze_basis", "export"):
             assert hydra_compose(config_name=name).paths.data_dir == "/mnt/datasets", name
         cfg = hydra_compose(config_name="train", overrides=["dataset=kitti", "paths.data_dir=/d"])
-        assert cfg.dataset.data_root == "/d/kitti"
+        assert cfg.dataset.data_root == "/d/kitti/dataset"
