@@ -75,6 +75,10 @@ class Study:
             return done
         if name.split("/")[0] not in self.cfg.stages:
             return None
+        if not self.cfg.poses_dir and any("trajectory=kitti" in str(o) for o in self.cfg.data):
+            # refused here, not before: a study whose stages are cached rewrites its report
+            # without the poses
+            raise ValueError("poses_dir: set it to KITTI's poses/ directory (00.txt ... 10.txt)")
         start = time.perf_counter()
         result = compute()
         if result is None:
