@@ -59,8 +59,9 @@ def test_a_stage_added_to_the_registry_runs_and_is_reported(tmp_path: Path) -> N
         "    read_by: [a reader of the probe]\n"
     )
     out = tmp_path / "out"
-    cfg = compose("reproduce", ["reproduce=tiny", f"work_dir={tmp_path / 'work'}",
-                                f"results_dir={out / 'results'}", f"report={out / 'r.md'}"])  # fmt: skip
+    where = [f"work_dir={tmp_path / 'work'}", f"results_dir={out / 'results'}",
+             f"report={out / 'r.md'}"]  # fmt: skip
+    cfg = compose("reproduce", ["reproduce=tiny", *where])
     with open_dict(cfg):  # the composed config is struct: the new stage is a new key
         cfg.merge_with(OmegaConf.load(extra))
     cfg.stages = ["probe"]
@@ -107,3 +108,30 @@ def test_a_new_folder_starts_from_the_committed_results_of_its_settings(tmp_path
     cfg.budget.other_steps = 1
     plan.claim_results(cfg, tmp_path / "other")
     assert not list((tmp_path / "other").glob("**/*.json"))
+
+
+def test_a_model_is_composed_once_and_equal_configs_are_one_model(tmp_path: Path) -> None:
+    """Each model's training config is composed once (its data read from it), its settings set
+    as numbers; two stages whose composed configs are equal, wherever their runs go, train one
+    model (``training_digest``), and a setting that differs makes another."""
+    from mfg_lightning.study.plan import main_w_s, sparsity_variants
+    from mfg_lightning.study.stages import Study, training_digest
+
+    cfg = compose("reproduce", ["reproduce=tiny", f"work_dir={tmp_path}"])
+    study = Study(cfg)
+    ws = {"model.loss.w_s": 100.0}
+    first = study.train_config("a", list(cfg.main), settings=ws)
+    assert study.train_config("a", list(cfg.main), settings=ws) is first
+    assert first.model.loss.w_s == 100.0 and isinstance(first.model.loss.w_s, float)
+    other = study.train_config("b", list(cfg.main), settings=ws)
+    assert other.paths.output_dir != first.paths.output_dir
+    assert training_digest(other) == training_digest(first)
+    lighter = study.train_config("c", list(cfg.main), settings={"model.loss.w_s": 10.0})
+    assert training_digest(lighter) != training_digest(first)
+    # the sweep's variants carry w_s as a number; the input scale is tried at the main setting's
+    assert main_w_s(cfg) == 100.0
+    variants = {v.name: v for v in sparsity_variants(cfg)}
+    assert variants["ws100_scale0.2"].settings() == {
+        "model.loss.w_s": 100.0, "model.net.input_scale": 0.2
+    }  # fmt: skip
+    assert variants["ws100_lr0.0001"].label == "w_s=100 (lr=0.0001)" and variants["ws0"].plain

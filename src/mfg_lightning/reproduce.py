@@ -28,11 +28,8 @@ from mfg_lightning.study.run import run
 
 
 def reproduce(cfg: DictConfig, trainer_choice: str = "default") -> Path:
-    """Check the config, start over when ``fresh``, run the study, return the report's path."""
-    poses = write_procedural_poses(cfg)
-    if poses is not None:
-        # set once, before anything reads it: the study's worlds follow these poses
-        cfg.poses_dir = str(poses)
+    """Check the config, start over when ``fresh``, claim the results folder (its settings
+    are this run's), run the study, return the report's path."""
     check(cfg)
     study = S.Study(cfg, trainer_choice)
     if cfg.fresh:
@@ -40,6 +37,10 @@ def reproduce(cfg: DictConfig, trainer_choice: str = "default") -> Path:
         for d in (study.work, study.results):
             if d.exists():
                 shutil.rmtree(d)
+    poses = write_procedural_poses(cfg)
+    if poses is not None:
+        # set once, before any stage reads it: the study's worlds follow these poses
+        cfg.poses_dir = str(poses)
     claim_results(cfg, study.results)
     for group in ("sparsity", "seeds"):
         (study.results / group).mkdir(parents=True, exist_ok=True)

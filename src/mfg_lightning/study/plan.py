@@ -11,6 +11,7 @@ names its results with a function here, named by its ``results``.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +22,17 @@ from mfg_lightning.study import end_to_end as E
 from mfg_lightning.study import settle as T
 from mfg_lightning.study import stages as S
 
-__all__ = ["check", "read_by", "results", "runner", "stage_names"]
+__all__ = [
+    "SparsityVariant",
+    "check",
+    "claim_results",
+    "read_by",
+    "results",
+    "runner",
+    "settings",
+    "sparsity_variants",
+    "stage_names",
+]
 
 
 def stage_names(cfg: DictConfig) -> list[str]:
@@ -54,7 +65,74 @@ def read_by(cfg: DictConfig) -> dict[str, list[str]]:
             for stage, name, _ in results(cfg)}  # fmt: skip
 
 
+@dataclass(frozen=True)
+class SparsityVariant:
+    """One model of the w_s sweep on the main model's data: its ``w_s`` and, for the two runs
+    beside the sweep, the input scale or the learning rate it changes (numbers, set on the
+    composed config as numbers)."""
+
+    w_s: float
+    input_scale: float | None = None
+    lr: float | None = None
+
+    @property
+    def plain(self) -> bool:
+        """Whether only ``w_s`` differs from the main setting."""
+        return self.input_scale is None and self.lr is None
+
+    @property
+    def name(self) -> str:
+        """The stage (and model) name: ``ws100``, ``ws100_scale0.2``, ``ws1000_lr0.0001``."""
+        tail = "" if self.input_scale is None else f"_scale{self.input_scale:g}"
+        return f"ws{self.w_s:g}{tail}" + ("" if self.lr is None else f"_lr{self.lr:g}")
+
+    @property
+    def label(self) -> str:
+        """The report's name: ``w_s=100``, ``w_s=100 (input_scale=0.2)``."""
+        changed = [f"{k}={v:g}" for k, v in (("input_scale", self.input_scale),
+                                              ("lr", self.lr)) if v is not None]  # fmt: skip
+        return f"w_s={self.w_s:g}" + (f" ({', '.join(changed)})" if changed else "")
+
+    def settings(self) -> dict[str, float]:
+        """The model's settings, by dotted key of the ``train`` config."""
+        out = {"model.loss.w_s": self.w_s}
+        if self.input_scale is not None:
+            out["model.net.input_scale"] = self.input_scale
+        if self.lr is not None:
+            out["model.optimizer.lr"] = self.lr
+        return out
+
+
+def main_w_s(cfg: DictConfig) -> float:
+    """The main setting's w_s: the ``train`` config's with the study's main overrides."""
+    from mfg_lightning.core.config import compose
+
+    return float(compose("train", [str(o) for o in cfg.main]).model.loss.w_s)
+
+
+def sparsity_variants(cfg: DictConfig) -> list[SparsityVariant]:
+    """The runs of the sparsity sweep, in order: one per ``sparsity.w_s``; at the main
+    setting's w_s (:func:`main_w_s`) also one at ``sparsity.input_scale``, and at the largest
+    w_s also one at ``sparsity.low_lr`` (to separate a collapse from the rate)."""
+    weights = [float(w) for w in cfg.sparsity.w_s]
+    main, largest = main_w_s(cfg), max(weights)
+    low_lr = cfg.sparsity.get("low_lr")
+    variants = []
+    for ws in weights:
+        variants.append(SparsityVariant(ws))
+        if ws == main:
+            variants.append(SparsityVariant(ws, input_scale=float(cfg.sparsity.input_scale)))
+        if ws == largest and low_lr:
+            variants.append(SparsityVariant(ws, lr=float(low_lr)))
+    return variants
+
+
 # The ``results`` functions the stage table names: a stage's results from the config.
+
+
+def table2_exact_results(cfg: DictConfig) -> list[tuple[str, bool]]:
+    """``table2_exact``: Table 2's setting on the exact flow (the runner's ``exact``)."""
+    return [("table2_exact", True)]
 
 
 def seed_results(cfg: DictConfig) -> list[tuple[str, int]]:
@@ -94,8 +172,8 @@ def size_results(cfg: DictConfig) -> list[tuple[str, Any]]:
 
 
 def sparsity_results(cfg: DictConfig) -> list[tuple[str, Any]]:
-    """``sparsity``: each variant of the sweep (:func:`.stages.sparsity_variants`)."""
-    return [(f"sparsity/{v[0]}", v) for v in S.sparsity_variants(cfg)]
+    """``sparsity``: each variant of the sweep (:func:`sparsity_variants`)."""
+    return [(f"sparsity/{v.name}", v) for v in sparsity_variants(cfg)]
 
 
 def check(cfg: DictConfig) -> None:

@@ -80,13 +80,9 @@ def _machine() -> dict[str, str]:
 def _sparsity_models(study: S.Study) -> dict[str, dict]:
     """The sweep's cached results by label, in the sweep's order."""
     out = {}
-    for name, extra, plain, ws in S.sparsity_variants(study.cfg):
-        if (r := study.cached(f"sparsity/{name}")) is not None:
-            keys = [
-                e.split("=")[0].rsplit(".", 1)[-1] + "=" + e.split("=", 1)[1] for e in extra[1:]
-            ]
-            tail = "" if plain else " (" + ", ".join(keys) + ")"
-            out[f"w_s={ws:g}{tail}"] = r
+    for v in plan.sparsity_variants(study.cfg):
+        if (r := study.cached(f"sparsity/{v.name}")) is not None:
+            out[v.label] = r
     return out
 
 
@@ -111,18 +107,12 @@ def _trained_models(
             kind, seed = name.split("/")[1].rsplit("_seed", 1)
             models[f"end to end: {kind.replace('_', '-')}, seed {seed}"] = r
     models.update({f"size {k}": v for k, v in size.items() if "steps" in v})
-    # a run that is the main model's (``same_as``) has the main model's row
-    models.update({f"sparsity {k}": v for k, v in sparsity.items() if not v.get("same_as")})
+    models.update({f"sparsity {k}": v for k, v in sparsity.items()})
     if (rc := study.cached("recipe")) is not None:
-        # the CPU recipe's run is the main model's (``same_as``): its row is the main one
-        models.update(
-            {
-                f"recipe {k}": v
-                for k, v in rc.items()
-                if isinstance(v, dict) and not v.get("same_as")
-            }
-        )
-    return models
+        models.update({f"recipe {k}": v for k, v in rc.items() if isinstance(v, dict)})
+    # a run that is another stage's model (``same_as``: the main model's, or one trained from an
+    # equal config) has that model's row
+    return {k: v for k, v in models.items() if not v.get("same_as")}
 
 
 def _stage_rows(study: S.Study) -> tuple[list[dict], float]:
@@ -290,7 +280,9 @@ def _offsets(study: S.Study, stage: str) -> list[int] | None:
     r = study.cached(stage)
     if r is None:
         return None
-    cfg = study.train_config(stage, list(r.get("overrides", [])), 1)
+    if "config" in r:  # the config it trained from
+        return [int(o) for o in r["config"]["dataset"].get("offsets", [1])]
+    cfg = study.train_config(stage, list(r.get("overrides", [])), settings=r.get("settings"))
     return [int(o) for o in cfg.dataset.get("offsets", [1])]
 
 
@@ -320,7 +312,7 @@ def _header(study: S.Study, views: dict, total: float, models: dict[str, dict]) 
     stride = int(cfg.budget.main_frame_stride)
     size = [str(o) for o in cfg.data if str(o).startswith(("dataset.height", "dataset.width"))]
     ds = compose("train", size).dataset
-    paper = study.train_config("recipe_paper", [*cfg.main, *cfg.recipe.paper], 1)
+    paper = study.train_config("recipe_paper", [*cfg.main, *cfg.recipe.paper])
     # KITTI's poses are the reader's own folder: named by the key, never by this machine's path
     data = [o if not str(o).startswith("dataset.poses_dir=") else "dataset.poses_dir=<poses_dir>"
             for o in portable_overrides(cfg.data, here, cache)]  # fmt: skip
