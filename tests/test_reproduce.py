@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shlex
 import shutil
 import subprocess
 import sys
@@ -13,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import KITTI_POSES, NO_KITTI_POSES
+from conftest import KITTI_POSES, NO_KITTI_POSES, entry_point_env, run_command
 from mfg_lightning.study.intervals import HOLDS, INCONCLUSIVE, NO_VERDICT, NOT_HOLD, PARTLY
 from mfg_lightning.study.verdicts import relative_deviation
 
@@ -39,23 +40,68 @@ def test_relative_deviation_against_hand_values() -> None:
 
 
 def test_bad_config_is_one_error_line(tmp_path: Path) -> None:
-    res = _run(tmp_path, "reproduce=tiny", "poses_dir=null", f"work_dir={tmp_path / 'w'}")
+    """The full study on KITTI's trajectories without their poses: refused by key when its
+    first stage needs them, before anything is trained."""
+    res = _run(tmp_path, "poses_dir=null", "start_from=null", f"work_dir={tmp_path / 'w'}",
+               f"results_dir={tmp_path / 'r'}", f"report={tmp_path / 'r.md'}")  # fmt: skip
     assert res.returncode == 2, res.stderr
     assert res.stderr.strip().splitlines()[-1].startswith("error: poses_dir")
+    assert not (tmp_path / "w" / "models").exists()
+
+
+def _readme_tiny_command() -> list[str]:
+    """The tiny study's command exactly as the README gives it in a code block (its comment
+    dropped)."""
+    code = (REPO / "README.md").read_text().split("```")[1::2]  # the fenced blocks' insides
+    for line in (line for block in code for line in block.splitlines()):
+        if line.startswith("python -m mfg_lightning.reproduce") and "reproduce=tiny" in line:
+            argv = shlex.split(line.split("#")[0])
+            return [sys.executable if argv[0] == "python" else argv[0], *argv[1:]]
+    raise AssertionError("README.md gives no `python -m mfg_lightning.reproduce reproduce=tiny`")
+
+
+def _clean_checkout(tmp: Path) -> Path:
+    """The repository's files (tracked, and untracked ones git does not ignore) committed in a
+    new git repository: a clean checkout whose ``git status`` a command can be held to."""
+    listed = subprocess.run(
+        ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
+        cwd=REPO, capture_output=True, check=True,
+    ).stdout.decode().split("\0")  # fmt: skip
+    root = tmp / "checkout"
+    for name in filter(None, listed):
+        if (REPO / name).is_file():
+            (root / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(REPO / name, root / name)
+    for git in (["init", "-q"], ["add", "-A"], ["commit", "-q", "-m", "checkout"]):
+        subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t", *git], cwd=root,
+                       check=True, capture_output=True)  # fmt: skip
+    return root
 
 
 @pytest.mark.slow  # the whole study, tiny: ~100 s on 2 cores
-@pytest.mark.skipif(not POSES.is_dir(), reason=NO_KITTI_POSES)
 def test_tiny_study_runs_resumes_and_rebuilds_from_committed_results(tmp_path: Path) -> None:
-    """The whole tiny study; then again (every stage cached, nothing retrained); then as a fresh
-    clone sees it: the committed stage results only (a new, empty work_dir, no checkpoint, no
-    flow cache), which rebuild the same report without training anything."""
-    work, results = tmp_path / "work", tmp_path / "results"
-    report = tmp_path / "out" / "reproduction.md"
-    args = ("reproduce=tiny", f"poses_dir={POSES}", f"results_dir={results}", f"report={report}")
-    first = _run(tmp_path, *args, f"work_dir={work}")
+    """The README's tiny command in a clean checkout: it writes its results and report under
+    outputs/ and leaves ``git status`` clean (no poses needed: procedural trajectories). Then
+    again (every stage cached, nothing retrained); then as a fresh clone sees it: the stage
+    results only (a new, empty work_dir, no checkpoint, no flow cache), which rebuild the same
+    report without training anything; a run of other settings refuses the folder, by key."""
+    root = _clean_checkout(tmp_path)
+    env = entry_point_env(tmp_path, PYTHONPATH=str(root / "src"))  # the cache: outside it
+    command = _readme_tiny_command()
+
+    def run(*extra: str) -> subprocess.CompletedProcess:
+        return run_command([*command, *extra], cwd=root, env=env, timeout=1200)
+
+    first = run()
     assert first.returncode == 0, first.stderr[-3000:]
+    status = subprocess.run(["git", "status", "--porcelain"], cwd=root, capture_output=True,
+                            text=True, check=True)  # fmt: skip
+    assert status.stdout == "", status.stdout
+    results = root / "outputs" / "reproduce_tiny" / "reproduction"
+    report = root / "outputs" / "reproduce_tiny" / "reproduction.md"
+    work = tmp_path / "cache" / "reproduce_tiny"
     text = report.read_text()
+    assert "../" not in text.split("## Verdicts")[0]  # the header names no path outside
     # one verdict per quoted sentence of the paper, each judged on the tiny study's results
     verdicts = text.split("## Verdicts, one per sentence of the paper")[1].split("\n## ")[0]
     rows = [line for line in verdicts.splitlines() if line.startswith("| S")]
@@ -131,7 +177,7 @@ def test_tiny_study_runs_resumes_and_rebuilds_from_committed_results(tmp_path: P
     for f in stage_files:
         assert str(tmp_path) not in (results / f).read_text(), f
 
-    second = _run(tmp_path, *args, f"work_dir={work}")
+    second = run()
     assert second.returncode == 0, second.stderr[-3000:]
     assert "ran:" not in second.stdout and "cached: main" in second.stdout
     assert {p: p.stat().st_mtime_ns for p in work.glob("models/*/checkpoints/*.ckpt")} == (
@@ -139,10 +185,14 @@ def test_tiny_study_runs_resumes_and_rebuilds_from_committed_results(tmp_path: P
     )
     assert report.read_text().split("## Stages")[1] == text.split("## Stages")[1]
 
+    other = run("budget.main_steps=7")
+    assert other.returncode == 2 and "budget.main_steps: 6 there, 7 here" in other.stderr
+
     fresh = tmp_path / "fresh_work"
-    third = _run(tmp_path, *args, f"work_dir={fresh}")
+    third = run(f"work_dir={fresh}")
     assert third.returncode == 0, third.stderr[-3000:]
-    assert "ran:" not in third.stdout and not fresh.exists()
+    # nothing trained: the new work_dir holds only the procedural poses the study wrote
+    assert "ran:" not in third.stdout and not (fresh / "models").exists()
     rebuilt = report.read_text()
     assert rebuilt.split("## Verdicts")[1] == text.split("## Verdicts")[1]
 
@@ -154,12 +204,10 @@ def test_tiny_study_runs_resumes_and_rebuilds_from_committed_results(tmp_path: P
     (served / "recipe.json").unlink()
     main = json.loads((served / "main.json").read_text())
     main["convergence"]["converged"] = True
+    main["steps"] = 2  # within the other models' step cap (budget.other_steps)
     (served / "main.json").write_text(json.dumps(main))
-    fourth = _run(
-        tmp_path, "reproduce=tiny", f"poses_dir={POSES}", f"results_dir={served}",
-        f"report={tmp_path / 'served.md'}", f"work_dir={tmp_path / 'served_work'}",
-        "stages=[recipe]", "budget.other_steps=6",
-    )  # fmt: skip
+    fourth = run(f"results_dir={served}", f"report={tmp_path / 'served.md'}",
+                 f"work_dir={tmp_path / 'served_work'}", "stages=[recipe]")  # fmt: skip
     assert fourth.returncode == 0, fourth.stderr[-3000:]
     assert "ran: recipe" in fourth.stdout
     trained = {p.parts[-3] for p in (tmp_path / "served_work").glob("models/*/checkpoints/*")}
@@ -180,15 +228,15 @@ def test_tiny_study_runs_resumes_and_rebuilds_from_committed_results(tmp_path: P
         for row in r[key]:
             row["metrics"]["rpe_rot"] = 9.5  # a row this result's data could not have given
         (old / f"{name}.json").write_text(json.dumps(r))
-    stale_args = ("reproduce=tiny", f"poses_dir={POSES}", f"results_dir={old}", "stages=[]",
-                  f"report={tmp_path / 'old.md'}", f"work_dir={tmp_path / 'old_work'}")  # fmt: skip
-    fifth = _run(tmp_path, *stale_args)
+    stale_args = (f"results_dir={old}", "stages=[]", f"report={tmp_path / 'old.md'}",
+                  f"work_dir={tmp_path / 'old_work'}")  # fmt: skip
+    fifth = run(*stale_args)
     assert fifth.returncode == 0, fifth.stderr[-3000:]
     stale_note = "were computed at a commit without the cheirality fix"
     assert stale_note not in text
     marked = (tmp_path / "old.md").read_text()
     assert all(f"rows of `{n}` {stale_note}" in marked for n in ("methods", "table2"))
-    sixth = _run(tmp_path, *stale_args, "refresh_classical=[methods,table2,twin]")
+    sixth = run(*stale_args, "refresh_classical=[methods,table2,twin]")
     assert sixth.returncode == 0, sixth.stderr[-3000:]
     assert "refreshed: methods" in sixth.stdout and "refreshed: table2" in sixth.stdout
     assert "refreshed: twin" not in sixth.stdout  # already current

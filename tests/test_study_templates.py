@@ -12,14 +12,10 @@ from types import SimpleNamespace
 import pytest
 import yaml
 
-from mfg_lightning.core.config import compose
 from mfg_lightning.study import findings as F
-from mfg_lightning.study import plan
 from mfg_lightning.study.noise import Spread
 from mfg_lightning.study.quotes import SENTENCES, load_sentences
 from mfg_lightning.study.render import TEMPLATES, lines, paragraph, unwrap
-from mfg_lightning.study.run import _runners
-from mfg_lightning.study.stages import Study
 
 
 def _reading(name: str, **findings: object) -> str:
@@ -171,18 +167,6 @@ def test_a_missing_finding_is_an_error_not_an_empty_word() -> None:
 
     with pytest.raises(UndefinedError):
         lines("reading/central.md.j2")
-
-
-def test_the_stage_table_is_the_one_list_the_study_runs() -> None:
-    cfg = compose("reproduce", ["reproduce=tiny", "poses_dir=null"])
-    names = plan.stage_names(cfg)
-    assert list(cfg.stages) == names  # the default selection is the table itself
-    assert set(_runners(Study(cfg))) == set(names)
-    results = [r for _, r, _ in plan.results(cfg)]
-    assert results[:3] == ["data", "flow_error", "main"] and len(set(results)) == len(results)
-    assert "seeds/seed1" in results and "settle/strided_seed0" in results
-    read = {k for stage in cfg.stage_table.values() for k in stage.read_by}
-    assert set(SENTENCES) <= read  # every sentence names the stages it reads
 
 
 def test_the_sentences_file_names_a_misspelt_missing_or_repeated_field(tmp_path: Path) -> None:

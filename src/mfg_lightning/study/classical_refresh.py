@@ -22,6 +22,7 @@ from typing import Any
 
 from mfg_lightning.core.atomic import atomic_write_text
 from mfg_lightning.study import stages as S
+from mfg_lightning.study.measures import coverage_bins
 
 __all__ = ["REFRESHABLE", "refresh_classical"]
 
@@ -48,7 +49,7 @@ def _methods(study: S.Study, result: dict, extra: list[str]) -> None:
         )
     rows = score_methods(classical_methods(ds.height, ds.width), study.loader(central, "test"))
     result["rows"] = _merged(result["rows"], scored_rows(rows))
-    result["bins"] = {**result["bins"], **S.coverage_bins(rows, ds.samples, result["edges"])}
+    result["bins"] = {**result["bins"], **coverage_bins(rows, ds.samples, result["edges"])}
 
 
 def _table2(study: S.Study, result: dict, exact: bool) -> None:
@@ -58,7 +59,7 @@ def _table2(study: S.Study, result: dict, exact: bool) -> None:
     cfg = study.cfg
     name = "table2_exact" if exact else "table2"
     extra = [*cfg.table2.overrides, *(cfg.table2.exact if exact else [])]
-    dm = study.datamodule(study.train_config(name, extra, 1), splits=("test",))
+    dm = study.datamodule(study.train_config(name, extra), splits=("test",))
     ds = dm.dataset("test")
     if len(ds) != result["test_pairs"]:
         raise ValueError(

@@ -59,6 +59,8 @@ from functools import lru_cache
 import numpy as np
 from scipy import stats
 
+from mfg_lightning.study.constants import STATISTICS
+
 __all__ = [
     "BLOCK_PAIRS",
     "BOOTSTRAP_DRAWS",
@@ -87,24 +89,12 @@ HOLDS, NOT_HOLD, INCONCLUSIVE, PARTLY = "holds", "does not hold", "inconclusive"
 NO_VERDICT = "no verdict"
 #: The construction of an interval built from one value and nothing that varies.
 NO_SPREAD = "one value, no spread measured"
-#: Resamples of the paired bootstrap (its own generator, seeded: the report is repeatable).
-BOOTSTRAP_DRAWS = 2000
-#: Test pairs per block of the moving-block bootstrap: consecutive frames' errors are strongly
-#: correlated (lag-1 rank autocorrelation 0.5–0.9 on exact flow, 0.25–0.75 on DIS, measured on
-#: the 2 × 2's per-pair errors), so pairs are resampled in runs of 40 (4 s of driving at 10 Hz).
-#: The length was chosen after the 2 × 2's test errors had been seen (the plain paired bootstrap,
-#: blocks of one pair, came before it): the standard error of log(MFG / IRLS) grew with the block
-#: (0.063 for single pairs, 0.107, 0.135, 0.167, 0.218 for blocks of 5, 10, 20, 40, on the exact
-#: seeds run then). The report prints the same standard errors from the current stage results
-#: (:func:`mfg_lightning.study.settle_report.block_errors`) and ``changes.json`` the change.
-BLOCK_PAIRS = 40
-
-#: The smallest denominator a judged ratio may have, per quantity: below it the ratio says more
-#: about the floor of the measurement than about the methods. Rotation: 1e-5 rad, ten times the
-#: float32 recovery's own error on exact fields (the oracle row, below 1e-6 rad); translation:
-#: 1e-4 m, a tenth of a millimetre per frame, where the rendering's discretisation sits; pairs:
-#: an object size × speed bin needs objects in 10 test pairs to be judged at all.
-FLOORS: dict[str, float] = {"rotation": 1e-5, "translation": 1e-4, "pairs": 10}
+#: Resamples of the paired bootstrap, test pairs per block of the moving-block bootstrap, and the
+#: smallest denominator a judged ratio may have per quantity: ``conf/reproduce.yaml``'s
+#: ``statistics`` block, which says why each is what it is.
+BOOTSTRAP_DRAWS = int(STATISTICS.bootstrap_draws)
+BLOCK_PAIRS = int(STATISTICS.block_pairs)
+FLOORS: dict[str, float] = dict(STATISTICS.floors)
 
 
 # cached: Holm's procedure rebuilds intervals at a few levels many times

@@ -12,12 +12,15 @@
 
 from __future__ import annotations
 
+import itertools
 import statistics
 from collections.abc import Callable, Iterable
 from typing import Any
 
 import torch
 from torch.utils.data import DataLoader
+
+from mfg_lightning.study.rules import growth
 
 __all__ = [
     "FILTER_GRID",
@@ -200,11 +203,9 @@ def object_motion_by_flow(
     the threshold chosen on validation (:func:`choose_threshold`), the filters' constants
     chosen on validation the same way (:func:`choose_filters` over ``filter_grid``, default
     :data:`FILTER_GRID`), and the test scores of the filters and of the threshold
-    (:func:`mfg_lightning.study.stages.object_motion_scores`); ``scores_paper_filters``: the
+    (:func:`object_motion_scores`); ``scores_paper_filters``: the
     filters at the config's constants (the paper's), beside."""
     import dataclasses
-
-    from mfg_lightning.study.stages import object_motion_scores
 
     out = {}
     # flow=dis samples carry the rendered worlds' exact flow beside the estimate; flow=exact
@@ -222,3 +223,84 @@ def object_motion_by_flow(
         out[name] = {"threshold": chosen, "filters_choice": filters, "scores": scores[0],
                      "scores_paper_filters": scores[1]["filters"]}  # fmt: skip
     return out
+
+
+def bin_errors(
+    coverage: list[float], errors: list[float], edges: list[float]
+) -> list[dict[str, float]]:
+    """Mean error and count per coverage bin ``[edges[i], edges[i+1])`` (the last bin closed)."""
+    cov = torch.tensor(coverage, dtype=torch.float64)
+    err = torch.tensor(errors, dtype=torch.float64)
+    out = []
+    for i, (lo, hi) in enumerate(itertools.pairwise(edges)):
+        last = i == len(edges) - 2
+        sel = (cov >= lo) & ((cov <= hi) if last else (cov < hi))
+        n = int(sel.sum())
+        out.append({"lo": lo, "hi": hi, "n": n, "mean": float(err[sel].mean()) if n else None})
+    return out
+
+
+def coverage_bins(rows: list[Any], samples: list[tuple], edges: list[float]) -> dict[str, dict]:
+    """Per scored method (``analysis.scoring.Method``), its +1 pairs' rotation and translation
+    errors binned by the image fraction moving objects cover (``edges``), and the rotation
+    error's growth over the bins; ``samples``: the test split's ``(sequence, source, target)``
+    in the order the methods were scored."""
+    forward = [t == s + 1 for _, s, t in samples]
+    bins = {}
+    for m in rows:
+        pick = [i for i, f in enumerate(forward[: len(m.rot_err)]) if f]
+        cov = [m.coverage[i] for i in pick]
+        rot = bin_errors(cov, [m.rot_err[i] for i in pick], edges)
+        bins[m.name] = {
+            "rot_bins": rot,
+            "trans_bins": bin_errors(cov, [m.trans_err[i] for i in pick], edges),
+            "growth": growth(rot),
+        }
+    return bins
+
+
+def object_motion_scores(
+    model: Any, loader: DataLoader, cfg: Any, slow_px: float, flow_key: str = "flow"
+) -> dict[str, dict[str, dict[str, float]]]:
+    """Object-mask scores of the paper's filters and the threshold baseline, over all samples
+    and split slow / fast by each sample's mean ground-truth object flow (near / far: the
+    scores' own depth split). ``flow_key``: the batch's flow the model sees (``"flow"``, the
+    estimated flow; ``"exact_flow"``, the rendered worlds' exact flow)."""
+    from mfg_lightning.data.sample import model_inputs
+    from mfg_lightning.metrics.object_motion import ObjectMotionScores
+    from mfg_lightning.motion.object_motion import extract_object_motion, threshold_baseline
+
+    groups = ("all", "slow", "fast")
+    scores = {m: {g: ObjectMotionScores() for g in groups} for m in ("filters", "threshold")}
+    for batch in loader:
+        if batch is None or "object_mask" not in batch:
+            continue
+        flow, valid, _ = model_inputs(batch, flow_key)
+        with torch.inference_mode():
+            out = model(flow)
+        depth, gt = batch["depth"], batch["object_mask"].bool()
+        res = extract_object_motion(flow, out.v_t, out.v_omega, depth, cfg, valid=valid)
+        base = threshold_baseline(res.residual, cfg.baseline_threshold, res.valid)
+        speed = (batch["object_flow"].norm(dim=1) * gt).flatten(1).sum(1) / gt.flatten(1).sum(
+            1
+        ).clamp_min(1)
+        sel = {"all": torch.ones_like(speed, dtype=torch.bool), "slow": speed < slow_px}
+        sel["fast"] = ~sel["slow"]
+        for name, mask, field in (
+            ("filters", res.mask, res.object_flow),
+            ("threshold", base, res.residual * base[:, None]),
+        ):
+            for g in groups:
+                s = sel[g] & (gt.flatten(1).any(1) if g != "all" else sel[g])
+                if s.any():
+                    scores[name][g].update(
+                        mask[s], field[s], gt[s], batch["object_flow"][s], depth[s], res.valid[s]
+                    )
+    return {
+        m: {
+            g: {k: float(v) for k, v in sc.compute().items()}
+            for g, sc in by.items()
+            if sc.update_count
+        }
+        for m, by in scores.items()
+    }

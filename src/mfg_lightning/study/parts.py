@@ -151,6 +151,9 @@ class Judged:
     parts: list[Part] = field(default_factory=list)
     verdict: str = NOT_RUN
     beside: str = ""
+    #: the sentence whose parts are this one's to the last digit, and why ("": none)
+    same_as: str = ""
+    same_why: str = ""
 
     def close(self) -> Judged:
         """The parts with an interval decided together by Holm's procedure (:func:`holm`),

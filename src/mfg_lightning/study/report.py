@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import os
 import platform
+import textwrap
 import time
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +28,16 @@ from mfg_lightning.study import prose as P
 from mfg_lightning.study import stages as S
 from mfg_lightning.study.config_findings import config_default, input_scale_finding
 from mfg_lightning.study.figures import convergence_rows, verdict_figure
-from mfg_lightning.study.intervals import BLOCK_PAIRS, BOOTSTRAP_DRAWS, FLOORS
+from mfg_lightning.study.intervals import (
+    BLOCK_PAIRS,
+    BOOTSTRAP_DRAWS,
+    FLOORS,
+    HOLDS,
+    INCONCLUSIVE,
+    NO_VERDICT,
+    NOT_HOLD,
+    PARTLY,
+)
 from mfg_lightning.study.noise import spread_of
 from mfg_lightning.study.render import lines, table
 from mfg_lightning.study.sentences import Judged, Settled, judge_all, seed_views, test_at
@@ -58,9 +69,8 @@ def _machine() -> dict[str, str]:
         cores = os.cpu_count() or 0
     return {
         "commit": (git_commit() or "-")[:12],
-        "machine": f"{platform.processor() or platform.machine()} ({cpu_kind()}), {cores} cores "
-        f"usable of {os.cpu_count()} (this session's; each trained model's stage result names "
-        "its own precision and CPU kind where recorded)",
+        "report written on": f"{platform.processor() or platform.machine()} ({cpu_kind()}), "
+        f"{cores} cores usable of {os.cpu_count()}",
         "torch": f"{torch.__version__} ({torch.get_num_threads()} threads; CUDA "
         f"{'yes' if torch.cuda.is_available() else 'no'})",
         "date (UTC)": time.strftime("%Y-%m-%d %H:%M", time.gmtime()),
@@ -70,13 +80,9 @@ def _machine() -> dict[str, str]:
 def _sparsity_models(study: S.Study) -> dict[str, dict]:
     """The sweep's cached results by label, in the sweep's order."""
     out = {}
-    for name, extra, plain, ws in S.sparsity_variants(study.cfg):
-        if (r := study.cached(f"sparsity/{name}")) is not None:
-            keys = [
-                e.split("=")[0].rsplit(".", 1)[-1] + "=" + e.split("=", 1)[1] for e in extra[1:]
-            ]
-            tail = "" if plain else " (" + ", ".join(keys) + ")"
-            out[f"w_s={ws:g}{tail}"] = r
+    for v in plan.sparsity_variants(study.cfg):
+        if (r := study.cached(f"sparsity/{v.name}")) is not None:
+            out[v.label] = r
     return out
 
 
@@ -101,23 +107,18 @@ def _trained_models(
             kind, seed = name.split("/")[1].rsplit("_seed", 1)
             models[f"end to end: {kind.replace('_', '-')}, seed {seed}"] = r
     models.update({f"size {k}": v for k, v in size.items() if "steps" in v})
-    # a run that is the main model's (``same_as``) has the main model's row
-    models.update({f"sparsity {k}": v for k, v in sparsity.items() if not v.get("same_as")})
+    models.update({f"sparsity {k}": v for k, v in sparsity.items()})
     if (rc := study.cached("recipe")) is not None:
-        # the CPU recipe's run is the main model's (``same_as``): its row is the main one
-        models.update(
-            {
-                f"recipe {k}": v
-                for k, v in rc.items()
-                if isinstance(v, dict) and not v.get("same_as")
-            }
-        )
-    return models
+        models.update({f"recipe {k}": v for k, v in rc.items() if isinstance(v, dict)})
+    # a run that is another stage's model (``same_as``: the main model's, or one trained from an
+    # equal config) has that model's row
+    return {k: v for k, v in models.items() if not v.get("same_as")}
 
 
 def _stage_rows(study: S.Study) -> tuple[list[dict], float]:
-    """One row per cached stage: seconds (training included), steps × batch, the commit."""
-    rows, total = [], 0.0
+    """One row per cached stage result: seconds (training included), steps × batch, the
+    commit and what reads it (its stage's ``read_by`` in the stage table)."""
+    rows, total, readers = [], 0.0, plan.read_by(study.cfg)
     for path in sorted(study.results.glob("**/*.json")):
         name = str(path.relative_to(study.results).with_suffix(""))
         if name == "changes":
@@ -136,7 +137,8 @@ def _stage_rows(study: S.Study) -> tuple[list[dict], float]:
         resumed = train_s > seconds
         total += max(seconds, train_s)
         rows.append({"name": name, "seconds": max(seconds, train_s), "resumed": resumed,
-                     "train": train_s, "shape": shape, "commit": r.get("commit")})  # fmt: skip
+                     "train": train_s, "shape": shape, "commit": r.get("commit"),
+                     "read_by": readers.get(name, [])})  # fmt: skip
     return rows, total
 
 
@@ -175,7 +177,8 @@ def write_report(study: S.Study, report: Path) -> Path:
         row.figure = link(name, fig) or row.figure
     rows = [[r.number, r.claim, r.paper, r.ours, r.figure] for (r, _), _ in built]
     diagnostics = table(("#", "diagnostic", "paper", "ours (seed 0)", "figure"), rows)
-    conv_rows, conv_fig = convergence_rows(_trained_models(study, sparsity, size, settled))
+    models = _trained_models(study, sparsity, size, settled)
+    conv_rows, conv_fig = convergence_rows(models)
     conv_link = link("convergence.png", conv_fig)
     flow_lines = _flow_error_section(cached("flow_error"), link)
     causes = _causes_sections(study, views, size, settled, link)
@@ -195,7 +198,7 @@ def write_report(study: S.Study, report: Path) -> Path:
         "training (min)",
     )
     text = [
-        *_header(study, views, total),
+        *_header(study, views, total, models),
         *lines("report/verdicts.md.j2", judged=judged, figure=verdict_link, flow=flow,
                draws=BOOTSTRAP_DRAWS, block=BLOCK_PAIRS, floors=FLOORS, table=table(
                    ("#", "the paper", "measured as", "flow", "ours (parts)", "verdict"),
@@ -215,28 +218,49 @@ def write_report(study: S.Study, report: Path) -> Path:
         *P.reading(cached, views, judged, float(cfg.basis.residual),
                    float(config_default("object_motion.theta_d")), scale_text, size, settled,
                    list(cfg.data)),
-        *_notes(report),
+        *_notes(cfg.get("notes")),
         *lines("report/stages.md.j2", stages=stage_rows,
                missing=[n for _, n, _ in plan.results(cfg) if cached(n) is None]),
     ]  # fmt: skip
     path = atomic_write_text(report, "\n".join(text))
     print(f"wrote {path}", flush=True)
     if cfg.get("readme"):
-        write_readmetable(Path(cfg.readme), judged, views, report)
+        write_readmetable(Path(cfg.readme), judged, report, models, total)
     return path
 
 
 README_START, README_END = "<!-- reproduction-table:start -->", "<!-- reproduction-table:end -->"
 
 
-def readmetable(judged: list[Judged], views: dict, report: str) -> list[str]:
-    """The README's quoted table: one line per sentence, the part that decides it, the verdict."""
-    return lines("report/readme.md.j2", report=report, seeds=len(views), judged=judged)
+def readmetable(
+    judged: list[Judged], report: str, models: dict[str, dict], seconds: float
+) -> list[str]:
+    """The README's quoted table: the verdicts counted and the study's cost (its trained
+    ``models``, the stages' ``seconds``, the machines), then one row per sentence: the claim,
+    the part that decides it with its 95 % interval, the bound and the verdict."""
+    counts = Counter(j.verdict for j in judged)
+    order = [v for v in VERDICT_ORDER if counts[v]] + sorted(set(counts) - set(VERDICT_ORDER))
+    kinds: Counter[str] = Counter()
+    for kind, _, n in machines(models):
+        kinds[kind] += n
+    text = lines("report/readme.md.j2", report=report, judged=judged, hours=seconds / 3600,
+                 counts=[(counts[v], v) for v in order], models=len(models),
+                 kinds=kinds.most_common())  # fmt: skip
+    # the README keeps its 100-column wrap: prose is wrapped, a table row is one line
+    return [w for line in text for w in
+            (textwrap.wrap(line, 100, break_on_hyphens=False) or [""]
+             if not line.startswith("|") else [line])]  # fmt: skip
 
 
-def write_readmetable(readme: Path, judged: list[Judged], views: dict, report: Path) -> None:
+#: The order the README counts the verdicts in.
+VERDICT_ORDER = (HOLDS, NOT_HOLD, INCONCLUSIVE, PARTLY, NO_VERDICT)
+
+
+def write_readmetable(
+    readme: Path, judged: list[Judged], report: Path, models: dict[str, dict], seconds: float
+) -> None:
     """Replace the README's text between :data:`README_START` and :data:`README_END` with
-    :func:`readme_table` (the report linked relative to the README); a README without both
+    :func:`readmetable` (the report linked relative to the README); a README without both
     markers is left alone, with a warning."""
     if not readme.is_file():
         return
@@ -246,8 +270,8 @@ def write_readmetable(readme: Path, judged: list[Judged], views: dict, report: P
         return
     head, rest = text.split(README_START, 1)
     _, tail = rest.split(README_END, 1)
-    rel = os.path.relpath(report.resolve(), readme.resolve().parent)
-    block = "\n".join(readmetable(judged, views, rel.replace(os.sep, "/")))
+    rel = os.path.relpath(report.resolve(), readme.resolve().parent).replace(os.sep, "/")
+    block = "\n".join(readmetable(judged, rel, models, seconds))
     atomic_write_text(readme, f"{head}{README_START}\n{block}\n{README_END}{tail}")
 
 
@@ -256,13 +280,27 @@ def _offsets(study: S.Study, stage: str) -> list[int] | None:
     r = study.cached(stage)
     if r is None:
         return None
-    cfg = study.train_config(stage, list(r.get("overrides", [])), 1)
+    if "config" in r:  # the config it trained from
+        return [int(o) for o in r["config"]["dataset"].get("offsets", [1])]
+    cfg = study.train_config(stage, list(r.get("overrides", [])), settings=r.get("settings"))
     return [int(o) for o in cfg.dataset.get("offsets", [1])]
 
 
-def _header(study: S.Study, views: dict, total: float) -> list[str]:
-    """The report's title, what produced it, the machine, the main model, the budget, the
-    deviations from the paper's data and the recipes (the paper's from ``recipe.paper``)."""
+def machines(models: dict[str, dict]) -> list[tuple[str, str, int]]:
+    """Each machine kind and precision that trained ``models`` (their stage results by name),
+    with how many models each trained, most first: ``(kind, precision, count)``; "not
+    recorded" where a result lacks it (results from before the study recorded them)."""
+    kinds = Counter(
+        (str(m.get("cpu_kind") or "not recorded"), str(m.get("precision") or "not recorded"))
+        for m in models.values()
+    )
+    return [(k, p, n) for (k, p), n in sorted(kinds.items(), key=lambda kv: (-kv[1], kv[0]))]
+
+
+def _header(study: S.Study, views: dict, total: float, models: dict[str, dict]) -> list[str]:
+    """The report's title, what produced it, the machine that wrote it and those that trained
+    its ``models``, the main model, the budget, the deviations from the paper's data and the
+    recipes (the paper's from ``recipe.paper``)."""
     from mfg_lightning.core.config import compose
     from mfg_lightning.data.rendered import RENDER_SIZE
 
@@ -274,12 +312,16 @@ def _header(study: S.Study, views: dict, total: float) -> list[str]:
     stride = int(cfg.budget.main_frame_stride)
     size = [str(o) for o in cfg.data if str(o).startswith(("dataset.height", "dataset.width"))]
     ds = compose("train", size).dataset
-    paper = study.train_config("recipe_paper", [*cfg.main, *cfg.recipe.paper], 1)
+    paper = study.train_config("recipe_paper", [*cfg.main, *cfg.recipe.paper])
+    # KITTI's poses are the reader's own folder: named by the key, never by this machine's path
+    data = [o if not str(o).startswith("dataset.poses_dir=") else "dataset.poses_dir=<poses_dir>"
+            for o in portable_overrides(cfg.data, here, cache)]  # fmt: skip
     return lines(
         "report/header.md.j2",
         results=portable_path(str(study.results), here, cache),
-        data=" ".join(portable_overrides(cfg.data, here, cache)),
+        data=" ".join(data),
         machine=_machine(),
+        trained_on=machines(models),
         main=" ".join(portable_overrides(main["overrides"] if main else cfg.main, here, cache)),
         seeds=sorted(views), total=total, max_frames=cfg.budget.max_frames,
         rule=", ".join(f"{k}={v}" for k, v in cfg.convergence.items()),
@@ -449,11 +491,10 @@ def _balance_section(
     return lines("report/balance.md.j2", table=table(heads, rows))
 
 
-def _notes(report: Path) -> list[str]:
-    """The reading of the results that a person wrote beside the report
-    (``<report stem>_notes.md``), kept apart so that a rerun of the study does not overwrite it
-    (and printed as written); nothing when there is none."""
-    notes = report.with_name(f"{report.stem}_notes.md")
-    if not notes.is_file():
+def _notes(notes: str | None) -> list[str]:
+    """The reading of the results that a person wrote (the ``notes`` file,
+    ``bench/results/reproduction_notes.md``), kept apart so that a rerun of the study does not
+    overwrite it (and printed as written); nothing when there is none."""
+    if not notes or not (notes := Path(notes).expanduser()).is_file():
         return []
     return ["## Notes", "", notes.read_text().strip(), ""]

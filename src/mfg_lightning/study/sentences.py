@@ -166,13 +166,14 @@ def _best_classical(rot: Mapping[str, np.ndarray]) -> str | None:
     return min(rot, key=lambda n: float(rot[n].mean()), default=None)
 
 
-def _table2_beside(settled: Settled, same: list[str] | None = None) -> str:
+def _table2_beside(settled: Settled, same: list[str] | None = None, as_s4: str = "") -> str:
     """S4's and S6's beside: the 2 × 2's training pairs and seeds per flow (``same``: S6's flows
-    on which k = 15 % keeps every unit)."""
+    on which k = 15 % keeps every unit; ``as_s4``: S6's parts are S4's, number for number)."""
     pairs = {int(r.get("train_pairs", 0)) for by in settled.seeds.values() for r in by.values()}
     seeds = {_FLOW_NAME[f]: len(settled.seeds[f]) for f in settled.flows()}
-    return paragraph("beside/table2.md.j2", pairs=sorted(pairs), seeds=seeds, same=same,
-                     reads=settled.reads)  # fmt: skip
+    names = [_FLOW_NAME[f].removesuffix(" flow") for f in same or []]
+    return paragraph("beside/table2.md.j2", pairs=sorted(pairs), seeds=seeds, same=names,
+                     reads=settled.reads, as_s4=as_s4)  # fmt: skip
 
 
 _FLOW_NAME = {"exact": "exact flow", "dis": "DIS flow"}
@@ -211,7 +212,15 @@ def _s6(settled: Settled) -> Judged:
             j.parts.append(log_ratio_part(label, ours, rot[best]))
     if j.parts:
         same = [f for f in settled.flows() if _k_changes_nothing(settled, f, "0.15")]
-        j.beside = _table2_beside(settled, same)
+        irls = [f for f in settled.flows()
+                if IRLS in (_best_classical(settled.classical_rot(f)) or "")]  # fmt: skip
+        if same == irls == list(settled.flows()):
+            # k = 15 % is all units and the best method is S4's baseline on every flow: S6's
+            # parts are S4's over IRLS, number for number
+            j.same_as = "S4"
+            j.same_why = ("at k = 15 % every unit that fires is kept, and the best classical "
+                          "method is S4's baseline, IRLS")  # fmt: skip
+        j.beside = _table2_beside(settled, same, j.same_as)
     return j
 
 

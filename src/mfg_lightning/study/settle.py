@@ -104,7 +104,7 @@ def test_loader(study: S.Study, flow: str, more: tuple = ()) -> tuple[Any, DataL
     """Table 2's test pairs (+1 only) on ``flow`` (``more``: overrides of its estimator): the
     same pairs for every model and method."""
     extra = [*table2_extra(study.cfg, flow), *more]
-    dm = study.datamodule(study.train_config(f"settle_{flow}", extra, 1), ("val", "test"))
+    dm = study.datamodule(study.train_config(f"settle_{flow}", extra), ("val", "test"))
     return dm, study.loader(dm, "test", forward_only=True)
 
 
@@ -167,7 +167,9 @@ def evaluated(
     objects (:func:`object_velocity_pairs`); all units only when not ``full``."""
     model = study.model(trained)
     dm, test = test_loader(study, flow, more)
-    train_cfg = study.train_config(trained["name"], list(trained["overrides"]), 1)
+    train_cfg = study.train_config(
+        trained["name"], list(trained["overrides"]), settings=trained.get("settings")
+    )
     ks = [float(k) for k in study.cfg.table2.top_k] if full else [1.0]
     out = {
         **trained,
@@ -192,7 +194,7 @@ def stage_objects(study: S.Study, seed: int) -> dict | None:
         return None
     extra = [*table2_extra(cfg, "exact"), *cfg.objects.world]
     dm, _ = test_loader(study, "exact")
-    objects_dm = study.datamodule(study.train_config("objects", extra, 1), ("test",))
+    objects_dm = study.datamodule(study.train_config("objects", extra), ("test",))
     if getattr(objects_dm.dataset("test"), "crossing", None) is None:
         raise ValueError(
             f"objects.world: {list(cfg.objects.world)} renders no object crossing the road "
@@ -284,7 +286,7 @@ def object_velocity_pairs(
 
     cfg = study.cfg
     om = cfg.object_motion
-    child = study.train_config("settle_objects", list(cfg.table2.overrides), 1)
+    child = study.train_config("settle_objects", list(cfg.table2.overrides))
     base = instantiate(child.object_motion)
     grid = grid or S.to_container(om.get("filter_grid")) or FILTER_GRID
     chosen = choose_threshold(model, val, base, [float(x) for x in om.thresholds], "flow")

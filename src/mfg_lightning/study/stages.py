@@ -1,9 +1,10 @@
 """The stages of the reproduction study (``python -m mfg_lightning.reproduce``).
 
 Each stage computes one JSON-able result, cached atomically as ``<results_dir>/<stage>.json``
-(committed with the repository: a fresh clone resumes from them) and skipped when cached (an
-interrupted study resumes). Models are trained by :func:`mfg_lightning.run.training.train` from
-the ``train`` config composed with the study's overrides, into ``<work_dir>/models/<name>`` with
+(a new results folder starts from the committed ones, ``start_from``: a fresh clone resumes from
+them) and skipped when cached (an interrupted study resumes). Models are trained by
+:func:`mfg_lightning.run.training.train` from the ``train`` config composed once per model with
+the study's overrides and its settings as numbers, into ``<work_dir>/models/<name>`` with
 ``resume=true`` (an interrupted training continues from its ``last.ckpt``) under the convergence
 rule (``callbacks=convergence``, :mod:`mfg_lightning.run.convergence`, the study's
 ``convergence`` block) and the stage's caps (steps, time); checkpoints are selected on validation
@@ -14,7 +15,6 @@ rule (``callbacks=convergence``, :mod:`mfg_lightning.run.convergence`, the study
 
 from __future__ import annotations
 
-import itertools
 import json
 import logging
 import math
@@ -28,8 +28,8 @@ from omegaconf import DictConfig, OmegaConf
 from torch.utils.data import DataLoader, Subset
 
 from mfg_lightning.core.atomic import atomic_write_text
+from mfg_lightning.core.paths import portable_path
 from mfg_lightning.motion.baselines import VERSION as BASELINES_VERSION
-from mfg_lightning.study.rules import growth
 
 log = logging.getLogger("mfg_lightning.study")
 
@@ -54,6 +54,9 @@ class Study:
         self.results = Path(cfg.results_dir).expanduser()
         self.ran: list[str] = []
         self.seconds: dict[str, float] = {}
+        # each model's training config, composed once (its data, its datamodule's and its
+        # evaluation's, all read from it)
+        self._configs: dict[tuple, DictConfig] = {}
 
     # -- cache ---------------------------------------------------------------------------
 
@@ -75,6 +78,10 @@ class Study:
             return done
         if name.split("/")[0] not in self.cfg.stages:
             return None
+        if not self.cfg.poses_dir and any("trajectory=kitti" in str(o) for o in self.cfg.data):
+            # refused here, not before: a study whose stages are cached rewrites its report
+            # without the poses
+            raise ValueError("poses_dir: set it to KITTI's poses/ directory (00.txt ... 10.txt)")
         start = time.perf_counter()
         result = compute()
         if result is None:
@@ -92,10 +99,36 @@ class Study:
     # -- configs, data, models -----------------------------------------------------------
 
     def train_config(
-        self, name: str, extra: list[str], steps: int, max_time: str | None = None
+        self,
+        name: str,
+        extra: list[str],
+        steps: int | None = None,
+        max_time: str | None = None,
+        settings: dict[str, Any] | None = None,
     ) -> DictConfig:
-        """The ``train`` config of model ``name``: the study's data, the convergence rule with
-        its caps (``steps``; ``max_time``, Lightning's "DD:HH:MM:SS"), then ``extra``."""
+        """The ``train`` config of model ``name``, composed once per model: the study's data,
+        the convergence rule with its caps (``steps``; ``max_time``, Lightning's
+        "DD:HH:MM:SS"), then ``extra`` (config choices and study blocks), then ``settings``
+        (dotted key → number, set as numbers: ``{"model.loss.w_s": 100.0}``). ``steps`` None:
+        the config the model was (or will be) trained from, for its data; composed with one
+        step when the model has not been composed yet (its data are the same)."""
+        key = (name, tuple(str(e) for e in extra), tuple(sorted((settings or {}).items())))
+        if steps is None:
+            if key not in self._configs:
+                self._configs[key] = self._compose(name, extra, 1, None, settings)
+            return self._configs[key]
+        cfg = self._compose(name, extra, steps, max_time, settings)
+        self._configs[key] = cfg
+        return cfg
+
+    def _compose(
+        self,
+        name: str,
+        extra: list[str],
+        steps: int,
+        max_time: str | None,
+        settings: dict[str, Any] | None,
+    ) -> DictConfig:
         from mfg_lightning.core.config import compose
 
         b = self.cfg.budget
@@ -129,7 +162,10 @@ class Study:
             ov.insert(len(data), f"dataset.max_frames={int(b.max_frames)}")
         if max_time:
             ov.append(f"++trainer.max_time={max_time}")
-        return compose("train", ov)
+        cfg = compose("train", ov)
+        for key, value in (settings or {}).items():
+            OmegaConf.update(cfg, key, value, merge=False)
+        return cfg
 
     def datamodule(self, cfg: DictConfig, splits: tuple[str, ...] | None = None) -> Any:
         """The DataModule of the ``train`` config ``cfg`` with its missing flow computed: every
@@ -154,16 +190,30 @@ class Study:
         """A DataModule whose test split has Table 1's * samples (every centre frame to its
         :data:`CENTRAL_OFFSETS`, the +1 pairs giving †), whatever offsets the model trained
         on; only the test split's missing flow is computed."""
-        cfg = self.train_config("main", [*extra, CENTRAL_OFFSETS], 1)
+        cfg = self.train_config("main", [*extra, CENTRAL_OFFSETS])
         return self.datamodule(cfg, splits=("test",))
 
-    def train(self, name: str, extra: list[str], steps: int, max_time: str | None = None) -> Result:
+    def train(
+        self,
+        name: str,
+        extra: list[str],
+        steps: int,
+        max_time: str | None = None,
+        settings: dict[str, Any] | None = None,
+    ) -> Result:
         """Train (or resume) model ``name`` under the convergence rule, capped at ``steps`` and
         ``max_time``; its best checkpoint by ``val/ate`` (the last under an equal budget or a
-        rule on another metric), the steps it ran, whether it converged and why, its curve."""
+        rule on another metric), the steps it ran, whether it converged and why, its curve,
+        and the resolved config it trained from (paths as a reader finds them)."""
         from mfg_lightning.run.training import train
 
-        cfg = self.train_config(name, extra, steps, max_time)
+        cfg = self.train_config(name, extra, steps, max_time, settings)
+        digest = training_digest(cfg)
+        if (twin := self._trained_as(digest, name)) is not None:
+            # another stage trained this very model: one training serves both
+            print(f"{name}: the same training config as {twin['name']}: not trained again",
+                  flush=True)  # fmt: skip
+            return {**twin, "same_as": twin["name"], "name": name}
         out = Path(cfg.paths.output_dir)
         resumed = (out / "checkpoints" / "last.ckpt").is_file()
         start = time.perf_counter()
@@ -187,10 +237,12 @@ class Study:
 
         # the precision the run trained in (``auto`` made concrete in its config.yaml) and the
         # CPU kind: seeds trained on different machines differ in both, and the report says so
-        precision = str(OmegaConf.load(out / "config.yaml").trainer.get("precision", "32-true"))
-        return {
+        resolved = OmegaConf.load(out / "config.yaml")
+        precision = str(resolved.trainer.get("precision", "32-true"))
+        result = {
             "name": name,
             "overrides": list(extra),
+            "settings": dict(settings or {}),
             "precision": precision,
             "cpu_kind": cpu_kind() if not torch.cuda.is_available() else "cuda",
             "steps": ran,
@@ -208,7 +260,25 @@ class Study:
             "recipe": recipe_of(cfg),
             "convergence": {k: v for k, v in status.items() if k != "curve"},
             "curve": curve,
+            # the run's own config.yaml (resolved, ``auto`` made concrete)
+            "config": portable_config(OmegaConf.to_container(resolved, resolve=True)),
         }
+        atomic_write_text(out / TRAINED, json.dumps({"digest": digest, **result}) + "\n")
+        return result
+
+    def _trained_as(self, digest: str, name: str) -> Result | None:
+        """The result of a model of this work_dir trained from an equal training config
+        (:func:`training_digest`) under another name, or None."""
+        for path in sorted((self.work / "models").glob(f"*/{TRAINED}")):
+            if path.parent.name == name:
+                continue
+            try:
+                done = json.loads(path.read_text())
+            except (OSError, json.JSONDecodeError):
+                continue
+            if done.pop("digest", None) == digest and done.get("name") != name:
+                return done
+        return None
 
     def checkpoint(self, trained: Result) -> Path:
         """The checkpoint of a trained model's result (relative to ``work_dir``)."""
@@ -225,7 +295,7 @@ class Study:
             log.warning("%s: not on this machine; training %s again", path, trained["name"])
             again = self.train(
                 trained["name"], list(trained["overrides"]), trained["step_cap"],
-                trained.get("time_cap"),
+                trained.get("time_cap"), trained.get("settings"),
             )  # fmt: skip
             path = self.checkpoint(again)
         return module_from_checkpoint(str(path)).eval()
@@ -241,26 +311,6 @@ class Study:
         return DataLoader(
             ds, batch_size=int(self.cfg.budget.eval_batch_size), collate_fn=collate_samples
         )
-
-
-def sparsity_variants(cfg: DictConfig) -> list[tuple[str, list[str], bool, float]]:
-    """The runs of the sparsity sweep, in order: ``(name, overrides, plain, w_s)`` per
-    ``sparsity.w_s``; for ``w_s = 100`` also one with ``sparsity.input_scale``, and for the
-    largest ``w_s`` also one at ``sparsity.low_lr`` (to separate a collapse from the rate);
-    ``plain`` is False for those two."""
-    variants = []
-    largest = max(float(w) for w in cfg.sparsity.w_s)
-    for ws in cfg.sparsity.w_s:
-        variants.append((f"ws{ws:g}", [f"model.loss.w_s={ws}"], True, ws))
-        if float(ws) == 100.0:
-            scale = cfg.sparsity.input_scale
-            extra = [f"model.loss.w_s={ws}", f"model.net.input_scale={scale}"]
-            variants.append((f"ws{ws:g}_scale{scale:g}", extra, False, ws))
-        if float(ws) == largest and cfg.sparsity.get("low_lr"):
-            lr = float(cfg.sparsity.low_lr)
-            extra = [f"model.loss.w_s={ws}", f"model.optimizer.lr={lr:g}"]
-            variants.append((f"ws{ws:g}_lr{lr:g}", extra, False, ws))
-    return variants
 
 
 def recipe_of(cfg: DictConfig) -> dict[str, Any]:
@@ -370,85 +420,34 @@ def checkout_commit() -> str | None:
     return c[:12] if c else None
 
 
-def bin_errors(
-    coverage: list[float], errors: list[float], edges: list[float]
-) -> list[dict[str, float]]:
-    """Mean error and count per coverage bin ``[edges[i], edges[i+1])`` (the last bin closed)."""
-    cov = torch.tensor(coverage, dtype=torch.float64)
-    err = torch.tensor(errors, dtype=torch.float64)
-    out = []
-    for i, (lo, hi) in enumerate(itertools.pairwise(edges)):
-        last = i == len(edges) - 2
-        sel = (cov >= lo) & ((cov <= hi) if last else (cov < hi))
-        n = int(sel.sum())
-        out.append({"lo": lo, "hi": hi, "n": n, "mean": float(err[sel].mean()) if n else None})
-    return out
+#: The file beside a trained model that records its result and its training config's digest.
+TRAINED = "study_trained.json"
 
 
-def coverage_bins(rows: list[Any], samples: list[tuple], edges: list[float]) -> dict[str, dict]:
-    """Per scored method (``analysis.scoring.Method``), its +1 pairs' rotation and translation
-    errors binned by the image fraction moving objects cover (``edges``), and the rotation
-    error's growth over the bins; ``samples``: the test split's ``(sequence, source, target)``
-    in the order the methods were scored."""
-    forward = [t == s + 1 for _, s, t in samples]
-    bins = {}
-    for m in rows:
-        pick = [i for i, f in enumerate(forward[: len(m.rot_err)]) if f]
-        cov = [m.coverage[i] for i in pick]
-        rot = bin_errors(cov, [m.rot_err[i] for i in pick], edges)
-        bins[m.name] = {
-            "rot_bins": rot,
-            "trans_bins": bin_errors(cov, [m.trans_err[i] for i in pick], edges),
-            "growth": growth(rot),
-        }
-    return bins
+def training_digest(cfg: DictConfig) -> str:
+    """A digest of a composed ``train`` config as written, without where its run goes
+    (``paths.output_dir``): two models of equal digests are one model (same data, model,
+    seed, rule, caps and trainer)."""
+    import hashlib
+
+    tree = OmegaConf.to_container(cfg, resolve=False)
+    tree.get("paths", {}).pop("output_dir", None)
+    return hashlib.sha256(json.dumps(tree, sort_keys=True, default=str).encode()).hexdigest()
 
 
-def object_motion_scores(
-    model: Any, loader: DataLoader, cfg: Any, slow_px: float, flow_key: str = "flow"
-) -> dict[str, dict[str, dict[str, float]]]:
-    """Object-mask scores of the paper's filters and the threshold baseline, over all samples
-    and split slow / fast by each sample's mean ground-truth object flow (near / far: the
-    scores' own depth split). ``flow_key``: the batch's flow the model sees (``"flow"``, the
-    estimated flow; ``"exact_flow"``, the rendered worlds' exact flow)."""
-    from mfg_lightning.data.sample import model_inputs
-    from mfg_lightning.metrics.object_motion import ObjectMotionScores
-    from mfg_lightning.motion.object_motion import extract_object_motion, threshold_baseline
+def portable_config(tree: Any) -> Any:
+    """A resolved config with every absolute path as a reader finds it (relative to the working
+    directory, ``../…`` beside it, ``<cache>/…``; :func:`mfg_lightning.core.paths.portable_path`):
+    committed results name no path of this machine."""
+    from mfg_lightning.flow.cache import default_cache_dir
 
-    groups = ("all", "slow", "fast")
-    scores = {m: {g: ObjectMotionScores() for g in groups} for m in ("filters", "threshold")}
-    for batch in loader:
-        if batch is None or "object_mask" not in batch:
-            continue
-        flow, valid, _ = model_inputs(batch, flow_key)
-        with torch.inference_mode():
-            out = model(flow)
-        depth, gt = batch["depth"], batch["object_mask"].bool()
-        res = extract_object_motion(flow, out.v_t, out.v_omega, depth, cfg, valid=valid)
-        base = threshold_baseline(res.residual, cfg.baseline_threshold, res.valid)
-        speed = (batch["object_flow"].norm(dim=1) * gt).flatten(1).sum(1) / gt.flatten(1).sum(
-            1
-        ).clamp_min(1)
-        sel = {"all": torch.ones_like(speed, dtype=torch.bool), "slow": speed < slow_px}
-        sel["fast"] = ~sel["slow"]
-        for name, mask, field in (
-            ("filters", res.mask, res.object_flow),
-            ("threshold", base, res.residual * base[:, None]),
-        ):
-            for g in groups:
-                s = sel[g] & (gt.flatten(1).any(1) if g != "all" else sel[g])
-                if s.any():
-                    scores[name][g].update(
-                        mask[s], field[s], gt[s], batch["object_flow"][s], depth[s], res.valid[s]
-                    )
-    return {
-        m: {
-            g: {k: float(v) for k, v in sc.compute().items()}
-            for g, sc in by.items()
-            if sc.update_count
-        }
-        for m, by in scores.items()
-    }
+    if isinstance(tree, dict):
+        return {k: portable_config(v) for k, v in tree.items()}
+    if isinstance(tree, list):
+        return [portable_config(v) for v in tree]
+    if isinstance(tree, str) and tree.startswith(("/", "~")):
+        return portable_path(str(Path(tree).expanduser()), Path.cwd(), default_cache_dir())
+    return tree
 
 
 def to_container(x: Any) -> Any:

@@ -3,7 +3,7 @@
 Every comparative or quantifier of the generated reading (:mod:`mfg_lightning.study.prose`,
 :mod:`mfg_lightning.study.settle_report`, :mod:`mfg_lightning.study.causes`) comes from one of
 these functions, so that rerunning a stage with another outcome rewrites the words as well as the
-digits. The thresholds are stated once, here:
+digits. The thresholds are stated once, in ``conf/reproduce.yaml``'s ``statistics.wording``:
 
 * :data:`SAME` (×1.1): two positive numbers within a factor 1.1 of each other are "about" equal.
   A difference under 10 % is below the resolution of the quantities the reading compares: the
@@ -24,6 +24,8 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
+from mfg_lightning.study.constants import STATISTICS
+
 __all__ = [
     "MUCH",
     "SAME",
@@ -41,12 +43,12 @@ __all__ = [
     "spelled",
 ]
 
-#: Within this factor two numbers are "about" the same (see the module docstring).
-SAME = 1.1
-#: From this factor a difference is "much" larger or smaller.
-MUCH = 1.5
-#: From this factor a difference is "several times" larger or smaller.
-SEVERAL = 3.0
+#: Within this factor two numbers are "about" the same, from ``MUCH`` a difference is "much"
+#: larger or smaller, from ``SEVERAL`` "several times" (``conf/reproduce.yaml``'s
+#: ``statistics.wording``; see the module docstring).
+SAME = float(STATISTICS.wording.same)
+MUCH = float(STATISTICS.wording.much)
+SEVERAL = float(STATISTICS.wording.several)
 
 
 def count(x: int | float) -> str:
