@@ -30,6 +30,7 @@ from torch.utils.data import Subset
 from mfg_lightning.data.synthetic import SyntheticDataModule
 from mfg_lightning.models.losses import MFGLoss
 from mfg_lightning.models.mfg_module import MFGLitModule
+from mfg_lightning.run.agreed_steps import AgreedSteps
 from mfg_lightning.run.runs import set_baseline
 from module_helpers import small_datamodule, small_module
 
@@ -106,7 +107,9 @@ def main(out: Path) -> None:
     rank = int(os.environ["RANK"])
     model = module(rank)
     calls = record_collectives(model)
+    steps = AgreedSteps()
     trainer = L.Trainer(
+        callbacks=[steps],
         accelerator="cpu",
         devices=int(os.environ["WORLD_SIZE"]),
         strategy=DDPStrategy(process_group_backend="gloo"),
@@ -122,7 +125,7 @@ def main(out: Path) -> None:
     set_baseline(model, dm)
     trainer.fit(model, datamodule=dm)
     trainer.save_checkpoint(out / "ddp.ckpt")
-    skipped = int(model.nonfinite.skipped.count)
+    skipped = steps.skipped
     trainer.test(model, datamodule=datamodule(), verbose=False)
     metrics = {
         k: (None if math.isnan(float(v)) else float(v))

@@ -172,7 +172,7 @@ def test_loader_settings_alone_apply_to_the_checkpoints_own_dataset() -> None:
 
 
 #: A run directory of the format before the training module was split into its model, its
-#: evaluation (metrics.motion_eval), its non-finite-loss policy (models.nonfinite) and the
+#: evaluation (metrics.motion_eval), its non-finite-loss policy (now run.agreed_steps) and the
 #: precision rules (run.precision): ``python -m mfg_lightning.train debug=tiny dataset.height=16
 #: dataset.width=32 model.net.hidden_units=16 model.net.channels=[4,4,8,8,8] logger=csv`` at
 #: commit 2e171c7 (machine paths replaced by relative ones), and what ``mfg_lightning.evaluate``

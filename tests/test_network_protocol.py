@@ -13,7 +13,7 @@ from conftest import quiet_trainer
 from mfg_lightning.models.losses import MFGLoss
 from mfg_lightning.models.mfg import MFG, MFGOutput, MotionFieldNetwork, generate_fields
 from mfg_lightning.models.mfg_module import MFGLitModule
-from mfg_lightning.run.callbacks import BatchChecks
+from mfg_lightning.run.agreed_steps import AgreedSteps
 from module_helpers import small_datamodule
 
 
@@ -55,7 +55,7 @@ def test_a_toy_encoder_trains_and_evaluates_through_the_interface(tmp_path) -> N
     )  # fmt: skip
     before = [p.detach().clone() for p in module.parameters()]
     trainer = quiet_trainer(
-        max_steps=3, log_every_n_steps=1, limit_val_batches=1, callbacks=[BatchChecks()],
+        max_steps=3, log_every_n_steps=1, limit_val_batches=1, callbacks=[AgreedSteps()],
         default_root_dir=tmp_path,
     )  # fmt: skip
     trainer.fit(module, datamodule=small_datamodule())

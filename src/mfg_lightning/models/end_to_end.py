@@ -246,12 +246,10 @@ class EndToEndLitModule(MFGLitModule):
 
     # -- steps -------------------------------------------------------------------------------
 
-    def training_step(
-        self, batch: dict[str, Any] | None, batch_idx: int
-    ) -> Tensor | dict[str, Any] | None:
+    def training_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor | dict[str, Any]:
         result = super().training_step(batch, batch_idx)
         step, self._step_flow = self._step_flow, None
-        if result is not None and step is not None and self._writes_logs_this_step():
+        if step is not None:
             values = {
                 "train/flow_epe": _mean_epe(step.full.detach(), step.target),
                 "train/flow_frozen": float(self.flow_frozen()),

@@ -6,19 +6,13 @@ relative pose with :mod:`mfg_lightning.core.geometry`, and the network is fit wi
 the predicted fields are turned into ``(t̃, ω̃)`` in closed form and scored by one
 :class:`mfg_lightning.metrics.motion_eval.MotionEvaluation` per stage.
 
-Elsewhere: the precision rules (``trainer.precision``, the ``16-mixed`` GradScaler) are trainer
-settings (:mod:`mfg_lightning.run.precision`); what a step skips (a non-finite loss, no usable
-sample) and whether the run stops or fails is decided by every process together
-(:class:`mfg_lightning.models.agreement.AgreedSteps`); the pictures are drawn by the figure
-callback (:mod:`mfg_lightning.run.figures`) from the fields the steps hand out
+Like Lightning's own examples, the module computes and logs; the run does the rest. The
+precision rules (``trainer.precision``, the ``16-mixed`` GradScaler) are trainer settings
+(:mod:`mfg_lightning.run.precision`). What a step skips (a non-finite loss, no usable sample),
+the batch checks, and whether the run stops or fails are decided by every process together in
+the run's :class:`mfg_lightning.run.agreed_steps.AgreedSteps` callback. The pictures are drawn
+by the figure callback (:mod:`mfg_lightning.run.figures`) from the fields the steps hand out
 (:class:`StepFields`).
-
-No host synchronisation in a training step outside the logging steps: counts (masked flow pixels,
-skipped steps) stay tensors on the device and are read when they are logged (under DDP on an
-accelerator, the agreed stop and fail flags are read at the logging steps too;
-tests/test_host_waits.py counts every read and collective of the steps, Lightning's included).
-Evaluation batches have none either (the SVD of the per-frame errors may wait for cuSOLVER's error
-check).
 """
 
 from __future__ import annotations
@@ -36,14 +30,13 @@ from mfg_lightning.data import sample as keys
 from mfg_lightning.data.sample import INTRINSICS_HOST, model_inputs
 from mfg_lightning.metrics.evaluator import EvaluationResult
 from mfg_lightning.metrics.motion_eval import MotionEvaluation, ObjectInputs
-from mfg_lightning.models.agreement import AgreedSteps, logging_step, reduced_epoch_logs
+from mfg_lightning.models.epoch_logs import reduced_epoch_logs
 from mfg_lightning.models.losses import LossTerms, MFGLoss
 from mfg_lightning.models.mfg import MFGOutput, MotionFieldNetwork, StepFields, validate_top_k
-from mfg_lightning.models.nonfinite import DeferredCounts, NonFiniteLossError, StepCount
 from mfg_lightning.models.optim import checked_scheduler, optimizers
 from mfg_lightning.motion.object_motion import ObjectMotionConfig
 
-__all__ = ["HOST_INTRINSICS", "MFGLitModule", "NonFiniteLossError", "StepFields"]
+__all__ = ["HOST_INTRINSICS", "MFGLitModule", "StepFields"]
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +45,7 @@ HOST_INTRINSICS = INTRINSICS_HOST
 STAGES = ("val", "test")
 
 
-class MFGLitModule(AgreedSteps, L.LightningModule):
+class MFGLitModule(L.LightningModule):
     """MFG with its loss, optimiser and evaluation.
 
     Args:
@@ -65,8 +58,8 @@ class MFGLitModule(AgreedSteps, L.LightningModule):
         image_log_every_n_steps: every how many training steps the step hands its fields to
             the figure callback, which draws them; validation steps hand theirs at every
             validation. 0: never (no field or basis figures).
-        max_consecutive_nonfinite: stop after this many non-finite losses in a row
-            (:class:`~mfg_lightning.models.agreement.AgreedSteps`).
+        max_consecutive_nonfinite: stop after this many non-finite losses in a row; read by
+            the run's :class:`~mfg_lightning.run.agreed_steps.AgreedSteps`.
         object_motion: object-motion filter parameters; when set, validation and test on
             batches that carry depth and a ground-truth object mask also score the extracted
             object motion (``<stage>/object/*``) and the plain-threshold baseline
@@ -109,10 +102,8 @@ class MFGLitModule(AgreedSteps, L.LightningModule):
         self.image_log_every_n_steps = image_log_every_n_steps
         self.fp16_init_scale = fp16_init_scale
         self.object_motion = object_motion
-        self.init_agreed_steps(max_consecutive_nonfinite)  # skip, stop and fail together
-        #: non-finite input-flow pixels masked in training so far (summed across processes)
-        self.masked_flow_pixels = StepCount()
-        self._flow_warnings = {s: DeferredCounts() for s in ("train", *STAGES)}
+        #: non-finite input-flow pixels masked in training so far (this process's)
+        self.masked_flow_pixels = 0
         #: the model's config, set by the entry point and stored in checkpoints so that
         #: :mod:`mfg_lightning.run.checkpoints` can rebuild the network without the run directory.
         self.model_config: dict | None = None
@@ -168,11 +159,12 @@ class MFGLitModule(AgreedSteps, L.LightningModule):
     def _loss(self, out: MFGOutput, v_t: Tensor, v_w: Tensor) -> LossTerms:
         return self.loss_fn(out.v_t, out.v_omega, v_t, v_w, out.hidden)
 
-    def _warn_masked_flow(self, stage: str) -> None:
-        """Warn about the batches whose non-finite flow pixels were masked since the last report
-        (one read-back of their counts)."""
-        for n, ids in self._flow_warnings[stage].read():
-            log.warning("masked %d non-finite flow pixels in %s", n, _ids({keys.SAMPLE_ID: ids}))
+    def _mask_warning(self, n_bad: Tensor, batch: dict[str, Any]) -> int:
+        """Warn about the batch's masked non-finite flow pixels; their number."""
+        n = int(n_bad)
+        if n:
+            log.warning("masked %d non-finite flow pixels in %s", n, _ids(batch))
+        return n
 
     def transfer_batch_to_device(
         self, batch: Any, device: torch.device, dataloader_idx: int
@@ -180,8 +172,7 @@ class MFGLitModule(AgreedSteps, L.LightningModule):
         """Lightning's batch transfer, skipped on a CPU (a no-op walk of the batch costing
         ~0.35 ms, ~1.5 % of a batch-1 step: bench/results/throughput.md). Elsewhere the CPU
         intrinsics stay beside the batch (``INTRINSICS_HOST``) for the closed-form recovery,
-        which groups samples by their values, without reading them back from the device. (Under
-        DDP an unreadable training batch goes on as ``{}``: ``AgreedSteps``.)"""
+        which groups samples by their values, without reading them back from the device."""
         if device.type == "cpu" and batch is not None:
             return batch
         host = batch.get(keys.INTRINSICS) if isinstance(batch, dict) else None
@@ -192,63 +183,26 @@ class MFGLitModule(AgreedSteps, L.LightningModule):
 
     # -- training ----------------------------------------------------------------------------
 
-    def _writes_logs_this_step(self) -> bool:
-        """Whether the loggers write this step's values (every ``trainer.log_every_n_steps``
-        optimiser steps, and the last): the step diagnostics are logged (each ``self.log`` costs
-        time that shows at batch 1) and the deferred counts read back just then."""
-        trainer = self._trainer
-        if trainer is None:
-            return True
-        return logging_step(trainer) or trainer.should_stop
-
-    def training_step(
-        self, batch: dict[str, Any] | None, batch_idx: int
-    ) -> Tensor | dict[str, Any] | None:
-        if batch is None:  # one process: Lightning skips a None batch itself; a direct call
-            return None
-        fused = self.skips_in_the_optimiser()
-        if self.without_samples(batch):
-            return self.step_without_samples(fused)
+    def training_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor | dict[str, Any]:
         v_t, v_w, _, inputs = self._prepare(batch)
-        self.masked_flow_pixels.update(inputs.n_bad)
-        full = self._flow_warnings["train"].add(inputs.n_bad, batch)
+        self.masked_flow_pixels += self._mask_warning(inputs.n_bad, batch)
         out = self(inputs.flow)
         terms = self._loss(out, v_t, v_w)
-        if not self.agree_on_loss(terms.total, _ids(batch), fused):
-            return self.skipped()
-        if full:
-            self._warn_masked_flow("train")
-        if self._writes_logs_this_step():
-            # Only on the steps the loggers write (the progress bar's loss refreshes then too):
-            # a logged value costs ~0.7 ms, 2-3 % of a batch-1 step on a CPU (bench/throughput.py).
-            self._warn_masked_flow("train")
-            self.nonfinite.report(_ids(batch))
-            bs = inputs.flow.shape[0]
-            # not prog_bar: Lightning would read a progress-bar value back at every later step
-            # of the epoch; the run's progress bar reads it once per logged value
-            # (mfg_lightning.run.progress.RunProgressBar)
-            self.log("train/loss", terms.total, batch_size=bs)
-            values = {f"train/{k}": getattr(terms, k).mean() for k in _TERMS}
-            values["train/active_fraction"] = _active_fraction(out.hidden)
-            # this process's counts: a reduction across processes is a collective, which the
-            # step keeps to the one all_reduce of the agreement
-            values["train/nonfinite_flow_pixels"] = self.masked_flow_pixels.count.float()
-            values["train/lr"] = float(self.trainer.optimizers[0].param_groups[0]["lr"])
-            if fused or int(self.nonfinite.skipped.count):
-                values["train/skipped_steps"] = self.nonfinite.skipped.count.float()
-            self.log_dict(values, batch_size=bs)
+        bs = inputs.flow.shape[0]
+        # not prog_bar: the run's progress bar shows the logged loss (run.progress)
+        self.log("train/loss", terms.total, batch_size=bs)
+        values = {f"train/{k}": getattr(terms, k).mean() for k in _TERMS}
+        values["train/active_fraction"] = _active_fraction(out.hidden)
+        values["train/nonfinite_flow_pixels"] = float(self.masked_flow_pixels)
+        values["train/lr"] = float(self.trainer.optimizers[0].param_groups[0]["lr"])
+        self.log_dict(values, batch_size=bs)
         if self.image_log_every_n_steps and self.global_step % self.image_log_every_n_steps == 0:
-            # The pictures are the figure callback's: it gets the fields from the step's output
-            # (references, no copy and no host read here).
+            # the figure callback draws them from the step's output (references, no copy)
             return {
                 "loss": terms.total,
                 "fields": StepFields.of(self.global_step, inputs.flow, v_t, v_w, out),
             }
         return terms.total
-
-    def on_train_end(self) -> None:
-        self._warn_masked_flow("train")
-        super().on_train_end()
 
     # -- evaluation --------------------------------------------------------------------------
 
@@ -256,8 +210,7 @@ class MFGLitModule(AgreedSteps, L.LightningModule):
         if batch is None:
             return None
         v_t, v_w, K, inputs = self._prepare(batch)
-        if self._flow_warnings[stage].add(inputs.n_bad, batch):
-            self._warn_masked_flow(stage)
+        self._mask_warning(inputs.n_bad, batch)
         out = self(inputs.flow)
         terms = self._loss(out, v_t, v_w)
         t, w = geometry.recover_motion(out.v_t, out.v_omega, batch.get(INTRINSICS_HOST, K))
@@ -280,7 +233,6 @@ class MFGLitModule(AgreedSteps, L.LightningModule):
         self._baseline = (self.mean_t, self.mean_omega) if bool(self.has_mean_motion) else None
 
     def _log_eval(self, stage: str) -> None:
-        self._warn_masked_flow(stage)
         self._baseline = None
         evaluation = self.evaluation[stage]
         values = evaluation.compute(self.device)
@@ -339,7 +291,7 @@ class MFGLitModule(AgreedSteps, L.LightningModule):
         self.dataset_config = checkpoint.get("mfg_dataset_config", self.dataset_config)
 
 
-#: The loss terms logged at the training's logging steps (``train/<term>``, batch means).
+#: The loss terms logged by every training step (``train/<term>``, batch means).
 _TERMS = ("l_t", "l_omega", "l_s", "w_t", "w_omega")
 
 
