@@ -32,7 +32,14 @@ from mfg_lightning.metrics.evaluator import EvaluationResult
 from mfg_lightning.metrics.motion_eval import MotionEvaluation, ObjectInputs
 from mfg_lightning.models.epoch_logs import reduced_epoch_logs
 from mfg_lightning.models.losses import LossTerms, MFGLoss
-from mfg_lightning.models.mfg import MFGOutput, MotionFieldNetwork, StepFields, validate_top_k
+from mfg_lightning.models.mfg import (
+    ALL_UNITS,
+    MFGOutput,
+    MotionFieldNetwork,
+    StepFields,
+    fields_at_each_k,
+    validate_top_k,
+)
 from mfg_lightning.models.optim import checked_scheduler, optimizers
 from mfg_lightning.motion.object_motion import ObjectMotionConfig
 
@@ -54,10 +61,10 @@ class MFGLitModule(L.LightningModule):
         optimizer: a partial optimiser constructor taking the parameters
             (paper: Adam, lr 1e-5, betas (0.99, 0.999)).
         scheduler: optional partial LR-scheduler constructor taking the optimiser.
-        top_k: fraction of hidden units kept at evaluation (None: all); overrides ``net.top_k``.
+        top_k: the fraction of hidden units kept at validation and test (``model.top_k``;
+            1.0: all). Training uses every unit.
         image_log_every_n_steps: every how many training steps the step hands its fields to
-            the figure callback, which draws them; validation steps hand theirs at every
-            validation. 0: never (no field or basis figures).
+            the figure callback; validation steps hand theirs at every validation. 0: never.
         max_consecutive_nonfinite: stop after this many non-finite losses in a row; read by
             the run's :class:`~mfg_lightning.run.agreed_steps.AgreedSteps`.
         object_motion: object-motion filter parameters; when set, validation and test on
@@ -74,7 +81,7 @@ class MFGLitModule(L.LightningModule):
         loss: MFGLoss,
         optimizer: Callable[..., torch.optim.Optimizer],
         scheduler: Callable[..., Any] | None = None,
-        top_k: float | None = None,
+        top_k: float = ALL_UNITS,
         image_log_every_n_steps: int = 200,
         max_consecutive_nonfinite: int = 20,
         object_motion: ObjectMotionConfig | None = None,
@@ -86,21 +93,14 @@ class MFGLitModule(L.LightningModule):
         self.save_hyperparameters(
             ignore=["net", "loss", "object_motion", "optimizer", "scheduler"], logger=False
         )
-        if net.top_k is not None:
-            # One knob: the module's top_k is what evaluation, sweeps and checkpoints use.
-            raise ValueError(
-                f"model.net.top_k={net.top_k} is not a setting of the training module: set "
-                "model.top_k instead (it applies to the network at evaluation)"
-            )
         if fp16_init_scale is not None and not (fp16_init_scale > 0):
             raise ValueError(f"model.fp16_init_scale must be positive, got {fp16_init_scale}")
         self.net = net
         self.loss_fn = loss
-        self.net.top_k = validate_top_k(top_k)
+        self.top_k = validate_top_k(top_k)
         self.optimizer_factory = optimizer
         self.scheduler_factory = checked_scheduler(scheduler)
         self.image_log_every_n_steps = image_log_every_n_steps
-        self.fp16_init_scale = fp16_init_scale
         self.object_motion = object_motion
         #: non-finite input-flow pixels masked in training so far (this process's)
         self.masked_flow_pixels = 0
@@ -114,24 +114,42 @@ class MFGLitModule(L.LightningModule):
         self.register_buffer("mean_t", torch.zeros(3))
         self.register_buffer("mean_omega", torch.zeros(3))
         self.register_buffer("has_mean_motion", torch.tensor(False))
-        self._baseline: tuple[Tensor, Tensor] | None = None
-        self.evaluation = nn.ModuleDict({s: MotionEvaluation(object_motion) for s in STAGES})
+        #: the top-k fractions each stage scores, and one evaluation of each (:meth:`test_at`)
+        self.top_ks = {"val": (self.top_k,), "test": (self.top_k,)}
+        self.evaluation = nn.ModuleDict(
+            {s: nn.ModuleList([MotionEvaluation(object_motion)]) for s in STAGES}
+        )
         #: the last epoch's trajectory evaluation per stage (evaluate.py writes its poses)
         self.last_evaluation: dict[str, EvaluationResult] = {}
+        #: the last test's ``test/`` metrics and trajectory evaluation of each of its top_ks
+        self.test_results: dict[float, tuple[dict[str, float], EvaluationResult | None]] = {}
 
-    # -- model -------------------------------------------------------------------------------
+    def forward(self, flow: Tensor) -> MFGOutput:
+        """Flow ``(B, 2, H, W)`` pixels → :class:`MFGOutput`: every unit in training, the
+        ``top_k`` most active in evaluation."""
+        return self.net(flow) if self.training else self.fields(flow)[0]
 
-    def forward(self, flow: Tensor, top_k: float | None = None) -> MFGOutput:
-        """Flow ``(B, 2, H, W)`` pixels → :class:`MFGOutput`."""
-        return self.net(flow, top_k=top_k)
+    def fields(self, flow: Tensor, ks: tuple[float, ...] | None = None) -> list[MFGOutput]:
+        """The fields at every top-k fraction of ``ks`` (None: ``(top_k,)``), one pass of the
+        encoder (:func:`~mfg_lightning.models.mfg.fields_at_each_k`)."""
+        return fields_at_each_k(self.net, flow, (self.top_k,) if ks is None else ks)
 
     def predict_motion(
         self, flow: Tensor, intrinsics: Tensor, top_k: float | None = None
     ) -> tuple[Tensor, Tensor, MFGOutput]:
-        """Flow → egomotion ``(t̃, ω̃)`` ``(B, 3)`` each, plus the raw network output."""
-        out = self(flow, top_k=top_k)
+        """Flow → egomotion ``(t̃, ω̃)`` ``(B, 3)`` each at ``top_k`` (None: the module's), plus
+        the network output."""
+        (out,) = self.fields(flow, None if top_k is None else (top_k,))
         t, w = geometry.recover_motion(out.v_t, out.v_omega, intrinsics)
         return t, w, out
+
+    def test_at(self, ks: list[float]) -> None:
+        """Score every top-k fraction of ``ks`` (validated) in the next tests, all from one pass
+        of the encoder: the first one's metrics are logged, every one's kept in
+        :attr:`test_results`."""
+        self.top_ks["test"] = tuple(ks)
+        evaluations = [MotionEvaluation(self.object_motion) for _ in ks]
+        self.evaluation["test"] = nn.ModuleList(evaluations).to(self.device)
 
     def set_mean_motion(self, t: Tensor, omega: Tensor) -> None:
         """The baseline evaluation scores besides the model: always predicting the training
@@ -139,8 +157,6 @@ class MFGLitModule(L.LightningModule):
         self.mean_t.copy_(t)
         self.mean_omega.copy_(omega)
         self.has_mean_motion.fill_(True)
-
-    # -- shared step -------------------------------------------------------------------------
 
     def _prepare(self, batch: dict[str, Any]) -> tuple[Tensor, Tensor, Tensor, Any]:
         """Ground-truth fields ``(B, 2, H, W)`` of a batch, and its model inputs."""
@@ -154,17 +170,12 @@ class MFGLitModule(L.LightningModule):
             t, w = geometry.pose_to_motion(batch[keys.POSE].to(inputs.flow))
             v_t = geometry.translational_field(t, K, height, width)
             v_w = geometry.rotational_field(w, K, height, width)
+        if int(inputs.n_bad):
+            log.warning("masked %d non-finite flow pixels in %s", inputs.n_bad, _ids(batch))
         return v_t, v_w, K, inputs
 
     def _loss(self, out: MFGOutput, v_t: Tensor, v_w: Tensor) -> LossTerms:
         return self.loss_fn(out.v_t, out.v_omega, v_t, v_w, out.hidden)
-
-    def _mask_warning(self, n_bad: Tensor, batch: dict[str, Any]) -> int:
-        """Warn about the batch's masked non-finite flow pixels; their number."""
-        n = int(n_bad)
-        if n:
-            log.warning("masked %d non-finite flow pixels in %s", n, _ids(batch))
-        return n
 
     def transfer_batch_to_device(
         self, batch: Any, device: torch.device, dataloader_idx: int
@@ -181,11 +192,9 @@ class MFGLitModule(L.LightningModule):
             moved[INTRINSICS_HOST] = host
         return moved
 
-    # -- training ----------------------------------------------------------------------------
-
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor | dict[str, Any]:
         v_t, v_w, _, inputs = self._prepare(batch)
-        self.masked_flow_pixels += self._mask_warning(inputs.n_bad, batch)
+        self.masked_flow_pixels += int(inputs.n_bad)
         out = self(inputs.flow)
         terms = self._loss(out, v_t, v_w)
         bs = inputs.flow.shape[0]
@@ -204,62 +213,46 @@ class MFGLitModule(L.LightningModule):
             }
         return terms.total
 
-    # -- evaluation --------------------------------------------------------------------------
-
-    def _evaluate(self, batch: dict[str, Any] | None, stage: str) -> dict[str, Any] | None:
-        if batch is None:
+    def _evaluate(self, batch: dict[str, Any] | None, stage: str) -> StepFields | None:
+        """Score the batch at each of the stage's top-k fractions; the first one's fields."""
+        if batch is None:  # a DDP process without an evaluation sample
             return None
         v_t, v_w, K, inputs = self._prepare(batch)
-        self._mask_warning(inputs.n_bad, batch)
-        out = self(inputs.flow)
-        terms = self._loss(out, v_t, v_w)
-        t, w = geometry.recover_motion(out.v_t, out.v_omega, batch.get(INTRINSICS_HOST, K))
-        objects = None
-        if keys.DEPTH in batch and keys.OBJECT_MASK in batch:
-            objects = ObjectInputs(inputs.flow, out.v_t, out.v_omega, batch[keys.DEPTH],
-                                   inputs.valid, batch[keys.OBJECT_MASK],
-                                   batch.get(keys.OBJECT_FLOW))  # fmt: skip
-        if self._baseline is None and not self._trainer:  # a direct call, outside an epoch
-            self._start_eval_epoch()
-        self.evaluation[stage].update(
-            t, w, batch[keys.POSE], (batch[keys.SEQUENCE], batch[keys.FRAME], batch[keys.TARGET]),
-            loss=terms.total, active_fraction=_active_fraction(out.hidden), n_bad=inputs.n_bad,
-            baseline=self._baseline, objects=objects,
-        )  # fmt: skip
-        return {"out": out, "flow": inputs.flow, "v_t": v_t, "v_omega": v_w}
-
-    def _start_eval_epoch(self) -> None:
-        # Whether the mean-motion baseline is scored: read once per epoch, not once per batch.
-        self._baseline = (self.mean_t, self.mean_omega) if bool(self.has_mean_motion) else None
+        outs = self.fields(inputs.flow, self.top_ks[stage])
+        baseline = (self.mean_t, self.mean_omega) if bool(self.has_mean_motion) else None
+        ids = (batch[keys.SEQUENCE], batch[keys.FRAME], batch[keys.TARGET])
+        for out, evaluation in zip(outs, self.evaluation[stage], strict=True):
+            t, w = geometry.recover_motion(out.v_t, out.v_omega, batch.get(INTRINSICS_HOST, K))
+            objects = None
+            if keys.DEPTH in batch and keys.OBJECT_MASK in batch:
+                objects = ObjectInputs(inputs.flow, out.v_t, out.v_omega, batch[keys.DEPTH],
+                                       inputs.valid, batch[keys.OBJECT_MASK],
+                                       batch.get(keys.OBJECT_FLOW))  # fmt: skip
+            evaluation.update(t, w, batch[keys.POSE], ids, loss=self._loss(out, v_t, v_w).total,
+                              active_fraction=_active_fraction(out.hidden), n_bad=inputs.n_bad,
+                              baseline=baseline, objects=objects)  # fmt: skip
+        return StepFields.of(self.global_step, inputs.flow, v_t, v_w, outs[0])
 
     def _log_eval(self, stage: str) -> None:
-        self._baseline = None
-        evaluation = self.evaluation[stage]
-        values = evaluation.compute(self.device)
-        evaluation.reset()
-        if evaluation.last_result is not None:
-            self.last_evaluation[stage] = evaluation.last_result
-        for name, value in values.items():
-            self.log(f"{stage}/{name}", value, prog_bar=name in ("trans_err", "rot_err", "ate"))
-
-    def on_validation_epoch_start(self) -> None:
-        self._start_eval_epoch()
-
-    def on_test_epoch_start(self) -> None:
-        self._start_eval_epoch()
+        for i, (k, evaluation) in enumerate(
+            zip(self.top_ks[stage], self.evaluation[stage], strict=True)
+        ):
+            values = evaluation.compute(self.device)
+            evaluation.reset()
+            if stage == "test":
+                metrics = {f"test/{name}": float(v) for name, v in values.items()}
+                self.test_results[k] = (metrics, evaluation.last_result)
+            if i == 0 and evaluation.last_result is not None:
+                self.last_evaluation[stage] = evaluation.last_result
+            for name, value in values.items() if i == 0 else ():
+                self.log(f"{stage}/{name}", value, prog_bar=name in ("trans_err", "rot_err", "ate"))
 
     def validation_step(
         self, batch: dict[str, Any] | None, batch_idx: int
     ) -> dict[str, StepFields] | None:
         """Score the batch; hand its fields to the figure callback (the step's output)."""
-        res = self._evaluate(batch, "val")
-        if res is None or not self.image_log_every_n_steps:
-            return None
-        return {
-            "fields": StepFields.of(
-                self.global_step, res["flow"], res["v_t"], res["v_omega"], res["out"]
-            )
-        }
+        fields = self._evaluate(batch, "val")
+        return {"fields": fields} if fields is not None and self.image_log_every_n_steps else None
 
     def on_validation_epoch_end(self) -> None:
         self._log_eval("val")
@@ -274,8 +267,6 @@ class MFGLitModule(L.LightningModule):
         super().setup(stage)
         # the evaluation's values are every process's already (MotionEvaluation gathers them)
         reduced_epoch_logs("val/", "test/")
-
-    # -- optimisation and checkpoints --------------------------------------------------------
 
     def configure_optimizers(self) -> Any:
         return optimizers(self.optimizer_factory, self.scheduler_factory, self.parameters())

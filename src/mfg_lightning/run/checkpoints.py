@@ -250,14 +250,17 @@ MOVED_MODULES: dict[str, str] = {
     "mfg_lightning.basis": "mfg_lightning.analysis.basis",
     "mfg_lightning.sweeps": "mfg_lightning.analysis.sweeps",
     "mfg_lightning.result_tables": "mfg_lightning.analysis.result_tables",
+    # classes (a whole target): the batch checks became part of the run's AgreedSteps
+    "mfg_lightning.callbacks.BatchChecks": "mfg_lightning.run.agreed_steps.AgreedSteps",
+    "mfg_lightning.run.callbacks.BatchChecks": "mfg_lightning.run.agreed_steps.AgreedSteps",
 }
 
 
 def moved_target(target: str) -> str:
-    """``target`` with its module renamed by :data:`MOVED_MODULES` (the longest matching
-    module prefix), or unchanged."""
+    """``target`` renamed by :data:`MOVED_MODULES` (the whole target, else the longest
+    matching module prefix), or unchanged."""
     parts = target.split(".")
-    for n in range(len(parts) - 1, 0, -1):
+    for n in range(len(parts), 0, -1):
         new = MOVED_MODULES.get(".".join(parts[:n]))
         if new is not None:
             return ".".join([new, *parts[n:]])
@@ -396,6 +399,8 @@ def with_legacy_settings(cfg: Mapping[str, Any], path: str | Path) -> dict[str, 
     cfg = with_moved_targets(cfg, path)
     cfg = {k: dict(v) if isinstance(v, Mapping) else v for k, v in cfg.items()}
     filled = []
+    if "top_k" in cfg and cfg["top_k"] is None:  # before 1.0 alone said "all units"
+        cfg["top_k"] = 1.0
     for part, settings in LEGACY_MODEL_SETTINGS.items():
         node = cfg.get(part)
         if not isinstance(node, dict):

@@ -257,7 +257,7 @@ def predict(cfg: DictConfig) -> dict[str, dict[str, Any]]:
     """
     out = Path(cfg.paths.output_dir)
     predict_align(cfg)  # a wrong value is an error before anything is predicted
-    module = module_from_checkpoint(cfg.ckpt_path, top_k=validate_top_k(cfg.model.get("top_k")))
+    module = module_from_checkpoint(cfg.ckpt_path, top_k=validate_top_k(cfg.model.top_k))
     datamodule = instantiate(cfg.dataset)
     net_hw = (module.net.height, module.net.width)
     if (datamodule.height, datamodule.width) != net_hw:

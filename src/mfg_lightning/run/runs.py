@@ -37,6 +37,13 @@ def instantiate_list(cfg: DictConfig | None) -> list[Any]:
 
 def build_model(cfg: DictConfig) -> L.LightningModule:
     """Instantiate the LightningModule and remember its resolved config for checkpoints."""
+    net = cfg.model.get("net")
+    if net is not None and "top_k" in net:
+        # one knob: top-k is an evaluation setting of the module, not of the network
+        raise ValueError(
+            f"model.net.top_k={net.top_k} is not a setting of the network: set model.top_k "
+            "instead (the fraction kept at validation and test)"
+        )
     model = instantiate(cfg.model)
     model.model_config = OmegaConf.to_container(cfg.model, resolve=True)
     model.dataset_config = OmegaConf.to_container(cfg.dataset, resolve=True)
