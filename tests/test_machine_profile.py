@@ -281,7 +281,7 @@ def test_a_resumed_run_computes_with_the_choices_its_checkpoint_recorded(tmp_pat
     recorded = ckpt["mfg_run_choices"]
     assert recorded["precision"] == first.trainer.precision
     assert recorded["conv_impl"] == list(first.model.net.conv_impl)
-    assert ckpt["mfg_model_config"]["net"]["conv_impl"] == recorded["conv_impl"]
+    assert ckpt["hyper_parameters"]["model_config"]["net"]["conv_impl"] == recorded["conv_impl"]
     (path,) = (tmp_path / "cache" / "machine").glob("*.json")
     stored = json.loads(path.read_text())
     for layers in stored["conv"].values():

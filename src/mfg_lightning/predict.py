@@ -58,7 +58,7 @@ from omegaconf import DictConfig, open_dict
 
 from mfg_lightning.core.config import CONFIG_DIR
 from mfg_lightning.core.errors import UserError, exit_on_unknown_choice, exit_on_user_error
-from mfg_lightning.run.checkpoints import peek_checkpoint
+from mfg_lightning.run.checkpoints import peek_checkpoint, stored_model_config
 from mfg_lightning.run.prediction import predict
 
 log = logging.getLogger("mfg_lightning.predict")
@@ -72,7 +72,7 @@ def end_to_end_flow(cfg: DictConfig) -> None:
     if not path.is_file():
         return  # (predict names the missing file)
     ckpt = peek_checkpoint(path)
-    if "flow_net_config" not in ckpt or "mfg_model_config" not in ckpt:
+    if "flow_net_config" not in ckpt or stored_model_config(ckpt) is None:
         return  # an MFG checkpoint (or not a checkpoint: predict says so)
     if str(cfg.dataset.get("_target_", "")).endswith("ImagePairsDataModule"):
         raise UserError(

@@ -106,7 +106,8 @@ def load_mfg_weights(net: nn.Module, path: str | Path) -> None:
         raise ValueError(f"model.mfg_checkpoint={path}: unreadable ({first})") from None
     state = ckpt.get("state_dict") if isinstance(ckpt, dict) else None
     weights = {k[4:]: v for k, v in (state or {}).items() if k.startswith("net.")}
-    if not weights or "mfg_model_config" not in ckpt:
+    hparams = ckpt.get("hyper_parameters") or {}
+    if not weights or ("model_config" not in hparams and "mfg_model_config" not in ckpt):
         raise ValueError(f"model.mfg_checkpoint={path}: not a checkpoint of an MFG training")
     try:
         net.load_state_dict(weights)
@@ -330,12 +331,12 @@ class EndToEndLitModule(MFGLitModule):
         # flow.weights=<this checkpoint> reads the fine-tuned network (flow.learned.load_weights)
         checkpoint["flow_net_config"] = config
         checkpoint["flow_net_prefix"] = FLOW_NET_PREFIX
-        stored = checkpoint.get("mfg_model_config")
+        hparams = checkpoint.get("hyper_parameters") or {}
+        stored = hparams.get("model_config")
         if stored is not None:
             # rebuilt from the checkpoint alone: the network's shape, no start files to read
-            checkpoint["mfg_model_config"] = {
-                **stored, "flow_net": config, "flow_weights": None, "mfg_checkpoint": None,
-            }  # fmt: skip
+            stored = {**stored, "flow_net": config, "flow_weights": None, "mfg_checkpoint": None}
+            checkpoint["hyper_parameters"] = {**hparams, "model_config": stored}
 
 
 def _mean_epe(flow: Tensor, target: Tensor) -> Tensor:

@@ -73,6 +73,10 @@ class MFGLitModule(L.LightningModule):
             (``<stage>/object_baseline/*``). None disables it.
         fp16_init_scale: the initial GradScaler scale under ``trainer.precision=16-mixed``, read
             by :class:`mfg_lightning.run.precision.PrecisionSetup`; None: its measured default.
+        model_config: the resolved ``model`` config this module was built from (plain data),
+            saved with the hyperparameters: a checkpoint records it, and
+            :mod:`mfg_lightning.run.checkpoints` rebuilds the module from it without the run
+            directory (:func:`mfg_lightning.run.runs.build_model` passes it).
     """
 
     def __init__(
@@ -86,6 +90,7 @@ class MFGLitModule(L.LightningModule):
         max_consecutive_nonfinite: int = 20,
         object_motion: ObjectMotionConfig | None = None,
         fp16_init_scale: float | None = None,
+        model_config: dict[str, Any] | None = None,
     ) -> None:
         super().__init__()
         # Plain values only: the optimiser and scheduler partials would make every checkpoint
@@ -104,9 +109,6 @@ class MFGLitModule(L.LightningModule):
         self.object_motion = object_motion
         #: non-finite input-flow pixels masked in training so far (this process's)
         self.masked_flow_pixels = 0
-        #: the model's config, set by the entry point and stored in checkpoints so that
-        #: :mod:`mfg_lightning.run.checkpoints` can rebuild the network without the run directory.
-        self.model_config: dict | None = None
         #: the training dataset's config, stored in checkpoints for evaluation defaults
         self.dataset_config: dict | None = None
         # The training set's mean motion, the 'always predict the mean' baseline
@@ -271,14 +273,16 @@ class MFGLitModule(L.LightningModule):
     def configure_optimizers(self) -> Any:
         return optimizers(self.optimizer_factory, self.scheduler_factory, self.parameters())
 
+    @property
+    def model_config(self) -> dict[str, Any] | None:
+        """The resolved ``model`` config this module was built from (a constructor argument)."""
+        return self.hparams.get("model_config")
+
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        if self.model_config is not None:
-            checkpoint["mfg_model_config"] = self.model_config
         if self.dataset_config is not None:
             checkpoint["mfg_dataset_config"] = self.dataset_config
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        self.model_config = checkpoint.get("mfg_model_config", self.model_config)
         self.dataset_config = checkpoint.get("mfg_dataset_config", self.dataset_config)
 
 

@@ -7,7 +7,7 @@ Researchers share checkpoints, so reading one must never run its author's code:
   hold (:func:`_legacy_safe_globals`: OmegaConf nodes and Hydra's partial of the optimiser class,
   none of which runs anything when it is rebuilt). A pickle that names any other global (a
   payload calling ``os.system``, say) is refused before it runs: :class:`CheckpointError`.
-* **Configs** read from a checkpoint (``mfg_model_config``, ``mfg_dataset_config``) or from a run
+* **Configs** read from a checkpoint (its model config, ``mfg_dataset_config``) or from a run
   directory's ``config.yaml`` are instantiated only if every ``_target_`` in them, at any depth,
   resolves to one of the classes the project's own configs build (:func:`allowed_targets`: the
   LightningModule, the network, the loss, the object-motion filters, the DataModules and flow
@@ -15,9 +15,10 @@ Researchers share checkpoints, so reading one must never run its author's code:
   alias of an allowed class passes and nothing else does (``builtins.open``,
   ``subprocess.run``, ...): :class:`UnsafeConfigError` names the key and the target.
 
-What is in a checkpoint besides Lightning's own keys: ``mfg_model_config`` (the resolved model
-config, enough to rebuild the network without the run directory) and ``mfg_dataset_config`` (the
-training dataset's config, the default of ``evaluate``, ``predict`` and ``analyze_basis``).
+What a checkpoint holds to be rebuilt: the module's ``model_config`` hyperparameter (the
+resolved model config it was built from, enough to rebuild it without the run directory;
+``mfg_model_config`` before) and ``mfg_dataset_config`` (the training dataset's config, the
+default of ``evaluate``, ``predict`` and ``analyze_basis``).
 """
 
 from __future__ import annotations
@@ -55,6 +56,7 @@ __all__ = [
     "model_size",
     "module_from_checkpoint",
     "safe_unpickling",
+    "stored_model_config",
     "with_legacy_dataset_settings",
     "with_legacy_settings",
     "with_moved_targets",
@@ -133,7 +135,7 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     Raises:
         CheckpointError: missing or unreadable file, a pickle that names anything but plain data
             (it is refused before it runs), or not a checkpoint of this project (no
-            ``state_dict`` or ``mfg_model_config``).
+            ``state_dict`` or model config).
     """
     path = Path(path).expanduser()
     if not path.is_file():
@@ -145,11 +147,19 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
         raise CheckpointError(f"cannot read checkpoint {path}: {describe_load_error(err)}") from err
     if not isinstance(ckpt, dict) or "state_dict" not in ckpt:
         raise CheckpointError(f"{path} is not a Lightning checkpoint (no state_dict)")
-    if "mfg_model_config" not in ckpt:
+    if stored_model_config(ckpt) is None:
         raise CheckpointError(
-            f"{path} has no mfg_model_config: it was not written by mfg_lightning.train"
+            f"{path} has no model config: it was not written by mfg_lightning.train"
         )
     return ckpt
+
+
+def stored_model_config(ckpt: Mapping[str, Any]) -> dict[str, Any] | None:
+    """The resolved model config a checkpoint's module was built from: its ``model_config``
+    hyperparameter (``mfg_model_config`` in checkpoints of older releases); None: none."""
+    hparams = ckpt.get("hyper_parameters")
+    stored = hparams.get("model_config") if isinstance(hparams, Mapping) else None
+    return stored if stored is not None else ckpt.get("mfg_model_config")
 
 
 def peek_checkpoint(path: str | Path) -> dict[str, Any]:
@@ -371,7 +381,7 @@ class ModelSize:
 
 
 def model_size(model_config: Mapping[str, Any]) -> ModelSize:
-    """The :class:`ModelSize` of a resolved model config (``mfg_model_config``)."""
+    """The :class:`ModelSize` of a resolved model config (:func:`stored_model_config`)."""
     net = model_config.get("net", {})
     return ModelSize(int(net["hidden_units"]), int(net["height"]), int(net["width"]))
 
@@ -498,14 +508,14 @@ def build_module(
     """
     from hydra.utils import instantiate
 
-    cfg = {**with_legacy_settings(ckpt["mfg_model_config"], path), **overrides}
-    check_targets(cfg, f"checkpoint {path} (mfg_model_config)")
+    cfg = {**with_legacy_settings(stored_model_config(ckpt) or {}, path), **overrides}
+    check_targets(cfg, f"checkpoint {path} (model_config)")
     size = model_size(cfg)
     if expected is not None and size != expected:
         raise CheckpointSizeError(
             f"checkpoint {path} holds an MFG with {size}, but {expected} is expected"
         )
-    module: MFGLitModule = instantiate(cfg)
+    module: MFGLitModule = instantiate(cfg, _partial_=True)(model_config=cfg)
     try:
         module.load_state_dict(ckpt["state_dict"])
     except RuntimeError as err:
@@ -515,7 +525,6 @@ def build_module(
             f"holds {_weights_description(ckpt['state_dict'])} "
             f"({first[-1].strip() if first else err})"
         ) from err
-    module.model_config = cfg
     module.dataset_config = dataset_config(ckpt, path)
     return module.eval()
 
