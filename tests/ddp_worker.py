@@ -74,8 +74,9 @@ def module(rank: int) -> MFGLitModule:
 
 
 def record_collectives(model: MFGLitModule) -> dict[str, list[int]]:
-    """Count, per training step, the barriers and all_reduces called inside ``training_step``
-    (DDP's gradient all-reduce runs in C++ during backward, outside it, and is not counted)."""
+    """Count, per training step, the barriers and all_reduces called from the start of
+    ``training_step`` to the end of the step (the run's AgreedSteps agrees just before the
+    optimiser step; DDP's gradient all-reduce runs in C++ during backward and is not counted)."""
     calls: dict[str, list[int]] = {"barrier": [], "all_reduce": []}
     inside = [False]
     for name in calls:
@@ -93,12 +94,16 @@ def record_collectives(model: MFGLitModule) -> dict[str, list[int]]:
         for counts in calls.values():
             counts.append(0)
         inside[0] = True
-        try:
-            return step(*args, **kwargs)
-        finally:
-            inside[0] = False
+        return step(*args, **kwargs)
+
+    batch_end = model.on_train_batch_end
+
+    def on_train_batch_end(*args: Any, **kwargs: Any):
+        inside[0] = False
+        return batch_end(*args, **kwargs)
 
     model.training_step = training_step  # type: ignore[method-assign]
+    model.on_train_batch_end = on_train_batch_end  # type: ignore[method-assign]
     return calls
 
 

@@ -109,6 +109,8 @@ class FlowLitModule(L.LightningModule):
         seed: the run's seed, from which the augmentation's draws are derived.
         max_consecutive_nonfinite: stop after this many non-finite losses in a row; read by
             the run's :class:`~mfg_lightning.run.agreed_steps.AgreedSteps`.
+        model_config: the resolved ``model`` config this module was built from (plain data,
+            saved with the hyperparameters; :func:`mfg_lightning.run.runs.build_model`).
     """
 
     def __init__(
@@ -122,9 +124,10 @@ class FlowLitModule(L.LightningModule):
         image_log_every_n_steps: int = 500,
         seed: int = 0,
         max_consecutive_nonfinite: int = 20,
+        model_config: dict[str, Any] | None = None,
     ) -> None:
         super().__init__()
-        self.save_hyperparameters("max_consecutive_nonfinite", logger=False)
+        self.save_hyperparameters("max_consecutive_nonfinite", "model_config", logger=False)
         self.seed = int(seed)
         self.config: PWCConfig = config_from(net)
         self.net = PWCFlowNet(self.config)
