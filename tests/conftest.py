@@ -127,9 +127,16 @@ def run_module(module: str, *args: str, cwd: Path, timeout: int = 300, check: bo
 def quiet_trainer(**options: Any):
     """An in-process ``lightning.Trainer`` on the CPU that writes and prints nothing of its own
     (no logger, checkpoints, progress bar or model summary); ``options`` are the test's own
-    settings."""
+    settings. Like a run's trainer (conf/callbacks), it has the run's
+    :class:`~mfg_lightning.run.agreed_steps.AgreedSteps` unless ``callbacks`` bring one."""
     import lightning as L
 
+    from mfg_lightning.run.agreed_steps import AgreedSteps
+
+    callbacks = list(options.pop("callbacks", []))
+    if not any(isinstance(cb, AgreedSteps) for cb in callbacks):
+        callbacks.append(AgreedSteps())
+    options["callbacks"] = callbacks
     quiet = dict(
         accelerator="cpu",
         logger=False,

@@ -6,7 +6,7 @@ starts the second process with the same command, so both have it, and it acts in
 rank ``rank`` only, at the training steps ``steps`` (global steps, before the step runs):
 
 * ``sigterm``: the process sends SIGTERM to itself, as a scheduler would;
-* ``bad_batch``: the first sample's pose is made non-finite, which ``BatchChecks`` refuses;
+* ``bad_batch``: the first sample's pose is made non-finite, which ``AgreedSteps`` refuses;
 * ``non_finite``: the step's loss is NaN (a forward hook on the loss);
 * ``no_samples``: the batch arrives as None (before its transfer to the device), as when every
   sample was skipped as unreadable;
@@ -63,7 +63,7 @@ class Fault(L.Callback):
         self.marker.write_text(f"{time.time()} {trainer.global_step}\n")
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
-        # First among the callbacks, so that a corrupted batch reaches BatchChecks.
+        # First among the callbacks, so that a corrupted batch reaches AgreedSteps.
         trainer.callbacks.remove(self)
         trainer.callbacks.insert(0, self)
         self._trainer = trainer

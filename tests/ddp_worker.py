@@ -30,6 +30,7 @@ from torch.utils.data import Subset
 from mfg_lightning.data.synthetic import SyntheticDataModule
 from mfg_lightning.models.losses import MFGLoss
 from mfg_lightning.models.mfg_module import MFGLitModule
+from mfg_lightning.run.agreed_steps import AgreedSteps
 from mfg_lightning.run.runs import set_baseline
 from module_helpers import small_datamodule, small_module
 
@@ -73,8 +74,9 @@ def module(rank: int) -> MFGLitModule:
 
 
 def record_collectives(model: MFGLitModule) -> dict[str, list[int]]:
-    """Count, per training step, the barriers and all_reduces called inside ``training_step``
-    (DDP's gradient all-reduce runs in C++ during backward, outside it, and is not counted)."""
+    """Count, per training step, the barriers and all_reduces called from the start of
+    ``training_step`` to the end of the step (the run's AgreedSteps agrees just before the
+    optimiser step; DDP's gradient all-reduce runs in C++ during backward and is not counted)."""
     calls: dict[str, list[int]] = {"barrier": [], "all_reduce": []}
     inside = [False]
     for name in calls:
@@ -92,12 +94,16 @@ def record_collectives(model: MFGLitModule) -> dict[str, list[int]]:
         for counts in calls.values():
             counts.append(0)
         inside[0] = True
-        try:
-            return step(*args, **kwargs)
-        finally:
-            inside[0] = False
+        return step(*args, **kwargs)
+
+    batch_end = model.on_train_batch_end
+
+    def on_train_batch_end(*args: Any, **kwargs: Any):
+        inside[0] = False
+        return batch_end(*args, **kwargs)
 
     model.training_step = training_step  # type: ignore[method-assign]
+    model.on_train_batch_end = on_train_batch_end  # type: ignore[method-assign]
     return calls
 
 
@@ -106,7 +112,9 @@ def main(out: Path) -> None:
     rank = int(os.environ["RANK"])
     model = module(rank)
     calls = record_collectives(model)
+    steps = AgreedSteps()
     trainer = L.Trainer(
+        callbacks=[steps],
         accelerator="cpu",
         devices=int(os.environ["WORLD_SIZE"]),
         strategy=DDPStrategy(process_group_backend="gloo"),
@@ -122,7 +130,7 @@ def main(out: Path) -> None:
     set_baseline(model, dm)
     trainer.fit(model, datamodule=dm)
     trainer.save_checkpoint(out / "ddp.ckpt")
-    skipped = int(model.nonfinite.skipped.count)
+    skipped = steps.skipped
     trainer.test(model, datamodule=datamodule(), verbose=False)
     metrics = {
         k: (None if math.isnan(float(v)) else float(v))

@@ -12,7 +12,6 @@ from mfg_lightning.data.synthetic import SyntheticDataModule, SyntheticDrivingDa
 from mfg_lightning.models.losses import MFGLoss
 from mfg_lightning.models.mfg import MFG
 from mfg_lightning.models.mfg_module import MFGLitModule
-from mfg_lightning.models.nonfinite import NonFiniteLosses
 
 
 def small_module(loss: MFGLoss | None = None, fused: bool = True, **kw: Any) -> MFGLitModule:
@@ -65,13 +64,3 @@ def corrupt_datamodule(
             return CorruptFlow(super().build_dataset(split), rows, cols, inf)
 
     return CorruptDataModule
-
-
-def read_as_on_a_gpu(monkeypatch: Any) -> None:
-    """Make every per-step read decision answer as on a GPU, where a read waits for the device
-    (:meth:`NonFiniteLosses.reads_wait_for_nothing` False): the step's non-finite verdict is then
-    never read, and the agreed flags only at the logging steps. For tests that count host reads
-    on a CPU as stand-ins for device waits."""
-    monkeypatch.setattr(
-        NonFiniteLosses, "reads_wait_for_nothing", staticmethod(lambda device: False)
-    )

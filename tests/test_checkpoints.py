@@ -43,7 +43,10 @@ def _tiny_checkpoint(path: Path) -> dict:
     """A checkpoint as train writes it (weights and resolved model config), without training."""
     cfg = compose("train", ["debug=tiny", f"paths.output_dir={path.parent}"])
     module = build_model(cfg)
-    ckpt = {"state_dict": module.state_dict(), "mfg_model_config": module.model_config}
+    ckpt = {
+        "state_dict": module.state_dict(),
+        "hyper_parameters": {"model_config": module.model_config},
+    }
     torch.save(ckpt, path)
     return ckpt
 
@@ -68,7 +71,7 @@ def test_checkpoint_of_another_model_size_is_a_clear_error(tmp_path: Path) -> No
         "hidden_units=64, input 32×64" in message and "hidden_units=1000, input 48×128" in message
     )
     # weights that do not fit the checkpoint's own config (a config from another run)
-    ckpt["mfg_model_config"]["net"]["hidden_units"] = 32
+    ckpt["hyper_parameters"]["model_config"]["net"]["hidden_units"] = 32
     torch.save(ckpt, path)
     with pytest.raises(CheckpointSizeError) as err:
         module_from_checkpoint(path)
@@ -151,7 +154,7 @@ def test_checkpoints_written_by_training_load_safely(trained: Path) -> None:
     module's one tiny training, :func:`trained`, serves the crafted checkpoints below too.)"""
     path = trained / "checkpoints" / "last.ckpt"
     ckpt = torch.load(path, map_location="cpu", weights_only=True)  # no allow-listed types
-    assert ckpt["mfg_model_config"]["net"]["hidden_units"] == 64
+    assert ckpt["hyper_parameters"]["model_config"]["net"]["hidden_units"] == 64
     module = module_from_checkpoint(path)
     assert module.dataset_config["_target_"].endswith("SyntheticDataModule")
 
@@ -193,7 +196,7 @@ def _crafted(trained: Path, tmp_path: Path, kind: str) -> tuple[Path, Path]:
     if kind == "pickle":
         ckpt["payload"] = WritesAFile(marker)
     elif kind == "model_target":
-        ckpt["mfg_model_config"]["loss"]["w_t"] = opener
+        ckpt["hyper_parameters"]["model_config"]["loss"]["w_t"] = opener
     elif kind == "run_config_target":
         del ckpt["mfg_dataset_config"]
         cfg = yaml.safe_load((run / "config.yaml").read_text())
@@ -277,7 +280,9 @@ def test_checkpoints_of_earlier_versions_still_load(tmp_path: Path) -> None:
         "betas": cfg.optimizer.betas,
         "top_k": None,
     }
-    torch.save({**ckpt, "hyper_parameters": old}, path)
+    # and their model config beside them, under mfg_model_config
+    stored = ckpt["hyper_parameters"]["model_config"]
+    torch.save({**ckpt, "hyper_parameters": old, "mfg_model_config": stored}, path)
     loaded = load_checkpoint(path)
     assert loaded["hyper_parameters"]["optimizer"].func is torch.optim.Adam
     assert list(loaded["hyper_parameters"]["betas"]) == [0.9, 0.99]
@@ -292,8 +297,8 @@ def test_settings_newer_than_a_checkpoint_keep_its_old_behaviour(
     path = tmp_path / "old.ckpt"
     ckpt = _tiny_checkpoint(path)
     for key in ("init", "align_corners", "input_scale"):
-        del ckpt["mfg_model_config"]["net"][key]
-    del ckpt["mfg_model_config"]["loss"]["balance_squared"]
+        del ckpt["hyper_parameters"]["model_config"]["net"][key]
+    del ckpt["hyper_parameters"]["model_config"]["loss"]["balance_squared"]
     torch.save(ckpt, path)
     with caplog.at_level("WARNING", logger="mfg_lightning.run.checkpoints"):
         module = module_from_checkpoint(path)
@@ -304,7 +309,7 @@ def test_settings_newer_than_a_checkpoint_keep_its_old_behaviour(
     # a checkpoint that has them is read as stored, silently
     caplog.clear()
     ckpt = _tiny_checkpoint(path)
-    ckpt["mfg_model_config"]["net"]["align_corners"] = True
+    ckpt["hyper_parameters"]["model_config"]["net"]["align_corners"] = True
     torch.save(ckpt, path)
     with caplog.at_level("WARNING", logger="mfg_lightning.run.checkpoints"):
         assert module_from_checkpoint(path).net.align_corners is True

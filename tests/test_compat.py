@@ -172,7 +172,7 @@ def test_loader_settings_alone_apply_to_the_checkpoints_own_dataset() -> None:
 
 
 #: A run directory of the format before the training module was split into its model, its
-#: evaluation (metrics.motion_eval), its non-finite-loss policy (models.nonfinite) and the
+#: evaluation (metrics.motion_eval), its non-finite-loss policy (now run.agreed_steps) and the
 #: precision rules (run.precision): ``python -m mfg_lightning.train debug=tiny dataset.height=16
 #: dataset.width=32 model.net.hidden_units=16 model.net.channels=[4,4,8,8,8] logger=csv`` at
 #: commit 2e171c7 (machine paths replaced by relative ones), and what ``mfg_lightning.evaluate``
@@ -199,7 +199,8 @@ def test_the_run_configs_model_keywords_are_still_accepted() -> None:
             OmegaConf.to_container(OmegaConf.load(fixture / "config.yaml")), "config.yaml"
         )
         checkpoints.check_targets(config["model"], "config.yaml", "model")
-        module = instantiate(config["model"])
-        assert module.net.top_k is None and module.hparams.get("fp16_init_scale") in (None, 16.0)
+        # read as the project reads an older config (its null top_k is 1.0 now)
+        module = instantiate(checkpoints.with_legacy_settings(config["model"], "config.yaml"))
+        assert module.top_k == 1.0 and module.hparams.get("fp16_init_scale") in (None, 16.0)
         # the checkpoints are still chosen by the validation ATE the module logs
         assert config["callbacks"]["model_checkpoint"]["monitor"] == "val/ate"

@@ -9,12 +9,11 @@ the other waiting in a collective until the process group's 30-minute timeout, o
 * SIGTERM in one process: both stop after the same step, ``last.ckpt`` is saved, both exit with
   143; resumed with ``ckpt_path=last``, the run ends with the test metrics of an uninterrupted
   2-process run (each process resumes its share of the epoch's order mid-epoch).
-* A non-finite loss, and a batch without samples, in one process (an optimiser without
-  ``found_inf``: the verdict is read on the host): both skip those steps; too many in a row end
-  both with ``NonFiniteLossError`` at the same step.
-* A batch refused in one process (``BatchChecks``, deferred): both end at the same step, one with
-  the batch's error, the other naming it (exit status 2). On the way, a batch without samples in
-  the other process is skipped by both in the fused optimiser.
+* A non-finite loss, and a batch without samples, in one process: both skip those steps
+  (``AgreedSteps``); too many in a row end both with ``NonFiniteLossError`` at the same step.
+* A batch refused in one process (``AgreedSteps``' batch checks): both end at the same step, one
+  with the batch's error, the other naming it (exit status 2). On the way, a batch without
+  samples in the other process is skipped by both.
 * An error in the first process that nothing agrees on: the other process ends as well.
 
 Bound: every process of a faulty run has ended within :data:`END_BOUND` seconds of the (last)
@@ -148,22 +147,21 @@ def test_a_batch_refused_in_one_process_ends_both_at_the_same_step(workdir: Path
     run = _train(
         workdir,
         "refused",
-        "+callbacks.batch_checks.deferred=true",
         faults={"bad": ("bad_batch", [FAULT_STEP], 1), "empty": ("no_samples", [2], 0)},
     )
     assert run.returncode == 2, run.output[-5000:]
     _ended_in_time(run)
     errors = [line for line in run.output.splitlines() if line.startswith("error: ")]
-    # read a step later (deferred): both end at step 4, process 1 with the batch's error
+    # both end at the step of the refused batch, process 1 with the batch's error
     assert len(errors) == 2, run.output[-5000:]
     assert any("'pose' has non-finite values" in line for line in errors), errors
-    assert any("process 1 of the run failed at step 4" in line for line in errors), errors
-    assert "Traceback" not in run.output
-    # step 2, without a sample in process 0, was skipped by both in the fused optimiser
-    assert "skipped in the optimiser (latest samples: <no usable sample on this process>)" in (
-        run.output
+    assert any(f"process 1 of the run failed at step {FAULT_STEP}" in line for line in errors), (
+        errors
     )
-    assert run.output.count("non-finite loss in 1 step(s) since the last report") >= 2
+    assert "Traceback" not in run.output
+    # step 2, without a sample in process 0, was skipped by both
+    assert run.output.count("no usable sample on this process: step skipped") == 1
+    assert run.output.count("no usable sample in another process on ") == 1
 
 
 def test_an_error_in_the_first_process_alone_ends_the_other_too(workdir: Path) -> None:

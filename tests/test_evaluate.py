@@ -142,7 +142,7 @@ def test_checkpoint_of_another_model_size_is_refused(trained: Path, tmp_path: Pa
     import torch
 
     ckpt = torch.load(trained / "checkpoints" / "last.ckpt", weights_only=False)
-    ckpt["mfg_model_config"]["net"]["hidden_units"] = 32
+    ckpt["hyper_parameters"]["model_config"]["net"]["hidden_units"] = 32
     bad = tmp_path / "other.ckpt"
     torch.save(ckpt, bad)
     proc = run_module("mfg_lightning.evaluate", f"ckpt_path={bad}",

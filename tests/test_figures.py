@@ -23,8 +23,6 @@ from mfg_lightning.pictures.colours import colour_wheel, flow_to_rgb
 from mfg_lightning.pictures.fields import FIELD_COLUMNS, FieldRow, basis_figure, field_figure
 from mfg_lightning.run.figures import TensorBoardFigures, sample_plan
 from mfg_lightning.run.runs import build_model
-from module_helpers import read_as_on_a_gpu
-from test_precision import no_host_sync
 
 FIGURES = ("val/fields", "val/basis", "val/trajectory", "val/drift")
 LEGACY = ("flow", "v_t_gt", "v_t_pred", "v_omega_gt", "v_omega_pred", "hidden_activations")
@@ -87,20 +85,12 @@ def _module(image_every: int) -> MFGLitModule:
     return MFGLitModule(net, MFGLoss(w_s=1.0), optimizer, image_log_every_n_steps=image_every)
 
 
-def test_the_training_step_hands_its_fields_without_a_host_read(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    # read as on a GPU: on the CPU every step reads its verdict, which waits for nothing there
-    read_as_on_a_gpu(monkeypatch)
+def test_the_training_step_hands_its_fields_every_image_log_every_n_steps() -> None:
     model = _module(image_every=2)
     step, handed = model.training_step, []
 
     def training_step(batch, batch_idx):
-        if model._writes_logs_this_step():
-            out = step(batch, batch_idx)
-        else:
-            with no_host_sync():
-                out = step(batch, batch_idx)
+        out = step(batch, batch_idx)
         handed.append(isinstance(out, dict) and isinstance(out["fields"], StepFields))
         return out
 

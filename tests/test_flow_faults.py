@@ -9,8 +9,8 @@ The augmentation's draws come from a generator derived from the seed, the rank a
 checkpoint and was seeded afresh by the resumed run, the crops and flips after the stop differed.
 
 Under ``trainer=ddp`` (2 gloo processes) SIGTERM reaches one process or both (a scheduler signals
-every task): both stop after the same step (the module's agreement,
-``mfg_lightning.models.agreement.AgreedSteps``), save ``last.ckpt`` together and exit with 143,
+every task): both stop after the same step (the run's agreement,
+``mfg_lightning.run.agreed_steps.AgreedSteps``), save ``last.ckpt`` together and exit with 143,
 within :data:`END_BOUND` seconds of the signal. Before, SIGTERM to one process left both running
 for minutes without a checkpoint (Lightning's handler made a collective call in the handler).
 """

@@ -52,8 +52,8 @@ from mfg_lightning.data.vkitti_files import read_vkitti_extrinsics, read_vkitti_
 from mfg_lightning.flow import io as flow_io
 from mfg_lightning.models.losses import MFGLoss
 from mfg_lightning.models.mfg import MFG
-from mfg_lightning.models.mfg_module import MFGLitModule, NonFiniteLossError
-from mfg_lightning.run.callbacks import BatchChecks
+from mfg_lightning.models.mfg_module import MFGLitModule
+from mfg_lightning.run.agreed_steps import AgreedSteps, NonFiniteLossError
 from mfg_lightning.run.checkpoints import CheckpointError, load_checkpoint
 from mfg_lightning.trajectory import pose_io
 from mfg_lightning.trajectory.pose_io import PoseFileError
@@ -931,7 +931,7 @@ def test_corrupt_batches_are_refused_or_masked_and_never_reach_the_weights(batch
     model = _module()
     # Two steps on the same corrupt batch: the second one would see what the first did.
     loader = torch.utils.data.DataLoader([batch, batch], batch_size=None, collate_fn=lambda b: b)
-    trainer = quiet_trainer(max_steps=2, limit_val_batches=0, callbacks=[BatchChecks()])
+    trainer = quiet_trainer(max_steps=2, limit_val_batches=0, callbacks=[AgreedSteps()])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         try:

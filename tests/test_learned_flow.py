@@ -212,20 +212,35 @@ def test_the_augmentation_draws_from_its_step_and_rank_never_from_the_global_gen
 
 
 def test_a_non_finite_flow_loss_skips_the_step_and_too_many_stop_the_run() -> None:
-    """The flow module handles faults as MFG's does (``AgreedSteps``): a non-finite loss skips
-    the step (one process: None, no backward, no optimiser step), and a run of them stops."""
-    from mfg_lightning.models.agreement import AgreedSteps
-    from mfg_lightning.models.nonfinite import NonFiniteLossError
+    """The run's ``AgreedSteps`` handles the flow module's faults as MFG's: a non-finite loss
+    skips the optimiser step (its gradients dropped: the weights stay), and a run of them stops
+    at the module's ``max_consecutive_nonfinite``."""
+    from mfg_lightning.run.agreed_steps import AgreedSteps, NonFiniteLossError
 
     module = FlowLitModule(net=SMALL.to_dict(), level_weights=(1.0, 1.0, 1.0),
                            max_consecutive_nonfinite=2)  # fmt: skip
-    assert isinstance(module, AgreedSteps)
+    steps = AgreedSteps()
+    steps.setup(None, module, "fit")  # type: ignore[arg-type]
+    trainer = SimpleNamespace(world_size=1, training=True, global_step=0)
+    optimizer = torch.optim.Adam(module.parameters())
     batch = _pairs_batch(2)
     with torch.no_grad():
         next(module.net.parameters()).fill_(float("nan"))  # the loss is not finite
-    assert module.training_step(batch, 0) is None
+    before = [p.detach().clone() for p in module.parameters()]
+
+    def step(batch_idx: int) -> None:
+        steps.on_train_batch_start(trainer, module, batch, batch_idx)
+        loss = module.training_step(batch, batch_idx)
+        steps.on_before_backward(trainer, module, loss)
+        loss.backward()
+        steps.on_before_optimizer_step(trainer, module, optimizer)
+        optimizer.step()
+
+    step(0)
+    after = [p.detach().nan_to_num() for p in module.parameters()]
+    assert all(torch.equal(p, q.nan_to_num()) for p, q in zip(after, before, strict=True))
     with pytest.raises(NonFiniteLossError, match="2 consecutive non-finite losses"):
-        module.training_step(batch, 1)
+        step(1)
 
 
 @pytest.mark.slow

@@ -105,7 +105,7 @@ def test_last_checkpoint_can_ask_lightning_whether_a_validation_follows_a_step()
 
 
 def test_reduced_epoch_logs_silences_lightnings_sync_dist_advice_for_its_names_only() -> None:
-    """``models.agreement.reduced_epoch_logs`` matches the advice's text as Lightning words it
+    """``models.epoch_logs.reduced_epoch_logs`` matches the advice's text as Lightning words it
     (read from its source here, so that a rewording fails this test, not the filter silently)."""
     import re
     import warnings
@@ -113,7 +113,7 @@ def test_reduced_epoch_logs_silences_lightnings_sync_dist_advice_for_its_names_o
     from lightning.fabric.utilities.warnings import PossibleUserWarning
     from lightning.pytorch.trainer.connectors.logger_connector import result
 
-    from mfg_lightning.models.agreement import reduced_epoch_logs
+    from mfg_lightning.models.epoch_logs import reduced_epoch_logs
 
     src = _source(result._ResultCollection._get_cache)
     template = re.search(r'f"(It is recommended to use `self\.log\(\{[^"]*)"', src)

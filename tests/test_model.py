@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from mfg_lightning.models.mfg import MFG, keep_top_k
+from mfg_lightning.models.mfg import ALL_UNITS, MFG, fields_at_each_k, keep_top_k, validate_top_k
 
 
 def test_paper_architecture_shapes() -> None:
@@ -41,26 +41,28 @@ def test_keep_top_k_keeps_the_most_active_units() -> None:
     expected = torch.tensor([[0.0, 0.9, 0.0, 0.0, 0.7], [5.0, 4.0, 0.0, 0.0, 0.0]])
     assert torch.equal(kept, expected)
     assert keep_top_k(h, 0.01).count_nonzero(dim=1).tolist() == [1, 1]  # at least one unit
-    assert torch.equal(keep_top_k(h, None), h)
+    assert torch.equal(keep_top_k(h, ALL_UNITS), h)
 
 
-def test_top_k_applies_at_evaluation_only() -> None:
+def test_every_k_from_one_pass_of_the_encoder() -> None:
+    """The network's forward keeps every unit; ``fields_at_each_k`` keeps each k's most active
+    units after one encoder pass, each k's fields those of that k alone."""
     torch.manual_seed(0)
-    net = MFG(height=16, width=32, hidden_units=50, channels=(4, 4, 8, 8, 8), top_k=0.1)
+    net = MFG(height=16, width=32, hidden_units=50, channels=(4, 4, 8, 8, 8)).eval()
     x = torch.randn(2, 2, 16, 32)
-    net.eval()
-    assert (net(x).hidden > 0).sum(dim=1).le(5).all()
-    net.train()
     full = net(x).hidden
     assert torch.equal(full, net.encode(x)[0])
-    net.eval()
-    assert (net(x, top_k=1.0).hidden == full).all()
+    sparse, every = fields_at_each_k(net, x, [0.1, ALL_UNITS])
+    assert (sparse.hidden > 0).sum(dim=1).le(5).all()
+    assert torch.equal(every.hidden, full)
+    (alone,) = fields_at_each_k(net, x, [0.1])
+    assert torch.equal(alone.v_t, sparse.v_t) and torch.equal(alone.v_omega, sparse.v_omega)
 
 
-@pytest.mark.parametrize("bad", [0.0, -0.5, 1.5, float("nan")])
+@pytest.mark.parametrize("bad", [0.0, -0.5, 1.5, float("nan"), None, "all"])
 def test_non_positive_or_too_large_top_k_is_refused(bad) -> None:
     with pytest.raises(ValueError, match="model.top_k"):
-        MFG(height=16, width=32, hidden_units=10, channels=(4, 4, 4, 4, 4), top_k=bad)
+        validate_top_k(bad)
 
 
 def test_wrong_input_size_is_refused() -> None:

@@ -9,7 +9,8 @@ import torch
 from conftest import quiet_trainer
 from mfg_lightning.data.synthetic import SyntheticDataModule
 from mfg_lightning.models.losses import MFGLoss
-from mfg_lightning.models.mfg_module import MFGLitModule, NonFiniteLossError
+from mfg_lightning.models.mfg_module import MFGLitModule
+from mfg_lightning.run.agreed_steps import NonFiniteLossError
 from mfg_lightning.run.runs import build_model
 from module_helpers import corrupt_datamodule, small_datamodule, small_module
 
@@ -110,26 +111,3 @@ def test_top_k_has_one_knob() -> None:
     cfg = compose("train", ["debug=tiny", "paths.output_dir=/tmp/unused", "+model.net.top_k=0.1"])
     with pytest.raises(Exception, match="model.net.top_k=0.1 .* set model.top_k instead"):
         build_model(cfg)
-
-
-def test_step_counts_add_in_place_restart_and_move_with_their_module() -> None:
-    """The non-finite counts: added to in place (the step holds no new tensor per count),
-    reset where told, moved with the module like its parameters, and neither buffers (DDP would
-    broadcast rank 0's) nor saved."""
-    from mfg_lightning.models.nonfinite import NonFiniteLosses
-
-    losses = NonFiniteLosses()
-    count = losses.consecutive
-    before = count.count
-    count.update(torch.tensor(1))
-    count.update(torch.tensor(True))  # a verdict counts as 1
-    assert count.count is before and int(count.count) == 2
-    count.update(torch.tensor(1), restart=torch.tensor(False))
-    assert int(count.count) == 3
-    count.update(torch.tensor(1), restart=torch.tensor(True))
-    assert int(count.count) == 0
-    losses.double()  # a dtype change leaves an integer count alone, as it does integer buffers
-    assert count.count.dtype == torch.long
-    losses.to("meta")
-    assert count.count.device.type == "meta" and losses.skipped.count.device.type == "meta"
-    assert not list(losses.buffers()) and not losses.state_dict()

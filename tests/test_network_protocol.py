@@ -11,9 +11,9 @@ from torch import Tensor, nn
 
 from conftest import quiet_trainer
 from mfg_lightning.models.losses import MFGLoss
-from mfg_lightning.models.mfg import MFG, MFGOutput, MotionFieldNetwork, generate_fields
+from mfg_lightning.models.mfg import ALL_UNITS, MFG, MFGOutput, MotionFieldNetwork, fields_at_each_k
 from mfg_lightning.models.mfg_module import MFGLitModule
-from mfg_lightning.run.callbacks import BatchChecks
+from mfg_lightning.run.agreed_steps import AgreedSteps
 from module_helpers import small_datamodule
 
 
@@ -24,7 +24,6 @@ class PooledEncoder(nn.Module):
     def __init__(self, height: int = 32, width: int = 64, hidden_units: int = 8) -> None:
         super().__init__()
         self.height, self.width, self.hidden_units = height, width, hidden_units
-        self.top_k: float | None = None
         self.conv = nn.Conv2d(2, hidden_units, 5, stride=4, padding=2)
         self.fields = nn.Linear(hidden_units, 2 * 2 * height * width, bias=False)
 
@@ -36,8 +35,8 @@ class PooledEncoder(nn.Module):
         v = self.fields(hidden.float()).view(-1, 2, 2, self.height, self.width)
         return v[:, 0], v[:, 1]
 
-    def forward(self, flow: Tensor, top_k: float | None = None) -> MFGOutput:
-        return generate_fields(self, flow, top_k)
+    def forward(self, flow: Tensor) -> MFGOutput:
+        return fields_at_each_k(self, flow, [ALL_UNITS])[0]
 
 
 def test_the_paper_network_has_the_named_interface() -> None:
@@ -55,7 +54,7 @@ def test_a_toy_encoder_trains_and_evaluates_through_the_interface(tmp_path) -> N
     )  # fmt: skip
     before = [p.detach().clone() for p in module.parameters()]
     trainer = quiet_trainer(
-        max_steps=3, log_every_n_steps=1, limit_val_batches=1, callbacks=[BatchChecks()],
+        max_steps=3, log_every_n_steps=1, limit_val_batches=1, callbacks=[AgreedSteps()],
         default_root_dir=tmp_path,
     )  # fmt: skip
     trainer.fit(module, datamodule=small_datamodule())

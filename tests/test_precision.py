@@ -5,11 +5,8 @@ configs: tests/test_trainer_settings.py."""
 
 from __future__ import annotations
 
-import contextlib
 import math
-from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import lightning as L
 import pytest
@@ -27,10 +24,9 @@ from mfg_lightning.data.synthetic import SyntheticDataModule
 from mfg_lightning.metrics.frame_errors import FiniteMean
 from mfg_lightning.models.losses import MFGLoss, sparsity_count
 from mfg_lightning.models.mfg import MFG, bilinear_matrix, upsample_bilinear
-from mfg_lightning.models.mfg_module import HOST_INTRINSICS, MFGLitModule, NonFiniteLossError
-from mfg_lightning.models.nonfinite import NonFiniteLosses
+from mfg_lightning.models.mfg_module import HOST_INTRINSICS, MFGLitModule
 from mfg_lightning.motion.object_motion import extract_object_motion
-from mfg_lightning.run.callbacks import BatchChecks
+from mfg_lightning.run.agreed_steps import AgreedSteps, NonFiniteLossError
 from mfg_lightning.run.checkpoints import module_from_checkpoint
 from mfg_lightning.run.precision import (
     FP16_INIT_SCALE,
@@ -38,7 +34,7 @@ from mfg_lightning.run.precision import (
     fit_grad_scaler,
 )
 from mfg_lightning.run.runs import build_model
-from module_helpers import corrupt_datamodule, read_as_on_a_gpu, small_datamodule, small_module
+from module_helpers import corrupt_datamodule, small_datamodule, small_module
 
 #: torch.autocast dtypes on the CPU: what bf16-mixed and 16-mixed run the encoder in.
 LOW = {"bf16-mixed": torch.bfloat16, "16-mixed": torch.float16}
@@ -227,32 +223,8 @@ def test_a_float32_checkpoint_evaluates_the_same_under_mixed_precision(
 
 
 # --------------------------------------------------------------------------------------------
-# No host synchronisation in the training step
+# Non-finite values in training
 # --------------------------------------------------------------------------------------------
-
-SYNCS = ("__bool__", "item", "__int__", "__float__", "tolist", "nonzero")
-
-
-@contextlib.contextmanager
-def no_host_sync() -> Iterator[None]:
-    """Every way a tensor's value reaches Python raises inside (on a GPU each would wait for
-    the device)."""
-    saved = {name: getattr(torch.Tensor, name) for name in SYNCS}
-
-    def forbidden(name: str):
-        def raiser(self, *args, **kwargs):
-            raise AssertionError(f"host synchronisation in the training step: Tensor.{name}")
-
-        return raiser
-
-    for name in SYNCS:
-        setattr(torch.Tensor, name, forbidden(name))
-    try:
-        yield
-    finally:
-        for name, method in saved.items():
-            setattr(torch.Tensor, name, method)
-
 
 #: 6 NaN pixels per sample, masked and counted by the module
 CorruptDataModule = corrupt_datamodule(slice(0, 2), slice(0, 3))
@@ -271,43 +243,16 @@ class NaNLoss(MFGLoss):
         return terms._replace(total=terms.total * float("nan")) if self.calls in self.bad else terms
 
 
-def test_patched_syncs_raise() -> None:
-    x = torch.ones(2)
-    with no_host_sync():
-        for call in (lambda: bool(x[0]), x.sum().item, lambda: int(x[0]), x.tolist, x.nonzero):
-            with pytest.raises(AssertionError, match="host synchronisation"):
-                call()
-    assert bool(x[0])
-
-
 @pytest.mark.parametrize("precision", ["32-true", "bf16-mixed"])
-def test_no_host_sync_in_the_training_step_outside_logging_steps(
-    precision: str, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """The module's training step, with masked NaN flow and a non-finite loss among its steps,
-    runs with every host read of a tensor raising, except on the logging steps (which read the
-    deferred counts). Its verdict taken for a GPU's, where a read would wait: on the CPU the
-    step reads it (``test_a_finite_cpu_step_reads_its_verdict_and_sets_no_found_inf``)."""
-    read_as_on_a_gpu(monkeypatch)
+def test_masked_flow_and_a_non_finite_loss_are_counted(precision: str) -> None:
+    """Masked NaN flow in every step and a non-finite loss among them: the flow's pixels are
+    counted, the step with the non-finite loss is skipped, and no NaN reaches the weights."""
     model = _module(NaNLoss(bad={2}))
-    step = model.training_step
-    guarded = []
-
-    def training_step(batch, batch_idx):
-        if model._writes_logs_this_step():
-            return step(batch, batch_idx)
-        guarded.append(batch_idx)
-        with no_host_sync():
-            return step(batch, batch_idx)
-
-    model.training_step = training_step
     trainer = quiet_trainer(
         max_steps=5, log_every_n_steps=5, limit_val_batches=0, precision=precision
     )
     trainer.fit(model, datamodule=_dm(CorruptDataModule))
-    assert guarded == [0, 1, 2, 0]  # 9 samples: batches of 4, 4, 1; step 5 is the logging step
-    # What the deferred counts say at the logging step: 6 NaN pixels in each of 4 + 4 + 1 + 4 + 4
-    # samples, 1 skipped step.
+    # 6 NaN pixels in each of 4 + 4 + 1 + 4 + 4 samples, 1 skipped step.
     assert float(trainer.callback_metrics["train/nonfinite_flow_pixels"]) == 6 * 17
     assert float(trainer.callback_metrics["train/skipped_steps"]) == 1
     assert all(torch.isfinite(p).all() for p in model.parameters())
@@ -344,66 +289,23 @@ def test_a_non_finite_loss_is_skipped_inside_the_fused_optimiser() -> None:
     assert not hasattr(trainer.optimizers[0], "found_inf")  # nothing left for a later step
 
 
-def _on_both_routes(monkeypatch: pytest.MonkeyPatch, train: Any) -> tuple[Any, Any]:
-    """``train()`` on the CPU's route (every step's verdict read, no ``found_inf`` for a finite
-    one), then on the device's (the verdict never read): both results."""
-    cpu = train()
-    read_as_on_a_gpu(monkeypatch)
-    return cpu, train()
-
-
-def test_a_finite_cpu_step_reads_its_verdict_and_sets_no_found_inf(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    """On the CPU a finite step's verdict is read (it waits for nothing) and the optimiser gets
-    no ``found_inf``; the non-finite step still goes to the fused optimiser's skip. The weights
-    and Adam's step counts equal the device route's (the verdict never read) bit for bit."""
-    handed = []
-    before = NonFiniteLosses.before_optimizer_step
-
-    def recording(self, optimizer):
-        handed.append(self._window_finite is not None)
-        return before(self, optimizer)
-
-    monkeypatch.setattr(NonFiniteLosses, "before_optimizer_step", recording)
-
-    def train() -> tuple[list[bool], Snapshots]:
-        handed.clear()
-        model, snaps = _module(NaNLoss(bad={2})), Snapshots()
-        quiet_trainer(max_steps=3, limit_val_batches=0, callbacks=[snaps]).fit(
-            model, datamodule=_dm()
-        )
-        return list(handed), snaps
-
-    (cpu_handed, cpu), (device_handed, device) = _on_both_routes(monkeypatch, train)
-    assert cpu_handed == [False, True, False]  # found_inf only for the NaN step
-    assert device_handed == [True, True, True]
-    assert cpu.steps == device.steps == [1.0, 1.0, 2.0]
-    for a, b in zip(cpu.weights, device.weights, strict=True):
-        assert all(torch.equal(p, q) for p, q in zip(a, b, strict=True))
-
-
-def test_an_accumulated_step_skips_alike_on_both_routes(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Two micro-batches per optimiser step, the first one's loss NaN, the second finite: on the
-    CPU route the finite one reads its verdict and leaves the first one's ``found_inf`` standing,
-    so the step is skipped as on the device route; weights, Adam's step counts and the skip
-    counts equal bit for bit."""
-
-    def train() -> tuple[Snapshots, tuple[int, int]]:
-        model, snaps = _module(NaNLoss(bad={1})), Snapshots()
-        trainer = quiet_trainer(
-            max_steps=2, limit_val_batches=0, callbacks=[snaps], accumulate_grad_batches=2
-        )
-        trainer.fit(model, datamodule=_dm())
-        return snaps, (int(model.nonfinite.skipped.count), int(model.nonfinite.consecutive.count))
-
-    (cpu, cpu_counts), (device, device_counts) = _on_both_routes(monkeypatch, train)
-    assert cpu_counts == device_counts == (1, 0)
+def test_an_accumulated_step_with_a_non_finite_micro_batch_is_skipped() -> None:
+    """Two micro-batches per optimiser step, the first one's loss NaN, the second finite: the
+    optimiser step is skipped (weights and Adam's step count untouched), the next one taken."""
+    model, snaps = _module(NaNLoss(bad={1})), Snapshots()
+    steps = AgreedSteps()
+    trainer = quiet_trainer(
+        max_steps=2, limit_val_batches=0, callbacks=[snaps, steps], accumulate_grad_batches=2
+    )
+    trainer.fit(model, datamodule=_dm())
+    assert (steps.skipped, steps.consecutive) == (1, 0)
     # Snapshots sees every micro-batch (an epoch of 3: the last one steps alone): the first
     # optimiser step (batches 1-2) was skipped, the second taken
-    assert cpu.steps == device.steps == [0.0, 0.0, 1.0]
-    for a, b in zip(cpu.weights, device.weights, strict=True):
-        assert all(torch.equal(p, q) for p, q in zip(a, b, strict=True))
+    assert snaps.steps == [0.0, 0.0, 1.0]
+    assert all(torch.equal(p, q) for p, q in zip(snaps.weights[0], snaps.weights[1], strict=True))
+    assert not any(
+        torch.equal(p, q) for p, q in zip(snaps.weights[1], snaps.weights[2], strict=True)
+    )
 
 
 def test_persistent_non_finite_losses_stop_the_run_at_a_logging_step() -> None:
@@ -430,18 +332,15 @@ def _batch(bad_pose: bool = False) -> dict:
     return batch
 
 
-def test_deferred_batch_checks_refuse_a_bad_batch_later_naming_it() -> None:
-    """On an accelerator the value checks are read when their copy has landed (here: the CPU
-    stands in for it); the batch is still refused, by its own sample ids."""
-    checks = BatchChecks(deferred=True, check_every=10)
-    model = _module()
+def test_batch_checks_refuse_a_bad_batch_naming_it() -> None:
+    """A training batch with a non-finite pose is refused at the start of its step, by its own
+    sample ids; a good one passes."""
+    model, steps = _module(), AgreedSteps()
+    one_process = quiet_trainer()
     bad = _batch(bad_pose=True)
-    checks.on_train_batch_start(None, model, bad, 0)  # not read yet on an accelerator...
     with pytest.raises(SampleError, match=rf"{bad['sample_id'][1]}: 'pose' has non-finite"):
-        checks.on_train_batch_start(None, model, _batch(), 1)  # ...but by the next batch
-    # Not deferred: at once, as before.
-    with pytest.raises(SampleError, match="'pose' has non-finite"):
-        BatchChecks().on_train_batch_start(None, model, bad, 0)
+        steps.on_train_batch_start(one_process, model, bad, 0)
+    steps.on_train_batch_start(one_process, model, _batch(), 1)
 
 
 def test_the_batch_keeps_its_host_intrinsics_on_another_device() -> None:

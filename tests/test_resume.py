@@ -232,7 +232,7 @@ def test_sigterm_saves_a_checkpoint_of_the_current_step_and_resume_continues_exa
     # then the checkpoint was saved (not the periodic one of step 8), readable by evaluation.
     saved = _ckpt(run / "checkpoints" / "last.ckpt")
     assert saved["global_step"] == PAUSE_AT + 1
-    assert saved["mfg_model_config"]["net"]["hidden_units"] == 64
+    assert saved["hyper_parameters"]["model_config"]["net"]["hidden_units"] == 64
     assert not list((run / "checkpoints").glob(".*.tmp"))
 
     # resume=true picks up last.ckpt by itself (a requeued job with the same run directory).

@@ -15,7 +15,7 @@ from mfg_lightning.data.base import collate_samples
 from mfg_lightning.data.sample import model_inputs
 from mfg_lightning.run.runs import build_model
 
-KS = [None, 0.5, 0.1, 0.02]
+KS = [1.0, 0.5, 0.1, 0.02]
 
 
 @pytest.fixture(scope="module")

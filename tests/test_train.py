@@ -71,7 +71,7 @@ def test_short_training_writes_a_complete_run_directory(tmp_path: Path) -> None:
     assert "_hparams_/session_start_info" in tags
     # The checkpoint carries the model config, so it can be rebuilt without the run directory.
     ckpt = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False, map_location="cpu")
-    assert ckpt["mfg_model_config"]["net"]["hidden_units"] == 64
+    assert ckpt["hyper_parameters"]["model_config"]["net"]["hidden_units"] == 64
 
 
 def test_help_lists_the_config_groups(tmp_path: Path) -> None:

@@ -22,6 +22,7 @@ from mfg_lightning.run.checkpoints import (
     dataset_config,
     load_checkpoint,
     model_size,
+    stored_model_config,
 )
 from mfg_lightning.run.runs import checkpoint_datamodule
 
@@ -40,7 +41,7 @@ def main(cfg: DictConfig) -> None:
     ckpt = load_checkpoint(cfg.ckpt_path)
     # The run directory's config.yaml is read only when no dataset is given.
     stored = None if cfg.get("dataset") is not None else dataset_config(ckpt, cfg.ckpt_path)
-    size = model_size(ckpt["mfg_model_config"])
+    size = model_size(stored_model_config(ckpt) or {})
     datamodule = checkpoint_datamodule(cfg.get("dataset"), stored, cfg.ckpt_path, size)
     module = build_module(ckpt, cfg.ckpt_path)
     summary = analyze(

@@ -321,7 +321,7 @@ def analyze(
             "hidden_units": net.hidden_units,
             "height": net.height,
             "width": net.width,
-            "top_k": net.top_k,
+            "top_k": module.top_k,
         },
         "intrinsics": dict(zip(("fx", "fy", "cx", "cy"), intrinsics.tolist(), strict=True)),
         "n_units_listed": n_listed,

@@ -20,7 +20,7 @@ from omegaconf import DictConfig
 
 from mfg_lightning.analysis.result_tables import object_motion_table, sequence_table, top_k_table
 from mfg_lightning.core.atomic import atomic_write_bytes
-from mfg_lightning.core.tables import Table
+from mfg_lightning.core.tables import Table, finite_or_none
 from mfg_lightning.metrics.alignment import configured_align
 from mfg_lightning.metrics.ate_traj import aligned_trajectory_metrics
 from mfg_lightning.metrics.evaluator import EvaluationResult
@@ -40,7 +40,7 @@ TaskResult = tuple[dict[str, Any], Table, dict[str, Any]]
 
 def build(cfg: DictConfig) -> tuple[MFGLitModule, L.LightningDataModule, L.Trainer]:
     """The model from the checkpoint, the dataset (given, or the checkpoint's), the Trainer."""
-    model = module_from_checkpoint(cfg.ckpt_path, top_k=validate_top_k(cfg.model.get("top_k")))
+    model = module_from_checkpoint(cfg.ckpt_path, top_k=validate_top_k(cfg.model.top_k))
     datamodule = runs.checkpoint_datamodule(
         cfg.get("dataset"), model.dataset_config, cfg.ckpt_path, eval_batch_size=cfg.eval.batch_size
     )
@@ -63,17 +63,18 @@ def evaluate_egomotion(
     keys for ``metrics.json`` and the table to print (the sweep's, else the sequences')."""
     align = configured_align(cfg.eval.get("align"), "eval.align")
     out, extra = Path(cfg.paths.output_dir), {"eval_align": align}
-    sweep = list(cfg.eval.top_k_sweep) if cfg.eval.get("top_k_sweep") else [model.net.top_k]
+    given = cfg.eval.get("top_k_sweep")
+    sweep = [validate_top_k(k, "eval.top_k_sweep") for k in given] if given else [model.top_k]
+    # every k from one pass of the encoder per batch (MFGLitModule.test_at)
+    model.test_at(sweep)
+    trainer.test(model, datamodule=datamodule, verbose=len(sweep) == 1)
     results: dict[float, dict[str, Any]] = {}  # k → test metrics
     evaluations: dict[float, EvaluationResult | None] = {}  # k → per-sequence trajectories
     for k in sweep:
-        model.net.top_k = validate_top_k(k)
-        trainer.test(model, datamodule=datamodule, verbose=len(sweep) == 1)
-        key = 1.0 if k is None else float(k)
-        results[key] = runs.test_metrics(trainer)
-        evaluations[key] = model.last_evaluation.get("test")
-        results[key].update(aligned_metrics(evaluations[key], align))
-        log.info("top_k=%s: ATE %s m", k, results[key].get("test/ate"))
+        metrics, evaluations[k] = model.test_results[k]
+        results[k] = {name: finite_or_none(v) for name, v in metrics.items()}
+        results[k].update(aligned_metrics(evaluations[k], align))
+        log.info("top_k=%s: ATE %s m", k, results[k].get("test/ate"))
     # Everything is computed; only now are files written (each atomically). metrics.json, the
     # sequence table and the pose files all describe the full model (k = 1) when the sweep has
     # it, else its largest k: never whichever k happened to run last.

@@ -69,42 +69,36 @@ class Method:
     coverage: list[float] = field(default_factory=list)
 
 
-def mfg_method(model: Any, top_k: float | None) -> Predict:
+def mfg_method(model: Any, top_k: float) -> Predict:
     """MFG (a :class:`~mfg_lightning.models.mfg_module.MFGLitModule` in evaluation mode) keeping
-    the ``top_k`` fraction of its most active hidden units (None: all), in inference mode: the
+    the ``top_k`` fraction of its most active hidden units (1.0: all), in inference mode: the
     motion of ``model.predict_motion(flow, K, top_k=top_k)``."""
     return mfg_top_k_methods(model, [top_k])[0]
 
 
-def mfg_top_k_methods(model: Any, top_ks: Iterable[float | None]) -> list[Predict]:
-    """:func:`mfg_method` at every ``top_k`` of ``top_ks``, sharing one encoder pass per batch:
-    the first of them to see a batch encodes it, the others reuse its hidden activations (top-k
-    only changes which units reach the decoders). The predictions are those of
-    :func:`mfg_method`; the encoder's time is counted in the first method's seconds."""
-    from mfg_lightning.models.mfg import MotionFieldNetwork, keep_top_k, validate_top_k
+def mfg_top_k_methods(model: Any, top_ks: Iterable[float]) -> list[Predict]:
+    """:func:`mfg_method` at every ``top_k`` of ``top_ks`` (validated fractions): the first of
+    them to see a batch computes the fields of every k from one pass of the encoder
+    (``model.fields``), the others take theirs. The encoder's and every decoder's time is
+    counted in the first method's seconds."""
+    ks = tuple(top_ks)
+    last: dict[str, Any] = {"batch": None, "motions": None}
 
-    net: MotionFieldNetwork = model.net
-    last: dict[str, Any] = {"batch": None, "hidden": None}
-
-    def hidden_of(batch: dict) -> Tensor:
-        if net.training:  # top-k is an evaluation-time setting (MFG.forward skips it in training)
+    def motions_of(batch: dict) -> list[tuple[Tensor, Tensor]]:
+        if model.training:
             raise ValueError("MFG scoring: put the model in evaluation mode (model.eval())")
         if last["batch"] is not batch:
-            flow = model_inputs(batch).flow
-            last["hidden"], last["batch"] = net.encode(flow)[0], batch
-        return last["hidden"]
-
-    def at(top_k: float | None) -> Predict:
-        k = validate_top_k(top_k)
-
-        def run(batch: dict) -> tuple[Tensor, Tensor]:
             with torch.inference_mode():
-                v_t, v_w = net.decode(keep_top_k(hidden_of(batch), k))
-                return geometry.recover_motion(v_t, v_w, batch["intrinsics"])
+                outs = model.fields(model_inputs(batch).flow, ks)
+                motions = [geometry.recover_motion(o.v_t, o.v_omega, batch["intrinsics"])
+                           for o in outs]  # fmt: skip
+            last["batch"], last["motions"] = batch, motions
+        return last["motions"]
 
-        return run
+    def at(i: int) -> Predict:
+        return lambda batch: motions_of(batch)[i]
 
-    return [at(k) for k in top_ks]
+    return [at(i) for i in range(len(ks))]
 
 
 def _gt_norm(batch: dict) -> Tensor:

@@ -268,9 +268,8 @@ def check_batch(
     finiteness test of the ``B × 16`` pose and ``B × 4`` intrinsics numbers, and of depth and
     object flow when present). Non-finite *flow* is not an error: :func:`sanitize_flow` masks it.
     It is :func:`check_batch_layout` (no tensor value is read) followed by
-    :func:`raise_on_bad_values` of :func:`batch_value_flags` (one read of ``5 × B`` flags), the
-    two halves a caller on an accelerator runs apart (:class:`mfg_lightning.run.callbacks.
-    BatchChecks`).
+    :func:`raise_on_bad_values` of :func:`batch_value_flags` (one read of ``5 × B`` flags); a
+    run checks every batch so (:class:`mfg_lightning.run.agreed_steps.AgreedSteps`).
 
     Args:
         batch: ``default_collate`` of samples (``flow`` ``(B, 2, H, W)``, ``flow_valid``

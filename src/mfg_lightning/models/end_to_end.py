@@ -106,7 +106,8 @@ def load_mfg_weights(net: nn.Module, path: str | Path) -> None:
         raise ValueError(f"model.mfg_checkpoint={path}: unreadable ({first})") from None
     state = ckpt.get("state_dict") if isinstance(ckpt, dict) else None
     weights = {k[4:]: v for k, v in (state or {}).items() if k.startswith("net.")}
-    if not weights or "mfg_model_config" not in ckpt:
+    hparams = ckpt.get("hyper_parameters") or {}
+    if not weights or ("model_config" not in hparams and "mfg_model_config" not in ckpt):
         raise ValueError(f"model.mfg_checkpoint={path}: not a checkpoint of an MFG training")
     try:
         net.load_state_dict(weights)
@@ -246,12 +247,10 @@ class EndToEndLitModule(MFGLitModule):
 
     # -- steps -------------------------------------------------------------------------------
 
-    def training_step(
-        self, batch: dict[str, Any] | None, batch_idx: int
-    ) -> Tensor | dict[str, Any] | None:
+    def training_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor | dict[str, Any]:
         result = super().training_step(batch, batch_idx)
         step, self._step_flow = self._step_flow, None
-        if result is not None and step is not None and self._writes_logs_this_step():
+        if step is not None:
             values = {
                 "train/flow_epe": _mean_epe(step.full.detach(), step.target),
                 "train/flow_frozen": float(self.flow_frozen()),
@@ -332,12 +331,12 @@ class EndToEndLitModule(MFGLitModule):
         # flow.weights=<this checkpoint> reads the fine-tuned network (flow.learned.load_weights)
         checkpoint["flow_net_config"] = config
         checkpoint["flow_net_prefix"] = FLOW_NET_PREFIX
-        stored = checkpoint.get("mfg_model_config")
+        hparams = checkpoint.get("hyper_parameters") or {}
+        stored = hparams.get("model_config")
         if stored is not None:
             # rebuilt from the checkpoint alone: the network's shape, no start files to read
-            checkpoint["mfg_model_config"] = {
-                **stored, "flow_net": config, "flow_weights": None, "mfg_checkpoint": None,
-            }  # fmt: skip
+            stored = {**stored, "flow_net": config, "flow_weights": None, "mfg_checkpoint": None}
+            checkpoint["hyper_parameters"] = {**hparams, "model_config": stored}
 
 
 def _mean_epe(flow: Tensor, target: Tensor) -> Tensor:

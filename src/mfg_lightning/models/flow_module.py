@@ -10,8 +10,8 @@ run's seed, the process's rank and the step (:meth:`FlowLitModule.augmentation_g
 from torch's global one: a run resumed from a checkpoint draws what the uninterrupted run drew
 (nothing to save: the step is in the checkpoint), and each DDP process draws its own.
 
-Faults (a non-finite loss, SIGTERM, Ctrl-C, a refused batch) are handled as in ``train``'s
-module, by every DDP process together (:class:`~mfg_lightning.models.agreement.AgreedSteps`).
+Faults (a non-finite loss, SIGTERM, Ctrl-C) are handled as for ``train``'s module, by every DDP
+process together: the run's :class:`~mfg_lightning.run.agreed_steps.AgreedSteps` callback.
 
 Validation: the flow at the input size (:meth:`PWCFlowNet.estimate`: the finest level upsampled)
 against the exact flow, pooled pixel by pixel over the split, by offset and by region:
@@ -41,7 +41,7 @@ from mfg_lightning.metrics.flow_quality import (
     PooledFlowQuality,
     region_codes,
 )
-from mfg_lightning.models.agreement import AgreedSteps, reduced_epoch_logs
+from mfg_lightning.models.epoch_logs import reduced_epoch_logs
 
 __all__ = [
     "MAX_OFFSET",
@@ -92,7 +92,7 @@ def endpoint_error(flow: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return torch.linalg.vector_norm(flow.float() - target.float(), dim=1)
 
 
-class FlowLitModule(AgreedSteps, L.LightningModule):
+class FlowLitModule(L.LightningModule):
     """Trains a :class:`PWCFlowNet`.
 
     Args:
@@ -107,8 +107,10 @@ class FlowLitModule(AgreedSteps, L.LightningModule):
         image_log_every_n_steps: how often a training step hands its pairs to the figures
             callback (0: never).
         seed: the run's seed, from which the augmentation's draws are derived.
-        max_consecutive_nonfinite: stop after this many non-finite losses in a row
-            (:class:`~mfg_lightning.models.agreement.AgreedSteps`).
+        max_consecutive_nonfinite: stop after this many non-finite losses in a row; read by
+            the run's :class:`~mfg_lightning.run.agreed_steps.AgreedSteps`.
+        model_config: the resolved ``model`` config this module was built from (plain data,
+            saved with the hyperparameters; :func:`mfg_lightning.run.runs.build_model`).
     """
 
     def __init__(
@@ -122,9 +124,10 @@ class FlowLitModule(AgreedSteps, L.LightningModule):
         image_log_every_n_steps: int = 500,
         seed: int = 0,
         max_consecutive_nonfinite: int = 20,
+        model_config: dict[str, Any] | None = None,
     ) -> None:
         super().__init__()
-        self.init_agreed_steps(max_consecutive_nonfinite)  # skip, stop and fail together
+        self.save_hyperparameters("max_consecutive_nonfinite", "model_config", logger=False)
         self.seed = int(seed)
         self.config: PWCConfig = config_from(net)
         self.net = PWCFlowNet(self.config)
@@ -206,18 +209,10 @@ class FlowLitModule(AgreedSteps, L.LightningModule):
         """:func:`multiscale_loss` with this module's level weights."""
         return multiscale_loss(flows, target, self.level_weights)
 
-    def training_step(self, batch: dict[str, Any] | None, batch_idx: int) -> torch.Tensor | None:
-        if batch is None:  # one process: Lightning skips a None batch itself; a direct call
-            return None
-        fused = self.skips_in_the_optimiser()
-        if self.without_samples(batch):  # DDP: no usable sample here, the others' step goes on
-            return self.step_without_samples(fused)
+    def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor:
         image0, image1, flow = self._augmented(batch, self.augmentation_generator(batch_idx))
         flows = self.net(image0, image1)
         loss, per_level = self.multiscale_loss(flows, flow)
-        ids = ", ".join(str(i) for i in list(batch.get("sample_id", []))[:4])
-        if not self.agree_on_loss(loss, ids, fused):  # under DDP: the step's one collective
-            return self.skipped()
         # this process's values, not reduced (a reduction would be a collective every step)
         self.log("train/loss", loss, prog_bar=False)
         self.log("train/epe", per_level[-1])

@@ -80,14 +80,11 @@ class MotionFieldNetwork(Protocol):
     Attributes:
         height, width: the input flow's resolution, pixels.
         hidden_units: M, the number of hidden units.
-        top_k: the fraction of hidden units kept at evaluation (None: all); the training module
-            sets it.
     """
 
     height: int
     width: int
     hidden_units: int
-    top_k: float | None
 
     def encode(self, flow: Tensor) -> tuple[Tensor, Tensor]:
         """``(B, 2, H, W)`` flow, pixels → hidden ``(B, M)`` (before top-k) and the hidden map
@@ -98,19 +95,32 @@ class MotionFieldNetwork(Protocol):
         """Hidden ``(B, M)`` → ``(v_t, v_ω)``, each ``(B, 2, H, W)`` pixels, float32."""
         ...
 
-    def __call__(self, flow: Tensor, top_k: float | None = None) -> MFGOutput:
-        """:func:`generate_fields` for this network."""
+    def __call__(self, flow: Tensor) -> MFGOutput:
+        """Encode and decode every unit: :func:`fields_at_each_k` at ``[ALL_UNITS]``."""
         ...
 
 
-def generate_fields(net: MotionFieldNetwork, flow: Tensor, top_k: float | None = None) -> MFGOutput:
-    """Encode, keep the top-k units (evaluation mode only: ``top_k``, else ``net.top_k``) and
-    decode: a :class:`MotionFieldNetwork`'s forward pass. Flow ``(B, 2, H, W)`` pixels."""
+def fields_at_each_k(net: MotionFieldNetwork, flow: Tensor, ks: Sequence[float]) -> list[MFGOutput]:
+    """The fields a network generates keeping the ``k`` fraction of its most active hidden units,
+    for every ``k`` of ``ks``: one pass of the encoder, then :func:`keep_top_k` and the decoders
+    for each ``k``. The one implementation of top-k, used by validation, test, ``evaluate`` and
+    the study.
+
+    Args:
+        net: the network.
+        flow: ``(B, 2, H, W)`` pixels.
+        ks: fractions in (0, 1] (:func:`validate_top_k`); :data:`ALL_UNITS` keeps every unit.
+
+    Returns:
+        One :class:`MFGOutput` per ``k``, its ``hidden`` after top-k.
+    """
     hidden, hidden_map = net.encode(flow)
-    if not net.training:  # type: ignore[attr-defined]
-        hidden = keep_top_k(hidden, validate_top_k(top_k) if top_k is not None else net.top_k)
-    v_t, v_omega = net.decode(hidden)
-    return MFGOutput(v_t, v_omega, hidden, hidden_map)
+    outputs = []
+    for k in ks:
+        kept = keep_top_k(hidden, k)
+        v_t, v_omega = net.decode(kept)
+        outputs.append(MFGOutput(v_t, v_omega, kept, hidden_map))
+    return outputs
 
 
 def input_size(net: MotionFieldNetwork) -> tuple[int, int]:
@@ -118,19 +128,26 @@ def input_size(net: MotionFieldNetwork) -> tuple[int, int]:
     return net.height, net.width
 
 
-def validate_top_k(top_k: float | None) -> float | None:
-    """Check a top-k fraction: None (keep all) or a number in (0, 1]."""
-    if top_k is None:
-        return None
+#: The top-k fraction that keeps every hidden unit: the one way to say "all units".
+ALL_UNITS = 1.0
+
+
+def validate_top_k(top_k: float, key: str = "model.top_k") -> float:
+    """Check a top-k fraction read from the config ``key``: a number in (0, 1], where
+    :data:`ALL_UNITS` (1.0) keeps every unit."""
+    if isinstance(top_k, bool) or not isinstance(top_k, (int, float)):
+        raise ValueError(
+            f"{key} must be a fraction in (0, 1] of hidden units (1.0: all), got {top_k!r}"
+        )
     top_k = float(top_k)
     if not (0.0 < top_k <= 1.0) or math.isnan(top_k):
         raise ValueError(
-            f"model.top_k must be a fraction in (0, 1] of hidden units (or null), got {top_k}"
+            f"{key} must be a fraction in (0, 1] of hidden units (1.0: all), got {top_k}"
         )
     return top_k
 
 
-def keep_top_k(hidden: Tensor, top_k: float | None) -> Tensor:
+def keep_top_k(hidden: Tensor, top_k: float) -> Tensor:
     """Keep the ``top_k`` fraction of most active units of each input, zero the rest.
 
     The paper's sparsity evaluation (section 5.3): ``k = max(1, round(top_k · M))`` units per
@@ -138,9 +155,9 @@ def keep_top_k(hidden: Tensor, top_k: float | None) -> Tensor:
 
     Args:
         hidden: ``(B, M)`` activations.
-        top_k: fraction in (0, 1] or None (identity).
+        top_k: fraction in (0, 1]; :data:`ALL_UNITS` is the identity.
     """
-    if top_k is None or top_k >= 1.0:
+    if top_k >= ALL_UNITS:
         return hidden
     k = max(1, round(top_k * hidden.shape[1]))
     idx = hidden.topk(k, dim=1).indices
@@ -208,7 +225,6 @@ class MFG(nn.Module):
         strides: stride of every block, hidden block included.
         double_blocks: how many leading blocks have two convolutions (the second has stride 1).
         decoder_scale: resolution of the decoded fields relative to the input (paper: 0.5).
-        top_k: fraction of hidden units kept at evaluation (None: all). Training is unaffected.
         init: ``"torch"``: PyTorch's default initialisation of the convolutions; ``"xavier"``:
             ``xavier_uniform_`` weights and zero biases, as the authors' released code
             (hkashyap/SparseMotion) initialises every convolution.
@@ -237,7 +253,6 @@ class MFG(nn.Module):
         strides: Sequence[int] = (2, 2, 2, 2, 2, 1),
         double_blocks: int = 2,
         decoder_scale: float = 0.5,
-        top_k: float | None = None,
         init: str = "xavier",
         align_corners: bool = True,
         input_scale: float = 1.0,
@@ -263,7 +278,6 @@ class MFG(nn.Module):
         self.hidden_units = hidden_units
         self.align_corners = bool(align_corners)
         self.input_scale = float(input_scale)
-        self.top_k = validate_top_k(top_k)
         layers: list[nn.Module] = []
         c_in = 2
         for i, (c_out, k, s) in enumerate(
@@ -315,9 +329,7 @@ class MFG(nn.Module):
         eye = torch.eye(self.hidden_units, device=self.decoder_t.weight.device)
         return self.decode(eye)
 
-    def forward(self, flow: Tensor, top_k: float | None = None) -> MFGOutput:
-        """Flow ``(B, 2, H, W)`` in pixels → :class:`MFGOutput`.
-
-        Top-k (``top_k`` argument, else ``self.top_k``) applies in evaluation mode only.
-        """
-        return generate_fields(self, flow, top_k)
+    def forward(self, flow: Tensor) -> MFGOutput:
+        """Flow ``(B, 2, H, W)`` in pixels → :class:`MFGOutput` of every unit (top-k is an
+        evaluation setting: :func:`fields_at_each_k`)."""
+        return fields_at_each_k(self, flow, [ALL_UNITS])[0]

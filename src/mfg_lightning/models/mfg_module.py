@@ -6,19 +6,13 @@ relative pose with :mod:`mfg_lightning.core.geometry`, and the network is fit wi
 the predicted fields are turned into ``(t̃, ω̃)`` in closed form and scored by one
 :class:`mfg_lightning.metrics.motion_eval.MotionEvaluation` per stage.
 
-Elsewhere: the precision rules (``trainer.precision``, the ``16-mixed`` GradScaler) are trainer
-settings (:mod:`mfg_lightning.run.precision`); what a step skips (a non-finite loss, no usable
-sample) and whether the run stops or fails is decided by every process together
-(:class:`mfg_lightning.models.agreement.AgreedSteps`); the pictures are drawn by the figure
-callback (:mod:`mfg_lightning.run.figures`) from the fields the steps hand out
+Like Lightning's own examples, the module computes and logs; the run does the rest. The
+precision rules (``trainer.precision``, the ``16-mixed`` GradScaler) are trainer settings
+(:mod:`mfg_lightning.run.precision`). What a step skips (a non-finite loss, no usable sample),
+the batch checks, and whether the run stops or fails are decided by every process together in
+the run's :class:`mfg_lightning.run.agreed_steps.AgreedSteps` callback. The pictures are drawn
+by the figure callback (:mod:`mfg_lightning.run.figures`) from the fields the steps hand out
 (:class:`StepFields`).
-
-No host synchronisation in a training step outside the logging steps: counts (masked flow pixels,
-skipped steps) stay tensors on the device and are read when they are logged (under DDP on an
-accelerator, the agreed stop and fail flags are read at the logging steps too;
-tests/test_host_waits.py counts every read and collective of the steps, Lightning's included).
-Evaluation batches have none either (the SVD of the per-frame errors may wait for cuSOLVER's error
-check).
 """
 
 from __future__ import annotations
@@ -36,14 +30,20 @@ from mfg_lightning.data import sample as keys
 from mfg_lightning.data.sample import INTRINSICS_HOST, model_inputs
 from mfg_lightning.metrics.evaluator import EvaluationResult
 from mfg_lightning.metrics.motion_eval import MotionEvaluation, ObjectInputs
-from mfg_lightning.models.agreement import AgreedSteps, logging_step, reduced_epoch_logs
+from mfg_lightning.models.epoch_logs import reduced_epoch_logs
 from mfg_lightning.models.losses import LossTerms, MFGLoss
-from mfg_lightning.models.mfg import MFGOutput, MotionFieldNetwork, StepFields, validate_top_k
-from mfg_lightning.models.nonfinite import DeferredCounts, NonFiniteLossError, StepCount
+from mfg_lightning.models.mfg import (
+    ALL_UNITS,
+    MFGOutput,
+    MotionFieldNetwork,
+    StepFields,
+    fields_at_each_k,
+    validate_top_k,
+)
 from mfg_lightning.models.optim import checked_scheduler, optimizers
 from mfg_lightning.motion.object_motion import ObjectMotionConfig
 
-__all__ = ["HOST_INTRINSICS", "MFGLitModule", "NonFiniteLossError", "StepFields"]
+__all__ = ["HOST_INTRINSICS", "MFGLitModule", "StepFields"]
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +52,7 @@ HOST_INTRINSICS = INTRINSICS_HOST
 STAGES = ("val", "test")
 
 
-class MFGLitModule(AgreedSteps, L.LightningModule):
+class MFGLitModule(L.LightningModule):
     """MFG with its loss, optimiser and evaluation.
 
     Args:
@@ -61,18 +61,22 @@ class MFGLitModule(AgreedSteps, L.LightningModule):
         optimizer: a partial optimiser constructor taking the parameters
             (paper: Adam, lr 1e-5, betas (0.99, 0.999)).
         scheduler: optional partial LR-scheduler constructor taking the optimiser.
-        top_k: fraction of hidden units kept at evaluation (None: all); overrides ``net.top_k``.
+        top_k: the fraction of hidden units kept at validation and test (``model.top_k``;
+            1.0: all). Training uses every unit.
         image_log_every_n_steps: every how many training steps the step hands its fields to
-            the figure callback, which draws them; validation steps hand theirs at every
-            validation. 0: never (no field or basis figures).
-        max_consecutive_nonfinite: stop after this many non-finite losses in a row
-            (:class:`~mfg_lightning.models.agreement.AgreedSteps`).
+            the figure callback; validation steps hand theirs at every validation. 0: never.
+        max_consecutive_nonfinite: stop after this many non-finite losses in a row; read by
+            the run's :class:`~mfg_lightning.run.agreed_steps.AgreedSteps`.
         object_motion: object-motion filter parameters; when set, validation and test on
             batches that carry depth and a ground-truth object mask also score the extracted
             object motion (``<stage>/object/*``) and the plain-threshold baseline
             (``<stage>/object_baseline/*``). None disables it.
         fp16_init_scale: the initial GradScaler scale under ``trainer.precision=16-mixed``, read
             by :class:`mfg_lightning.run.precision.PrecisionSetup`; None: its measured default.
+        model_config: the resolved ``model`` config this module was built from (plain data),
+            saved with the hyperparameters: a checkpoint records it, and
+            :mod:`mfg_lightning.run.checkpoints` rebuilds the module from it without the run
+            directory (:func:`mfg_lightning.run.runs.build_model` passes it).
     """
 
     def __init__(
@@ -81,11 +85,12 @@ class MFGLitModule(AgreedSteps, L.LightningModule):
         loss: MFGLoss,
         optimizer: Callable[..., torch.optim.Optimizer],
         scheduler: Callable[..., Any] | None = None,
-        top_k: float | None = None,
+        top_k: float = ALL_UNITS,
         image_log_every_n_steps: int = 200,
         max_consecutive_nonfinite: int = 20,
         object_motion: ObjectMotionConfig | None = None,
         fp16_init_scale: float | None = None,
+        model_config: dict[str, Any] | None = None,
     ) -> None:
         super().__init__()
         # Plain values only: the optimiser and scheduler partials would make every checkpoint
@@ -93,29 +98,17 @@ class MFGLitModule(AgreedSteps, L.LightningModule):
         self.save_hyperparameters(
             ignore=["net", "loss", "object_motion", "optimizer", "scheduler"], logger=False
         )
-        if net.top_k is not None:
-            # One knob: the module's top_k is what evaluation, sweeps and checkpoints use.
-            raise ValueError(
-                f"model.net.top_k={net.top_k} is not a setting of the training module: set "
-                "model.top_k instead (it applies to the network at evaluation)"
-            )
         if fp16_init_scale is not None and not (fp16_init_scale > 0):
             raise ValueError(f"model.fp16_init_scale must be positive, got {fp16_init_scale}")
         self.net = net
         self.loss_fn = loss
-        self.net.top_k = validate_top_k(top_k)
+        self.top_k = validate_top_k(top_k)
         self.optimizer_factory = optimizer
         self.scheduler_factory = checked_scheduler(scheduler)
         self.image_log_every_n_steps = image_log_every_n_steps
-        self.fp16_init_scale = fp16_init_scale
         self.object_motion = object_motion
-        self.init_agreed_steps(max_consecutive_nonfinite)  # skip, stop and fail together
-        #: non-finite input-flow pixels masked in training so far (summed across processes)
-        self.masked_flow_pixels = StepCount()
-        self._flow_warnings = {s: DeferredCounts() for s in ("train", *STAGES)}
-        #: the model's config, set by the entry point and stored in checkpoints so that
-        #: :mod:`mfg_lightning.run.checkpoints` can rebuild the network without the run directory.
-        self.model_config: dict | None = None
+        #: non-finite input-flow pixels masked in training so far (this process's)
+        self.masked_flow_pixels = 0
         #: the training dataset's config, stored in checkpoints for evaluation defaults
         self.dataset_config: dict | None = None
         # The training set's mean motion, the 'always predict the mean' baseline
@@ -123,24 +116,42 @@ class MFGLitModule(AgreedSteps, L.LightningModule):
         self.register_buffer("mean_t", torch.zeros(3))
         self.register_buffer("mean_omega", torch.zeros(3))
         self.register_buffer("has_mean_motion", torch.tensor(False))
-        self._baseline: tuple[Tensor, Tensor] | None = None
-        self.evaluation = nn.ModuleDict({s: MotionEvaluation(object_motion) for s in STAGES})
+        #: the top-k fractions each stage scores, and one evaluation of each (:meth:`test_at`)
+        self.top_ks = {"val": (self.top_k,), "test": (self.top_k,)}
+        self.evaluation = nn.ModuleDict(
+            {s: nn.ModuleList([MotionEvaluation(object_motion)]) for s in STAGES}
+        )
         #: the last epoch's trajectory evaluation per stage (evaluate.py writes its poses)
         self.last_evaluation: dict[str, EvaluationResult] = {}
+        #: the last test's ``test/`` metrics and trajectory evaluation of each of its top_ks
+        self.test_results: dict[float, tuple[dict[str, float], EvaluationResult | None]] = {}
 
-    # -- model -------------------------------------------------------------------------------
+    def forward(self, flow: Tensor) -> MFGOutput:
+        """Flow ``(B, 2, H, W)`` pixels → :class:`MFGOutput`: every unit in training, the
+        ``top_k`` most active in evaluation."""
+        return self.net(flow) if self.training else self.fields(flow)[0]
 
-    def forward(self, flow: Tensor, top_k: float | None = None) -> MFGOutput:
-        """Flow ``(B, 2, H, W)`` pixels → :class:`MFGOutput`."""
-        return self.net(flow, top_k=top_k)
+    def fields(self, flow: Tensor, ks: tuple[float, ...] | None = None) -> list[MFGOutput]:
+        """The fields at every top-k fraction of ``ks`` (None: ``(top_k,)``), one pass of the
+        encoder (:func:`~mfg_lightning.models.mfg.fields_at_each_k`)."""
+        return fields_at_each_k(self.net, flow, (self.top_k,) if ks is None else ks)
 
     def predict_motion(
         self, flow: Tensor, intrinsics: Tensor, top_k: float | None = None
     ) -> tuple[Tensor, Tensor, MFGOutput]:
-        """Flow → egomotion ``(t̃, ω̃)`` ``(B, 3)`` each, plus the raw network output."""
-        out = self(flow, top_k=top_k)
+        """Flow → egomotion ``(t̃, ω̃)`` ``(B, 3)`` each at ``top_k`` (None: the module's), plus
+        the network output."""
+        (out,) = self.fields(flow, None if top_k is None else (top_k,))
         t, w = geometry.recover_motion(out.v_t, out.v_omega, intrinsics)
         return t, w, out
+
+    def test_at(self, ks: list[float]) -> None:
+        """Score every top-k fraction of ``ks`` (validated) in the next tests, all from one pass
+        of the encoder: the first one's metrics are logged, every one's kept in
+        :attr:`test_results`."""
+        self.top_ks["test"] = tuple(ks)
+        evaluations = [MotionEvaluation(self.object_motion) for _ in ks]
+        self.evaluation["test"] = nn.ModuleList(evaluations).to(self.device)
 
     def set_mean_motion(self, t: Tensor, omega: Tensor) -> None:
         """The baseline evaluation scores besides the model: always predicting the training
@@ -148,8 +159,6 @@ class MFGLitModule(AgreedSteps, L.LightningModule):
         self.mean_t.copy_(t)
         self.mean_omega.copy_(omega)
         self.has_mean_motion.fill_(True)
-
-    # -- shared step -------------------------------------------------------------------------
 
     def _prepare(self, batch: dict[str, Any]) -> tuple[Tensor, Tensor, Tensor, Any]:
         """Ground-truth fields ``(B, 2, H, W)`` of a batch, and its model inputs."""
@@ -163,16 +172,12 @@ class MFGLitModule(AgreedSteps, L.LightningModule):
             t, w = geometry.pose_to_motion(batch[keys.POSE].to(inputs.flow))
             v_t = geometry.translational_field(t, K, height, width)
             v_w = geometry.rotational_field(w, K, height, width)
+        if int(inputs.n_bad):
+            log.warning("masked %d non-finite flow pixels in %s", inputs.n_bad, _ids(batch))
         return v_t, v_w, K, inputs
 
     def _loss(self, out: MFGOutput, v_t: Tensor, v_w: Tensor) -> LossTerms:
         return self.loss_fn(out.v_t, out.v_omega, v_t, v_w, out.hidden)
-
-    def _warn_masked_flow(self, stage: str) -> None:
-        """Warn about the batches whose non-finite flow pixels were masked since the last report
-        (one read-back of their counts)."""
-        for n, ids in self._flow_warnings[stage].read():
-            log.warning("masked %d non-finite flow pixels in %s", n, _ids({keys.SAMPLE_ID: ids}))
 
     def transfer_batch_to_device(
         self, batch: Any, device: torch.device, dataloader_idx: int
@@ -180,8 +185,7 @@ class MFGLitModule(AgreedSteps, L.LightningModule):
         """Lightning's batch transfer, skipped on a CPU (a no-op walk of the batch costing
         ~0.35 ms, ~1.5 % of a batch-1 step: bench/results/throughput.md). Elsewhere the CPU
         intrinsics stay beside the batch (``INTRINSICS_HOST``) for the closed-form recovery,
-        which groups samples by their values, without reading them back from the device. (Under
-        DDP an unreadable training batch goes on as ``{}``: ``AgreedSteps``.)"""
+        which groups samples by their values, without reading them back from the device."""
         if device.type == "cpu" and batch is not None:
             return batch
         host = batch.get(keys.INTRINSICS) if isinstance(batch, dict) else None
@@ -190,124 +194,67 @@ class MFGLitModule(AgreedSteps, L.LightningModule):
             moved[INTRINSICS_HOST] = host
         return moved
 
-    # -- training ----------------------------------------------------------------------------
-
-    def _writes_logs_this_step(self) -> bool:
-        """Whether the loggers write this step's values (every ``trainer.log_every_n_steps``
-        optimiser steps, and the last): the step diagnostics are logged (each ``self.log`` costs
-        time that shows at batch 1) and the deferred counts read back just then."""
-        trainer = self._trainer
-        if trainer is None:
-            return True
-        return logging_step(trainer) or trainer.should_stop
-
-    def training_step(
-        self, batch: dict[str, Any] | None, batch_idx: int
-    ) -> Tensor | dict[str, Any] | None:
-        if batch is None:  # one process: Lightning skips a None batch itself; a direct call
-            return None
-        fused = self.skips_in_the_optimiser()
-        if self.without_samples(batch):
-            return self.step_without_samples(fused)
+    def training_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor | dict[str, Any]:
         v_t, v_w, _, inputs = self._prepare(batch)
-        self.masked_flow_pixels.update(inputs.n_bad)
-        full = self._flow_warnings["train"].add(inputs.n_bad, batch)
+        self.masked_flow_pixels += int(inputs.n_bad)
         out = self(inputs.flow)
         terms = self._loss(out, v_t, v_w)
-        if not self.agree_on_loss(terms.total, _ids(batch), fused):
-            return self.skipped()
-        if full:
-            self._warn_masked_flow("train")
-        if self._writes_logs_this_step():
-            # Only on the steps the loggers write (the progress bar's loss refreshes then too):
-            # a logged value costs ~0.7 ms, 2-3 % of a batch-1 step on a CPU (bench/throughput.py).
-            self._warn_masked_flow("train")
-            self.nonfinite.report(_ids(batch))
-            bs = inputs.flow.shape[0]
-            # not prog_bar: Lightning would read a progress-bar value back at every later step
-            # of the epoch; the run's progress bar reads it once per logged value
-            # (mfg_lightning.run.progress.RunProgressBar)
-            self.log("train/loss", terms.total, batch_size=bs)
-            values = {f"train/{k}": getattr(terms, k).mean() for k in _TERMS}
-            values["train/active_fraction"] = _active_fraction(out.hidden)
-            # this process's counts: a reduction across processes is a collective, which the
-            # step keeps to the one all_reduce of the agreement
-            values["train/nonfinite_flow_pixels"] = self.masked_flow_pixels.count.float()
-            values["train/lr"] = float(self.trainer.optimizers[0].param_groups[0]["lr"])
-            if fused or int(self.nonfinite.skipped.count):
-                values["train/skipped_steps"] = self.nonfinite.skipped.count.float()
-            self.log_dict(values, batch_size=bs)
+        bs = inputs.flow.shape[0]
+        # not prog_bar: the run's progress bar shows the logged loss (run.progress)
+        self.log("train/loss", terms.total, batch_size=bs)
+        values = {f"train/{k}": getattr(terms, k).mean() for k in _TERMS}
+        values["train/active_fraction"] = _active_fraction(out.hidden)
+        values["train/nonfinite_flow_pixels"] = float(self.masked_flow_pixels)
+        values["train/lr"] = float(self.trainer.optimizers[0].param_groups[0]["lr"])
+        self.log_dict(values, batch_size=bs)
         if self.image_log_every_n_steps and self.global_step % self.image_log_every_n_steps == 0:
-            # The pictures are the figure callback's: it gets the fields from the step's output
-            # (references, no copy and no host read here).
+            # the figure callback draws them from the step's output (references, no copy)
             return {
                 "loss": terms.total,
                 "fields": StepFields.of(self.global_step, inputs.flow, v_t, v_w, out),
             }
         return terms.total
 
-    def on_train_end(self) -> None:
-        self._warn_masked_flow("train")
-        super().on_train_end()
-
-    # -- evaluation --------------------------------------------------------------------------
-
-    def _evaluate(self, batch: dict[str, Any] | None, stage: str) -> dict[str, Any] | None:
-        if batch is None:
+    def _evaluate(self, batch: dict[str, Any] | None, stage: str) -> StepFields | None:
+        """Score the batch at each of the stage's top-k fractions; the first one's fields."""
+        if batch is None:  # a DDP process without an evaluation sample
             return None
         v_t, v_w, K, inputs = self._prepare(batch)
-        if self._flow_warnings[stage].add(inputs.n_bad, batch):
-            self._warn_masked_flow(stage)
-        out = self(inputs.flow)
-        terms = self._loss(out, v_t, v_w)
-        t, w = geometry.recover_motion(out.v_t, out.v_omega, batch.get(INTRINSICS_HOST, K))
-        objects = None
-        if keys.DEPTH in batch and keys.OBJECT_MASK in batch:
-            objects = ObjectInputs(inputs.flow, out.v_t, out.v_omega, batch[keys.DEPTH],
-                                   inputs.valid, batch[keys.OBJECT_MASK],
-                                   batch.get(keys.OBJECT_FLOW))  # fmt: skip
-        if self._baseline is None and not self._trainer:  # a direct call, outside an epoch
-            self._start_eval_epoch()
-        self.evaluation[stage].update(
-            t, w, batch[keys.POSE], (batch[keys.SEQUENCE], batch[keys.FRAME], batch[keys.TARGET]),
-            loss=terms.total, active_fraction=_active_fraction(out.hidden), n_bad=inputs.n_bad,
-            baseline=self._baseline, objects=objects,
-        )  # fmt: skip
-        return {"out": out, "flow": inputs.flow, "v_t": v_t, "v_omega": v_w}
-
-    def _start_eval_epoch(self) -> None:
-        # Whether the mean-motion baseline is scored: read once per epoch, not once per batch.
-        self._baseline = (self.mean_t, self.mean_omega) if bool(self.has_mean_motion) else None
+        outs = self.fields(inputs.flow, self.top_ks[stage])
+        baseline = (self.mean_t, self.mean_omega) if bool(self.has_mean_motion) else None
+        ids = (batch[keys.SEQUENCE], batch[keys.FRAME], batch[keys.TARGET])
+        for out, evaluation in zip(outs, self.evaluation[stage], strict=True):
+            t, w = geometry.recover_motion(out.v_t, out.v_omega, batch.get(INTRINSICS_HOST, K))
+            objects = None
+            if keys.DEPTH in batch and keys.OBJECT_MASK in batch:
+                objects = ObjectInputs(inputs.flow, out.v_t, out.v_omega, batch[keys.DEPTH],
+                                       inputs.valid, batch[keys.OBJECT_MASK],
+                                       batch.get(keys.OBJECT_FLOW))  # fmt: skip
+            evaluation.update(t, w, batch[keys.POSE], ids, loss=self._loss(out, v_t, v_w).total,
+                              active_fraction=_active_fraction(out.hidden), n_bad=inputs.n_bad,
+                              baseline=baseline, objects=objects)  # fmt: skip
+        return StepFields.of(self.global_step, inputs.flow, v_t, v_w, outs[0])
 
     def _log_eval(self, stage: str) -> None:
-        self._warn_masked_flow(stage)
-        self._baseline = None
-        evaluation = self.evaluation[stage]
-        values = evaluation.compute(self.device)
-        evaluation.reset()
-        if evaluation.last_result is not None:
-            self.last_evaluation[stage] = evaluation.last_result
-        for name, value in values.items():
-            self.log(f"{stage}/{name}", value, prog_bar=name in ("trans_err", "rot_err", "ate"))
-
-    def on_validation_epoch_start(self) -> None:
-        self._start_eval_epoch()
-
-    def on_test_epoch_start(self) -> None:
-        self._start_eval_epoch()
+        for i, (k, evaluation) in enumerate(
+            zip(self.top_ks[stage], self.evaluation[stage], strict=True)
+        ):
+            values = evaluation.compute(self.device)
+            evaluation.reset()
+            if stage == "test":
+                metrics = {f"test/{name}": float(v) for name, v in values.items()}
+                self.test_results[k] = (metrics, evaluation.last_result)
+            if i == 0 and evaluation.last_result is not None:
+                self.last_evaluation[stage] = evaluation.last_result
+            for name, value in values.items() if i == 0 else ():
+                self.log(f"{stage}/{name}", value, prog_bar=name in ("trans_err", "rot_err", "ate"))
 
     def validation_step(
         self, batch: dict[str, Any] | None, batch_idx: int
     ) -> dict[str, StepFields] | None:
         """Score the batch; hand its fields to the figure callback (the step's output)."""
-        res = self._evaluate(batch, "val")
-        if res is None or not self.image_log_every_n_steps:
-            return None
-        return {
-            "fields": StepFields.of(
-                self.global_step, res["flow"], res["v_t"], res["v_omega"], res["out"]
-            )
-        }
+        fields = self._evaluate(batch, "val")
+        return {"fields": fields} if fields is not None and self.image_log_every_n_steps else None
 
     def on_validation_epoch_end(self) -> None:
         self._log_eval("val")
@@ -323,23 +270,23 @@ class MFGLitModule(AgreedSteps, L.LightningModule):
         # the evaluation's values are every process's already (MotionEvaluation gathers them)
         reduced_epoch_logs("val/", "test/")
 
-    # -- optimisation and checkpoints --------------------------------------------------------
-
     def configure_optimizers(self) -> Any:
         return optimizers(self.optimizer_factory, self.scheduler_factory, self.parameters())
 
+    @property
+    def model_config(self) -> dict[str, Any] | None:
+        """The resolved ``model`` config this module was built from (a constructor argument)."""
+        return self.hparams.get("model_config")
+
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        if self.model_config is not None:
-            checkpoint["mfg_model_config"] = self.model_config
         if self.dataset_config is not None:
             checkpoint["mfg_dataset_config"] = self.dataset_config
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        self.model_config = checkpoint.get("mfg_model_config", self.model_config)
         self.dataset_config = checkpoint.get("mfg_dataset_config", self.dataset_config)
 
 
-#: The loss terms logged at the training's logging steps (``train/<term>``, batch means).
+#: The loss terms logged by every training step (``train/<term>``, batch means).
 _TERMS = ("l_t", "l_omega", "l_s", "w_t", "w_omega")
 
 

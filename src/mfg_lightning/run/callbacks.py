@@ -12,8 +12,6 @@
   finishes, the checkpoint is saved, the run stops); ``ckpt_path=last`` or ``resume=true``
   continues from it. It is saved where Lightning resumes it exactly: after a training step, or
   after the validation that follows it.
-* :class:`BatchChecks`: malformed batches (shapes, dtypes, non-finite poses, intrinsics or
-  depth) are refused where they enter the model, naming the samples.
 * :func:`storage_error`: a full disk is one :class:`StorageError` line naming the file.
 
 Resumption is exact on one device (tests/test_resume.py compares weights and metrics with an
@@ -44,8 +42,6 @@ from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from mfg_lightning.core.atomic import atomic_write_bytes
 from mfg_lightning.core.errors import UserError
-from mfg_lightning.models.agreement import Agreement, logging_step
-from mfg_lightning.models.nonfinite import NonFiniteLosses
 
 log = logging.getLogger(__name__)
 
@@ -202,8 +198,8 @@ class LastCheckpoint(Checkpoint):
     after each step, so a save still lands where a resumed run continues exactly. Under DDP
     every process must save together (``Trainer.save_checkpoint`` is collective) while their
     clocks disagree: rank 0's clock decides, broadcast at the logging steps
-    (:func:`~mfg_lightning.models.agreement.logging_step`, every ``trainer.log_every_n_steps``),
-    where the host waits for the loggers anyway, so that the other steps have no collective.
+    (every ``trainer.log_every_n_steps``), where the host waits for the loggers anyway, so
+    that the other steps have no collective.
     SIGTERM is acted on when every process has agreed on it
     (:class:`~mfg_lightning.run.together.StopTogether` sets Lightning's flag after the same step
     everywhere), so the save on SIGTERM is collective too.
@@ -276,7 +272,8 @@ class LastCheckpoint(Checkpoint):
             return False
         if trainer.world_size == 1:
             return self.clock() - self._last_save_time >= self.every_seconds
-        if not logging_step(trainer, done=True):
+        every = int(trainer.log_every_n_steps) or 20
+        if trainer.global_step % every:  # rank 0's clock is broadcast at the logging steps
             return False
         up = self.clock() - self._last_save_time >= self.every_seconds
         return bool(trainer.strategy.broadcast(up, src=0))
@@ -358,164 +355,3 @@ class LastCheckpoint(Checkpoint):
             trainer.global_step,
             self.path,
         )
-
-
-# --------------------------------------------------------------------------------------------
-# Batches entering the model
-# --------------------------------------------------------------------------------------------
-
-
-class BatchChecks(L.Callback):
-    """Refuse malformed batches where they enter the model, naming the samples.
-
-    Runs :func:`mfg_lightning.data.sample.check_batch` with the network's input size
-    (:func:`mfg_lightning.models.mfg.input_size`) and the pose required at the
-    start of every training, validation and test step (shapes, and finite poses, intrinsics and
-    depth; non-finite flow pixels are masked by the module itself), so that a dataset bug is one
-    :class:`~mfg_lightning.data.sample.SampleError` naming the samples instead of an error deep
-    inside torch or a silently skipped step.
-
-    Shapes and dtypes are checked at once everywhere (they read no values). The values are
-    checked at once on a CPU; on an accelerator (``deferred``, the default there) reading them
-    would make the host wait for the device in every step, so their per-sample flags
-    (:func:`~mfg_lightning.data.sample.batch_value_flags`) are copied back without waiting and
-    read when the copy has landed: at a later batch, and at the latest every ``check_every``
-    batches and at the end of each epoch. A bad batch is then refused a few steps late, still
-    naming its samples; meanwhile a non-finite pose or intrinsics gives a non-finite loss, which
-    the module skips in the optimiser (:class:`~mfg_lightning.models.mfg_module.MFGLitModule`).
-
-    Under DDP a training batch refused on one process ends every process at the same step: the
-    error is handed to the module's :class:`~mfg_lightning.models.agreement.Agreement` instead of
-    raised, the process takes part in the step without samples, and at the step the processes
-    agree on (the same one on a CPU) that process raises its error and the others
-    :class:`~mfg_lightning.models.agreement.PeerFailedError`; at the end of an epoch and of
-    training the checks still pending are settled with one ``all_reduce``. A refused evaluation
-    batch raises on its process alone, as without DDP.
-
-    Args:
-        deferred: read the value flags later (True), at once (False), or at once on a CPU and
-            later elsewhere (None, the default).
-        check_every: the most batches a deferred check waits before it waits for the device.
-    """
-
-    def __init__(self, deferred: bool | None = None, check_every: int = 20) -> None:
-        if check_every < 1:
-            raise ValueError(f"callbacks.batch_checks.check_every must be >= 1, got {check_every}")
-        self.deferred = deferred
-        self.check_every = int(check_every)
-        # (flags on the host or landing there, CUDA event or None, the batch's sample ids) of
-        # the training (True) and the evaluation batches (False), read by their own hooks: a
-        # training batch refused under DDP must be refused at a training step
-        self._pending: dict[bool, list[tuple[torch.Tensor, Any, dict[str, Any]]]] = {
-            True: [],
-            False: [],
-        }
-        self._batches = 0
-
-    def _check(self, trainer: L.Trainer | None, pl_module: L.LightningModule, batch: Any) -> None:
-        from mfg_lightning.data.sample import (
-            POSE,
-            batch_value_flags,
-            check_batch_layout,
-            raise_on_bad_values,
-        )
-        from mfg_lightning.models.mfg import MotionFieldNetwork, input_size
-
-        training = trainer is None or trainer.training  # None: a direct call (tests)
-        net = getattr(pl_module, "net", None)
-        if not batch or not isinstance(net, MotionFieldNetwork):  # None, {}: all skipped
-            self._read_pending(training, wait=False)
-            return
-        height, width = input_size(net)
-        param = next(pl_module.parameters(), None)
-        dtype = None if param is None else param.dtype
-        # training and evaluation compare with the ground truth: the pose is needed here
-        check_batch_layout(batch, height, width, dtype=dtype, needs=(POSE,))
-        flags = batch_value_flags(batch)
-        deferred = self.deferred
-        if deferred is None:
-            deferred = not NonFiniteLosses.reads_wait_for_nothing(flags.device)
-        if not deferred:
-            raise_on_bad_values(batch, flags)
-            return
-        self._read_pending(training, wait=False)  # the earlier batches whose flags have landed
-        # into pinned memory without waiting on a GPU (read when the event has passed); on a
-        # CPU the flags themselves
-        host = flags.to("cpu", non_blocking=flags.is_cuda)
-        event = None
-        if flags.is_cuda:
-            event = torch.cuda.Event()
-            event.record()
-        self._pending[training].append((host, event, {"sample_id": batch.get("sample_id")}))
-        self._batches += 1
-        if self._batches % self.check_every == 0:
-            self._read_pending(training, wait=True)
-
-    def _read_pending(self, training: bool, wait: bool) -> None:
-        """Raise for the first pending training (or evaluation) batch with a failed value check;
-        ``wait``: wait for the copies still in flight (a host synchronisation), else leave those
-        for later."""
-        from mfg_lightning.data.sample import raise_on_bad_values
-
-        pending = self._pending[training]
-        while pending:
-            host, event, ids = pending[0]
-            if event is not None and not event.query():
-                if not wait:
-                    return
-                event.synchronize()
-            pending.pop(0)
-            raise_on_bad_values(ids, host.numpy())  # landed: an array, read without a wait
-
-    @staticmethod
-    def _agreement(trainer: L.Trainer | None, pl_module: L.LightningModule) -> Agreement | None:
-        """The module's agreement where a refusal must be agreed on: training under DDP."""
-        agreement = getattr(pl_module, "agreement", None)
-        if trainer is None or not isinstance(agreement, Agreement):
-            return None
-        return agreement if trainer.world_size > 1 and trainer.training else None
-
-    def _refusing(
-        self, trainer: L.Trainer | None, pl_module: L.LightningModule, check: Any, *args: Any
-    ) -> None:
-        """``check(*args)``; under DDP training, a refusal goes to the agreement."""
-        from mfg_lightning.data.sample import SampleError
-
-        agreement = self._agreement(trainer, pl_module)
-        try:
-            check(*args)
-        except SampleError as err:
-            if agreement is None:
-                raise
-            agreement.refuse(err)
-
-    def _read_all(
-        self, trainer: L.Trainer | None, pl_module: L.LightningModule, *args: Any
-    ) -> None:
-        training = trainer is None or trainer.training
-        self._refusing(trainer, pl_module, self._read_pending, training, True)
-        agreement = self._agreement(trainer, pl_module)
-        if agreement is not None:  # outside a step: every process calls this hook alike
-            agreement.settle(pl_module.device, trainer.global_step, trainer.strategy)
-
-    on_train_epoch_end = _read_all
-    on_validation_epoch_end = _read_all
-    on_test_epoch_end = _read_all
-    on_train_end = _read_all
-
-    def on_train_batch_start(
-        self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any, batch_idx: int
-    ) -> None:
-        self._refusing(trainer, pl_module, self._check, trainer, pl_module, batch)
-
-    def on_validation_batch_start(
-        self,
-        trainer: L.Trainer,
-        pl_module: L.LightningModule,
-        batch: Any,
-        batch_idx: int,
-        dataloader_idx: int = 0,
-    ) -> None:
-        self._check(trainer, pl_module, batch)
-
-    on_test_batch_start = on_validation_batch_start

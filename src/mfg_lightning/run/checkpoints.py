@@ -11,7 +11,7 @@ Researchers share checkpoints, so reading one must never run its author's code:
   one message every reader of a checkpoint raises): **unsafe**, a pickle naming anything but
   plain data, or **corrupt**, bytes that are not a whole checkpoint (truncated, random, another
   format).
-* **Configs** read from a checkpoint (``mfg_model_config``, ``mfg_dataset_config``) or from a run
+* **Configs** read from a checkpoint (its model config, ``mfg_dataset_config``) or from a run
   directory's ``config.yaml`` are instantiated only if every ``_target_`` in them, at any depth,
   resolves to one of the classes the project's own configs build (:func:`allowed_targets`: every
   ``_target_`` of the model, dataset, flow and object-motion config groups, and torch's
@@ -19,9 +19,10 @@ Researchers share checkpoints, so reading one must never run its author's code:
   alias of an allowed class passes and nothing else does (``builtins.open``,
   ``subprocess.run``, ...): :class:`UnsafeConfigError` names the key and the target.
 
-What is in a checkpoint besides Lightning's own keys: ``mfg_model_config`` (the resolved model
-config, enough to rebuild the network without the run directory) and ``mfg_dataset_config`` (the
-training dataset's config, the default of ``evaluate``, ``predict`` and ``analyze_basis``).
+What a checkpoint holds to be rebuilt: the module's ``model_config`` hyperparameter (the
+resolved model config it was built from, enough to rebuild it without the run directory;
+``mfg_model_config`` before) and ``mfg_dataset_config`` (the training dataset's config, the
+default of ``evaluate``, ``predict`` and ``analyze_basis``).
 """
 
 from __future__ import annotations
@@ -66,6 +67,7 @@ __all__ = [
     "model_size",
     "module_from_checkpoint",
     "safe_unpickling",
+    "stored_model_config",
     "unreadable_checkpoint",
     "with_legacy_dataset_settings",
     "with_legacy_settings",
@@ -147,7 +149,7 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     Raises:
         CheckpointError: missing or unreadable file, a pickle that names anything but plain data
             (it is refused before it runs), or not a checkpoint of this project (no
-            ``state_dict`` or ``mfg_model_config``).
+            ``state_dict`` or model config).
     """
     path = Path(path).expanduser()
     if not path.is_file():
@@ -159,11 +161,19 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
         raise unreadable_checkpoint(path, err) from err
     if not isinstance(ckpt, dict) or "state_dict" not in ckpt:
         raise CheckpointError(f"{path} is not a Lightning checkpoint (no state_dict)")
-    if "mfg_model_config" not in ckpt:
+    if stored_model_config(ckpt) is None:
         raise CheckpointError(
-            f"{path} has no mfg_model_config: it was not written by mfg_lightning.train"
+            f"{path} has no model config: it was not written by mfg_lightning.train"
         )
     return ckpt
+
+
+def stored_model_config(ckpt: Mapping[str, Any]) -> dict[str, Any] | None:
+    """The resolved model config a checkpoint's module was built from: its ``model_config``
+    hyperparameter (``mfg_model_config`` in checkpoints of older releases); None: none."""
+    hparams = ckpt.get("hyper_parameters")
+    stored = hparams.get("model_config") if isinstance(hparams, Mapping) else None
+    return stored if stored is not None else ckpt.get("mfg_model_config")
 
 
 def peek_checkpoint(path: str | Path) -> dict[str, Any]:
@@ -347,14 +357,17 @@ MOVED_MODULES: dict[str, str] = {
     "mfg_lightning.basis": "mfg_lightning.analysis.basis",
     "mfg_lightning.sweeps": "mfg_lightning.analysis.sweeps",
     "mfg_lightning.result_tables": "mfg_lightning.analysis.result_tables",
+    # classes (a whole target): the batch checks became part of the run's AgreedSteps
+    "mfg_lightning.callbacks.BatchChecks": "mfg_lightning.run.agreed_steps.AgreedSteps",
+    "mfg_lightning.run.callbacks.BatchChecks": "mfg_lightning.run.agreed_steps.AgreedSteps",
 }
 
 
 def moved_target(target: str) -> str:
-    """``target`` with its module renamed by :data:`MOVED_MODULES` (the longest matching
-    module prefix), or unchanged."""
+    """``target`` renamed by :data:`MOVED_MODULES` (the whole target, else the longest
+    matching module prefix), or unchanged."""
     parts = target.split(".")
-    for n in range(len(parts) - 1, 0, -1):
+    for n in range(len(parts), 0, -1):
         new = MOVED_MODULES.get(".".join(parts[:n]))
         if new is not None:
             return ".".join([new, *parts[n:]])
@@ -466,7 +479,7 @@ class ModelSize:
 
 
 def model_size(model_config: Mapping[str, Any]) -> ModelSize:
-    """The :class:`ModelSize` of a resolved model config (``mfg_model_config``)."""
+    """The :class:`ModelSize` of a resolved model config (:func:`stored_model_config`)."""
     net = model_config.get("net", {})
     return ModelSize(int(net["hidden_units"]), int(net["height"]), int(net["width"]))
 
@@ -494,6 +507,8 @@ def with_legacy_settings(cfg: Mapping[str, Any], path: str | Path) -> dict[str, 
     cfg = with_moved_targets(cfg, path)
     cfg = {k: dict(v) if isinstance(v, Mapping) else v for k, v in cfg.items()}
     filled = []
+    if "top_k" in cfg and cfg["top_k"] is None:  # before 1.0 alone said "all units"
+        cfg["top_k"] = 1.0
     for part, settings in LEGACY_MODEL_SETTINGS.items():
         node = cfg.get(part)
         if not isinstance(node, dict):
@@ -591,14 +606,14 @@ def build_module(
     """
     from hydra.utils import instantiate
 
-    cfg = {**with_legacy_settings(ckpt["mfg_model_config"], path), **overrides}
-    check_targets(cfg, f"checkpoint {path} (mfg_model_config)")
+    cfg = {**with_legacy_settings(stored_model_config(ckpt) or {}, path), **overrides}
+    check_targets(cfg, f"checkpoint {path} (model_config)")
     size = model_size(cfg)
     if expected is not None and size != expected:
         raise CheckpointSizeError(
             f"checkpoint {path} holds an MFG with {size}, but {expected} is expected"
         )
-    module: MFGLitModule = instantiate(cfg)
+    module: MFGLitModule = instantiate(cfg, _partial_=True)(model_config=cfg)
     try:
         module.load_state_dict(ckpt["state_dict"])
     except RuntimeError as err:
@@ -608,7 +623,6 @@ def build_module(
             f"holds {_weights_description(ckpt['state_dict'])} "
             f"({first[-1].strip() if first else err})"
         ) from err
-    module.model_config = cfg
     module.dataset_config = dataset_config(ckpt, path)
     return module.eval()
 

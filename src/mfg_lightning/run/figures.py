@@ -240,8 +240,8 @@ class TensorBoardFigures(L.Callback):
         one_hot[torch.arange(k, device=hidden.device), units] = 1.0
         basis_t, basis_w = net.decode(one_hot)  # each unit's basis fields (activation 1)
         scale = values[:, None, None, None]
-        top_k = net.top_k
-        kept = None if top_k is None or top_k >= 1 else max(1, round(top_k * hidden.numel()))
+        top_k = pl_module.top_k
+        kept = None if top_k >= 1 else max(1, round(top_k * hidden.numel()))
         fig = basis_figure(
             hidden.cpu().numpy(),
             units.tolist(),

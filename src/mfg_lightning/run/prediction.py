@@ -39,7 +39,11 @@ from mfg_lightning.models.mfg import validate_top_k
 from mfg_lightning.models.mfg_module import MFGLitModule
 from mfg_lightning.motion.object_motion import ObjectMotionConfig, extract_object_motion
 from mfg_lightning.pictures import plots
-from mfg_lightning.run.checkpoints import module_from_checkpoint, peek_checkpoint
+from mfg_lightning.run.checkpoints import (
+    module_from_checkpoint,
+    peek_checkpoint,
+    stored_model_config,
+)
 from mfg_lightning.run.runs import run_info
 from mfg_lightning.trajectory import trajectories
 from mfg_lightning.trajectory.pose_io import frame_times, write_trajectory
@@ -256,7 +260,7 @@ def end_to_end_flow(cfg: DictConfig) -> dict[str, Any] | None:
     if not path.is_file():
         return None  # (predict names the missing file)
     ckpt = peek_checkpoint(path)
-    if "flow_net_config" not in ckpt or "mfg_model_config" not in ckpt:
+    if "flow_net_config" not in ckpt or stored_model_config(ckpt) is None:
         return None  # an MFG checkpoint (or not a checkpoint: predict says so)
     if str(cfg.dataset.get("_target_", "")).endswith("ImagePairsDataModule"):
         raise UserError(
@@ -289,7 +293,7 @@ def predict(cfg: DictConfig) -> dict[str, dict[str, Any]]:
     """
     out = Path(cfg.paths.output_dir)
     predict_align(cfg)  # a wrong value is an error before anything is predicted
-    module = module_from_checkpoint(cfg.ckpt_path, top_k=validate_top_k(cfg.model.get("top_k")))
+    module = module_from_checkpoint(cfg.ckpt_path, top_k=validate_top_k(cfg.model.top_k))
     flow = end_to_end_flow(cfg)
     datamodule = instantiate(cfg.dataset) if flow is None else instantiate(cfg.dataset, flow=flow)
     net_hw = (module.net.height, module.net.width)

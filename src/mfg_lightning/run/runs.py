@@ -36,11 +36,24 @@ def instantiate_list(cfg: DictConfig | None) -> list[Any]:
 
 
 def build_model(cfg: DictConfig) -> L.LightningModule:
-    """Instantiate the LightningModule and remember its resolved config for checkpoints."""
-    model = instantiate(cfg.model)
-    model.model_config = OmegaConf.to_container(cfg.model, resolve=True)
+    """Instantiate the LightningModule with its resolved config as its ``model_config`` (saved
+    with its hyperparameters, so that its checkpoints record it), and remember the dataset's."""
+    net = cfg.model.get("net")
+    if net is not None and "top_k" in net:
+        # one knob: top-k is an evaluation setting of the module, not of the network
+        raise ValueError(
+            f"model.net.top_k={net.top_k} is not a setting of the network: set model.top_k "
+            "instead (the fraction kept at validation and test)"
+        )
+    model = module_of(OmegaConf.to_container(cfg.model, resolve=True))
     model.dataset_config = OmegaConf.to_container(cfg.dataset, resolve=True)
     return model
+
+
+def module_of(config: dict[str, Any]) -> L.LightningModule:
+    """The LightningModule of a resolved ``model`` config, given that config as its
+    ``model_config`` (plain data: Hydra instantiates everything else in it)."""
+    return instantiate(config, _partial_=True)(model_config=config)
 
 
 def set_baseline(model: L.LightningModule, datamodule: L.LightningDataModule) -> None:

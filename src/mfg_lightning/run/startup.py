@@ -210,3 +210,18 @@ class StartupDDPStrategy(DDPStrategy):
             if group is not None:
                 group.set_timeout(self.run_timeout)
                 log.debug("process group formed: timeout %s", self.run_timeout)
+
+    def batch_to_device(
+        self, batch: Any, device: Any | None = None, dataloader_idx: int = 0
+    ) -> Any:
+        """A training batch whose every sample was unreadable (None) goes on as the run's
+        stand-in (:meth:`mfg_lightning.run.agreed_steps.AgreedSteps.stand_in`), whose step every
+        process then skips: Lightning would skip a None batch on this process alone, and the
+        others would wait for it in the step's collectives."""
+        from mfg_lightning.run.agreed_steps import AgreedSteps
+
+        trainer = self.lightning_module.trainer
+        steps = AgreedSteps.of(trainer)
+        if batch is None and trainer.training and steps is not None:
+            batch = steps.stand_in()
+        return super().batch_to_device(batch, device, dataloader_idx)

@@ -4,10 +4,10 @@
   that interleaves with whatever collective the process is in: the processes crash, or hang), and
   each process then stops on its own flag, its own step. :class:`StopTogether` replaces the
   handler: it only records the signal (and hands it on once to the processes Lightning started,
-  as Lightning's does). The module's per-step agreement
-  (:class:`~mfg_lightning.models.agreement.AgreedSteps`, which every LightningModule of the
-  project derives from) turns it into a stop after the same step on every process, where this
-  callback sets Lightning's flag: ``LastCheckpoint`` saves there, and Lightning stops there, on
+  as Lightning's does). The run's per-step agreement
+  (:class:`~mfg_lightning.run.agreed_steps.AgreedSteps`, a callback of every run's config)
+  turns it into a stop after the same step on every process, where this callback sets
+  Lightning's flag: ``LastCheckpoint`` saves there, and Lightning stops there, on
   every process alike. Without a process group the flag is set at once, as Lightning's handler
   does. Lightning's per-step broadcast of rank 0's flag (a collective and a
   host read before every DDP step) is then redundant and is turned off.
@@ -55,7 +55,7 @@ import torch.distributed as dist
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from lightning.pytorch.utilities.rank_zero import rank_prefixed_message
 
-from mfg_lightning.models.agreement import Agreement
+from mfg_lightning.run.agreed_steps import AgreedSteps, Agreement
 from mfg_lightning.run.slurm import SlurmRequeue
 from mfg_lightning.run.startup import launching
 
@@ -73,9 +73,9 @@ class StopTogether(L.Callback):
     docstring); a second Ctrl-C ends the process at once.
 
     :func:`mfg_lightning.run.runs.build_trainer` adds it to every Trainer a run builds. It acts
-    through the LightningModule's ``agreement``, which a module gets from
-    :class:`~mfg_lightning.models.agreement.AgreedSteps` (``MFGLitModule`` and ``FlowLitModule``
-    both derive from it); with a module without one it leaves Lightning's handler in place.
+    through the ``agreement`` of the trainer's
+    :class:`~mfg_lightning.run.agreed_steps.AgreedSteps`; without one it leaves Lightning's
+    handler in place.
     """
 
     def __init__(self) -> None:
@@ -85,7 +85,7 @@ class StopTogether(L.Callback):
         self._previous_sigint: Any = None
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
-        agreement = getattr(pl_module, "agreement", None)
+        agreement = _agreement(trainer)
         connector = getattr(trainer, "_signal_connector", None)
         if not isinstance(agreement, Agreement) or connector is None:
             return
@@ -105,7 +105,7 @@ class StopTogether(L.Callback):
             epoch_loop._broadcast_sigterm_tensor = _no_sigterm_broadcast
 
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        agreement = getattr(pl_module, "agreement", None)
+        agreement = _agreement(trainer)
         if not isinstance(agreement, Agreement):
             if trainer.world_size > 1:
                 return  # no agreement to stop together on: Lightning's KeyboardInterrupt
@@ -150,7 +150,7 @@ class StopTogether(L.Callback):
     def on_train_batch_end(
         self, trainer: L.Trainer, pl_module: L.LightningModule, *args: Any, **kwargs: Any
     ) -> None:
-        agreement = getattr(pl_module, "agreement", None)
+        agreement = _agreement(trainer)
         if trainer.world_size == 1 or not isinstance(agreement, Agreement) or not agreement.stop:
             return
         connector = trainer._signal_connector
@@ -181,6 +181,11 @@ class StopTogether(L.Callback):
     ) -> None:
         self._restore_sigint()  # a fit ended by an exception (the stop's included) has no teardown
         _take_over_the_watch(trainer)
+
+
+def _agreement(trainer: L.Trainer) -> Agreement | None:
+    steps = AgreedSteps.of(trainer)
+    return None if steps is None else steps.agreement
 
 
 def _no_sigterm_broadcast() -> None:

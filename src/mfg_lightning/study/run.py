@@ -367,7 +367,7 @@ def _methods(
     ds = central.dataset("test")
     k_star = smallest_k(t1["val"], float(cfg.sparsity.ate_tolerance)) if t1 else None
     sparse = k_star is not None and k_star < 1
-    predicts = mfg_top_k_methods(model, [None, k_star] if sparse else [None])
+    predicts = mfg_top_k_methods(model, [1.0, k_star] if sparse else [1.0])
     rows = [Method("MFG (all units)", predicts[0])]
     if sparse:
         rows.append(Method(f"MFG k = {100 * k_star:g} % (val)", predicts[1]))

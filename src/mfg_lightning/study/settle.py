@@ -118,7 +118,7 @@ def mfg_pairs(model: Any, loader: DataLoader, ks: list[float]) -> dict[str, dict
     (rad) and translation (m) errors, in the loader's order."""
     from mfg_lightning.analysis.scoring import Method, mfg_top_k_methods, score_methods
 
-    predicts = mfg_top_k_methods(model, [None if k >= 1 else float(k) for k in ks])
+    predicts = mfg_top_k_methods(model, [float(k) for k in ks])
     rows = [Method(f"k={k:g}", p) for k, p in zip(ks, predicts, strict=True)]
     score_methods(rows, loader, warm_up=False)
     return {
