@@ -894,7 +894,7 @@ def corrupt_batches(draw: st.DrawFn) -> dict[str, Any]:
         kind = draw(st.sampled_from(["values", "values", "values", "shape", "dtype"]))
         key = draw(st.sampled_from(["flow", "pose", "intrinsics", "depth", "flow_valid"]))
         t = batch[key]
-        if kind == "values" and t.dtype.is_floating_point:
+        if kind == "values" and t.dtype.is_floating_point and t.numel():  # (not emptied above)
             region = tuple(
                 slice(draw(st.integers(0, n - 1)), draw(st.integers(1, n))) for n in t.shape
             )

@@ -76,10 +76,17 @@ def test_scoring_refuses_a_model_in_training_mode(tiny) -> None:
         model.eval()
 
 
+def test_a_top_k_that_is_not_a_fraction_is_refused_where_it_is_read(tiny) -> None:
+    model, _ = tiny
+    for bad in (None, 0.0, 1.5):
+        with pytest.raises(ValueError, match="top_k must be a fraction in"):
+            mfg_method(model, bad)
+
+
 def test_scoring_refuses_flow_of_another_size(tiny) -> None:
     model, batches = tiny
     batch = {**batches[0]}
     batch["flow"] = batch["flow"][..., :-2]
     batch["flow_valid"] = batch["flow_valid"][..., :-2]
     with pytest.raises(ValueError, match="MFG was built for 32×64 flow"):
-        mfg_method(model, None)(batch)
+        mfg_method(model, 1.0)(batch)

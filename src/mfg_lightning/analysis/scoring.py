@@ -27,6 +27,7 @@ from mfg_lightning.core import geometry
 from mfg_lightning.data.sample import model_inputs
 from mfg_lightning.metrics.evaluator import TrajectoryEvaluator
 from mfg_lightning.metrics.frame_errors import frame_errors
+from mfg_lightning.models.mfg import validate_top_k
 from mfg_lightning.motion import baselines
 
 __all__ = [
@@ -77,11 +78,11 @@ def mfg_method(model: Any, top_k: float) -> Predict:
 
 
 def mfg_top_k_methods(model: Any, top_ks: Iterable[float]) -> list[Predict]:
-    """:func:`mfg_method` at every ``top_k`` of ``top_ks`` (validated fractions): the first of
-    them to see a batch computes the fields of every k from one pass of the encoder
-    (``model.fields``), the others take theirs. The encoder's and every decoder's time is
+    """:func:`mfg_method` at every ``top_k`` of ``top_ks`` (fractions in (0, 1], validated
+    here): the first of them to see a batch computes the fields of every k from one pass of the
+    encoder (``model.fields``), the others take theirs. The encoder's and every decoder's time is
     counted in the first method's seconds."""
-    ks = tuple(top_ks)
+    ks = tuple(validate_top_k(k, "top_k") for k in top_ks)
     last: dict[str, Any] = {"batch": None, "motions": None}
 
     def motions_of(batch: dict) -> list[tuple[Tensor, Tensor]]:

@@ -287,6 +287,11 @@ def _fit_and_test(
     hparams = flat_hparams(cfg)
     log_hyperparameters(loggers, hparams)
 
+    if trainer.world_size > 1 and trainer.is_global_zero:
+        # the first process resolved them; the others get them on their command line
+        log.info("kernels of all %d processes: trainer.precision=%s, model.net.conv_impl=%s",
+                 trainer.world_size, cfg.trainer.precision,
+                 OmegaConf.select(cfg, "model.net.conv_impl"))  # fmt: skip
     with children_run_this_job(trainer, cfg):
         start = time.perf_counter()
         with ending_together(trainer):
