@@ -63,7 +63,7 @@ def _module(**settings: object) -> EndToEndLitModule:
     torch.manual_seed(0)
     net = MFG(*MODEL_HW, hidden_units=64, channels=(8, 8, 16, 16, 32))
     return EndToEndLitModule(
-        net, MFGLoss(), partial(torch.optim.Adam, lr=1e-3), flow_lr=5e-5,
+        net=net, loss=MFGLoss(), optimizer=partial(torch.optim.Adam, lr=1e-3), flow_lr=5e-5,
         image_log_every_n_steps=0, **settings,
     )  # fmt: skip
 

@@ -54,8 +54,8 @@ VISIBILITY = "visibility"
 class ImagePairsDataset(FlowPairsDataset):
     """A :class:`FlowPairsDataset` pair that is also an MFG sample.
 
-    A sample: the keys of :mod:`mfg_lightning.data.sample` at the model input ``height ×
-    width`` (``flow``: the exact flow resized to it, 0 where unknown, ``flow_valid``; ``pose``;
+    A sample: the keys of :mod:`mfg_lightning.data.sample` at the model input ``model_hw``
+    (``flow``: the exact flow resized to it, 0 where unknown, ``flow_valid``; ``pose``;
     ``intrinsics`` of the model input; ``sequence``, ``frame``, ``target``, ``sample_id``), and at
     the render size ``image_hw``: :data:`IMAGE0`, :data:`IMAGE1`, :data:`IMAGE_FLOW`,
     :data:`REGION`, :data:`VISIBILITY` (where the pairs carry it); ``offset`` (target − source
@@ -63,7 +63,8 @@ class ImagePairsDataset(FlowPairsDataset):
 
     Args:
         trajectories, frames: as :class:`~mfg_lightning.data.driving.TrajectoryDataset`.
-        height, width: the model input, pixels.
+        model_hw: the model input ``(height, width)``, pixels (the parent's ``height`` and
+            ``width`` are the render size).
         image_hw: the render size (at least the model input; multiples of 32, the flow
             network's coarsest stride).
         memory: the process's sample-cache budget: pairs read are kept in memory while it has
@@ -76,20 +77,18 @@ class ImagePairsDataset(FlowPairsDataset):
         self,
         trajectories: dict[str, torch.Tensor],
         frames: dict[str, tuple[int, int]],
-        height: int,
-        width: int,
+        model_hw: tuple[int, int],
         image_hw: Sequence[int] = (192, 512),
         memory: MemoryBudget | None = None,
         **kwargs: Any,
     ) -> None:
         super().__init__(trajectories, frames, image_hw=image_hw, memory=memory, **kwargs)
-        if height > self.image_hw[0] or width > self.image_hw[1]:
+        self.model_hw = (int(model_hw[0]), int(model_hw[1]))
+        if self.model_hw[0] > self.image_hw[0] or self.model_hw[1] > self.image_hw[1]:
             raise ValueError(
                 f"dataset.image_hw {list(self.image_hw)} is smaller than the model input "
-                f"{height} × {width}"
+                f"{self.model_hw[0]} × {self.model_hw[1]}"
             )
-        #: the model input (the parent's ``height``/``width`` are the render size)
-        self.model_hw = (int(height), int(width))
         self.model_intrinsics = kitti_like_intrinsics(*self.model_hw).float()
 
     def __getitem__(self, i: int) -> dict[str, Any]:
@@ -187,7 +186,7 @@ class ImagePairsDataModule(MFGDataModule):
         # test pairs are read once a run: memory would hold them for nothing
         memory = self._memory if split in ("train", "val") else None
         return ImagePairsDataset(
-            trajs, frames, self.height, self.width, image_hw=self.image_hw, world=self.world,
+            trajs, frames, (self.height, self.width), image_hw=self.image_hw, world=self.world,
             cache_dir=self.cache_dir, memory=memory,
             **{**common, "name": f"image_pairs/{split}"},
         )  # fmt: skip

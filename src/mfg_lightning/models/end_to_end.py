@@ -32,7 +32,7 @@ reading any other file (``flow_net`` set, ``flow_weights`` and ``mfg_checkpoint`
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -52,8 +52,8 @@ from mfg_lightning.models.flow_module import (
     quality_names,
     score_flow,
 )
-from mfg_lightning.models.losses import LossTerms, MFGLoss
-from mfg_lightning.models.mfg import MFGOutput, MotionFieldNetwork
+from mfg_lightning.models.losses import LossTerms
+from mfg_lightning.models.mfg import MFGOutput
 from mfg_lightning.models.mfg_module import STAGES, MFGLitModule, StepFields
 from mfg_lightning.models.optim import optimizers
 
@@ -123,8 +123,6 @@ class EndToEndLitModule(MFGLitModule):
     """The flow network and MFG trained together on MFG's loss.
 
     Args:
-        net, loss, optimizer, scheduler: MFG's, as :class:`MFGLitModule` (``optimizer.lr`` is
-            MFG's learning rate; the schedule scales both groups).
         flow_weights: the flow network's start, a weight file or ``train_flow`` checkpoint
             (None: the shipped weights, :data:`~mfg_lightning.flow.learned.DEFAULT_WEIGHTS`).
         flow_net: a :class:`~mfg_lightning.flow.pwc.PWCConfig`'s fields: a network of this
@@ -138,15 +136,13 @@ class EndToEndLitModule(MFGLitModule):
             ``train_flow``'s ``model.level_weights``).
         freeze_flow_steps: optimiser steps at the start in which the flow network is not
             trained (it runs without gradients).
-        kwargs: :class:`MFGLitModule`'s remaining arguments.
+        kwargs: :class:`MFGLitModule`'s arguments: MFG's ``net``, ``loss``, ``optimizer``
+            (``optimizer.lr`` is MFG's learning rate; the schedule scales both groups),
+            ``scheduler``, ...
     """
 
     def __init__(
         self,
-        net: MotionFieldNetwork,
-        loss: MFGLoss,
-        optimizer: Callable[..., torch.optim.Optimizer],
-        scheduler: Callable[..., Any] | None = None,
         flow_weights: str | None = None,
         flow_net: dict[str, Any] | None = None,
         mfg_checkpoint: str | None = None,
@@ -160,7 +156,7 @@ class EndToEndLitModule(MFGLitModule):
         # every checkpoint, which tensors-and-plain-data loading must read (no OmegaConf lists)
         level_weights = [float(w) for w in level_weights]
         flow_net = None if flow_net is None else config_from(flow_net).to_dict()
-        super().__init__(net, loss, optimizer, scheduler, **kwargs)
+        super().__init__(**kwargs)
         if not flow_lr >= 0:
             raise ValueError(f"model.flow_lr must be non-negative, got {flow_lr}")
         if not flow_loss_weight >= 0:

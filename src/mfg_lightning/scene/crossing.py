@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from mfg_lightning.scene.furnishing import MovingObjects, place_moving, yaw_pose
+from mfg_lightning.scene.furnishing import Boxes, MovingObjects, place_moving, yaw_pose
 from mfg_lightning.scene.seeding import seeded_rng
 from mfg_lightning.scene.world_config import Range, WorldConfig
 from mfg_lightning.scene.worlds import World
@@ -133,7 +133,7 @@ def with_crossings(world: World, cfg: CrossingConfig) -> CrossingWorld:
     m = world.moving
     fields = {f.name: getattr(world, f.name) for f in dataclasses.fields(World)}
     fields["moving"] = MovingObjects(
-        m.boxes.concat([m.boxes, drawn.boxes]),
+        Boxes.concat([m.boxes, drawn.boxes]),
         np.concatenate([m.s0, drawn.s0]),
         np.concatenate([m.direction, drawn.direction]),
         np.concatenate([m.speed, rng.uniform(*cfg.speed, n)]),

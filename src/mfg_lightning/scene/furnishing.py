@@ -9,7 +9,7 @@ function of its seed (:mod:`mfg_lightning.scene.seeding`).
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
-from typing import Protocol
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 import torch
@@ -98,8 +98,32 @@ def yaw_pose(centre: np.ndarray, yaw: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(T)
 
 
+class Rows:
+    """A dataclass of arrays of one length, a row per box or object: its first field gives the
+    length, and every field (arrays, or other :class:`Rows`) is joined or selected alike."""
+
+    def __len__(self) -> int:
+        return len(getattr(self, fields(self)[0].name))
+
+    @classmethod
+    def concat(cls: type[R], parts: list[R]) -> R:
+        """The parts' rows one after the other, in order."""
+        return cls(*(_joined([getattr(p, f.name) for p in parts]) for f in fields(cls)))
+
+    def select(self: R, keep: np.ndarray) -> R:
+        """The rows ``keep`` (indices or a boolean mask) picks."""
+        return type(self)(*(getattr(self, f.name)[keep] for f in fields(self)))
+
+
+R = TypeVar("R", bound=Rows)
+
+
+def _joined(values: list) -> Any:
+    return type(values[0]).concat(values) if isinstance(values[0], Rows) else np.concatenate(values)
+
+
 @dataclass
-class Boxes:
+class Boxes(Rows):
     """A set of yaw-aligned boxes (arrays of one length ``M``).
 
     Attributes:
@@ -125,19 +149,9 @@ class Boxes:
     colour2: np.ndarray
     params: np.ndarray
 
-    def __len__(self) -> int:
-        return len(self.kind)
-
-    @staticmethod
-    def concat(parts: list[Boxes]) -> Boxes:
-        return Boxes(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(Boxes)))
-
-    def select(self, keep: np.ndarray) -> Boxes:
-        return Boxes(*(getattr(self, f.name)[keep] for f in fields(Boxes)))
-
 
 @dataclass
-class MovingObjects:
+class MovingObjects(Rows):
     """Cars and pedestrians moving along the road (arrays of one length ``M``).
 
     Object ``j`` is at arc length ``s0[j] + direction[j] · speed[j] · frame`` (wrapped into the
@@ -155,12 +169,9 @@ class MovingObjects:
     speed: np.ndarray
     lateral: np.ndarray
 
-    def __len__(self) -> int:
-        return len(self.s0)
-
 
 @dataclass
-class Placed:
+class Placed(Rows):
     """Candidate static boxes, placed at road coordinates before any section picks its own
     (``n`` boxes)."""
 
@@ -169,17 +180,6 @@ class Placed:
     clearance: np.ndarray  # (n,) distance it must keep from every pass of the path (metres)
     footprint_x: np.ndarray  # (n, 9) world x of its footprint points (metres)
     footprint_z: np.ndarray  # (n, 9) world z of its footprint points (metres)
-
-    @staticmethod
-    def concat(parts: list[Placed]) -> Placed:
-        """The parts' boxes one after the other, in order."""
-        return Placed(
-            Boxes.concat([p.boxes for p in parts]),
-            *(
-                np.concatenate([getattr(p, f) for p in parts])
-                for f in ("s", "clearance", "footprint_x", "footprint_z")
-            ),
-        )
 
 
 def footprints(world: Street, s: np.ndarray, lateral: np.ndarray, half: np.ndarray):
