@@ -19,12 +19,13 @@ from torchmetrics import MeanMetric
 from conftest import quiet_trainer
 from mfg_lightning.core import geometry as G
 from mfg_lightning.core.config import compose
+from mfg_lightning.data.sample import INTRINSICS_HOST as HOST_INTRINSICS
 from mfg_lightning.data.sample import SampleError, sanitize_flow
 from mfg_lightning.data.synthetic import SyntheticDataModule
 from mfg_lightning.metrics.frame_errors import FiniteMean
 from mfg_lightning.models.losses import MFGLoss, sparsity_count
 from mfg_lightning.models.mfg import MFG, bilinear_matrix, upsample_bilinear
-from mfg_lightning.models.mfg_module import HOST_INTRINSICS, MFGLitModule
+from mfg_lightning.models.mfg_module import MFGLitModule
 from mfg_lightning.motion.object_motion import extract_object_motion
 from mfg_lightning.run.agreed_steps import AgreedSteps, NonFiniteLossError
 from mfg_lightning.run.checkpoints import module_from_checkpoint

@@ -71,7 +71,7 @@ def evaluate_egomotion(
     results: dict[float, dict[str, Any]] = {}  # k → test metrics
     evaluations: dict[float, EvaluationResult | None] = {}  # k → per-sequence trajectories
     for k in sweep:
-        metrics, evaluations[k] = model.test_results[k]
+        metrics, evaluations[k] = model.evaluation["test"].results[k]
         results[k] = {name: finite_or_none(v) for name, v in metrics.items()}
         results[k].update(aligned_metrics(evaluations[k], align))
         log.info("top_k=%s: ATE %s m", k, results[k].get("test/ate"))

@@ -255,7 +255,8 @@ class TensorBoardFigures(L.Callback):
 
     def _log_trajectory(self, writer: Any, pl_module: L.LightningModule, step: int) -> None:
         """The validation trajectory and its drift, as ``evaluate`` draws them."""
-        evaluation = getattr(pl_module, "last_evaluation", {}).get("val")
+        stages = getattr(pl_module, "evaluation", {})
+        evaluation = stages["val"].last_result if "val" in stages else None
         if evaluation is None or evaluation is self._drawn_evaluation or not evaluation.sequences:
             return
         self._drawn_evaluation = evaluation
