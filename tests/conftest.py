@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -97,6 +98,14 @@ def run_command(
     return subprocess.run(
         command, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout, check=False
     )
+
+
+def run_make(*args: str, cwd: Path = REPO, env: dict[str, str] | None = None, timeout: int = 60):
+    """``make args`` in ``cwd`` (the repository by default), through :func:`run_command`; the
+    test is skipped where make is not installed."""
+    if shutil.which("make") is None:
+        pytest.skip("make is not installed")
+    return run_command(["make", "--no-print-directory", *args], cwd=cwd, env=env, timeout=timeout)
 
 
 def entry_point_env(cwd: Path, **extra: str) -> dict[str, str]:

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 import torch
 
+from bench_pages import table_rows
 from conftest import REPO
 from mfg_lightning.scene import boxes, camera, raycast
 
@@ -41,18 +42,6 @@ def _run_bench(script: str, out: Path, *args: str) -> str:
     return text
 
 
-def _table_rows(text: str, heading: str) -> list[list[str]]:
-    """The body rows of the first table after ``heading``, as lists of cells."""
-    lines = text.split(heading, 1)[1].splitlines()
-    start = next(i for i, ln in enumerate(lines) if ln.startswith("|"))
-    table = []
-    for ln in lines[start:]:
-        if not ln.startswith("|"):
-            break
-        table.append([c.strip() for c in ln.strip().strip("|").split("|")])
-    return table[2:]  # without the header and the |---| line
-
-
 def _number(cell: str) -> float:
     return float(cell.replace(" %", "").replace("+", ""))
 
@@ -69,7 +58,7 @@ def test_accuracy_benchmark(tmp_path: Path, shared_poses: Path) -> None:
     )
     # the same methods on the exact flow and on DIS flow of rendered worlds
     for heading in ("## Exact flow", "## DIS flow of rendered worlds"):
-        rows = {r[0]: r for r in _table_rows(text, heading)}
+        rows = {r[0]: r for r in table_rows(text, heading)}
         for name in expected:
             assert name in rows, (heading, name)
             ate09, ate10 = (re.match(r"([\d.e-]+) ± ([\d.e-]+)", rows[name][i]) for i in (1, 2))
@@ -82,25 +71,25 @@ def test_accuracy_benchmark(tmp_path: Path, shared_poses: Path) -> None:
     assert "real KITTI images" in text
     # the flow's own table: EPE and Fl per region on the noc and all pixels, and the cost
     quality = (tmp_path / "flow_quality.md").read_text()
-    splits = {(r[0], r[1]): r for r in _table_rows(quality, "## Quality by region")}
+    splits = {(r[0], r[1]): r for r in table_rows(quality, "## Quality by region")}
     assert set(splits) == {(s, p) for s in ("train", "val", "test") for p in ("noc", "all")}
     assert splits["test", "all"][2:4] == ["medium", "64×128"]
     for pixels in ("noc", "all"):
         assert math.isfinite(_number(splits["test", pixels][-3]))  # EPE of the whole image
     assert _number(splits["test", "noc"][4]) <= _number(splits["test", "all"][4])  # per pair
-    parts = {r[0]: r for r in _table_rows(quality, "## Cost of rendering")}
+    parts = {r[0]: r for r in table_rows(quality, "## Cost of rendering")}
     assert set(parts) == {"train+val", "test"}
     assert "faster** (target ≥ 50×)" in quality
 
 
 def test_throughput_benchmark(tmp_path: Path) -> None:
     text = _run_bench("throughput.py", tmp_path, "--threads", "1")
-    peaks = {r[0]: r[1] for r in _table_rows(text, "## GEMM peak and the model's FLOPs")}
+    peaks = {r[0]: r[1] for r in table_rows(text, "## GEMM peak and the model's FLOPs")}
     assert _number(peaks["256² matmul, float32 (GFLOP/s)"]) > 0
     assert _number(peaks["256² matmul, bfloat16 (GFLOP/s)"]) > 0
     assert _number(peaks["network forward (GFLOP / sample)"]) > 0
     assert _number(peaks["network backward (GFLOP / sample)"]) > 0
-    training = _table_rows(text, "## Training: Lightning Trainer against a bare PyTorch loop")
+    training = table_rows(text, "## Training: Lightning Trainer against a bare PyTorch loop")
     # float32 and bf16-mixed side by side at every batch size, through Lightning and bare.
     assert {(r[0], r[1]) for r in training} == {
         (b, p) for b in ("1", "2", "4") for p in ("float32", "bf16-mixed")
@@ -114,20 +103,20 @@ def test_throughput_benchmark(tmp_path: Path) -> None:
         assert math.isfinite(float(row[7])), row
         # Each rate as a fraction of its own dtype's GEMM peak.
         assert all(_number(c) > 0 for c in row[8:10]), row
-    ratios = _table_rows(text, "## bf16-mixed against float32")
+    ratios = table_rows(text, "## bf16-mixed against float32")
     assert [r[0] for r in ratios] == ["1", "2", "4"]
     assert all(_number(r[1].split()[0]) > 0 and _number(r[2].split()[0]) > 0 for r in ratios)
-    inference = _table_rows(text, "## Inference")
+    inference = table_rows(text, "## Inference")
     assert [r[0] for r in inference] == ["1", "2", "4"]
     assert all(_number(r[1]) > 0 and _number(r[2]) > 0 for r in inference)
     # Loader-only rates: the generator in process and in a worker, cached DIS flow.
-    loaders = _table_rows(text, "## The data: loader-only rates")
+    loaders = table_rows(text, "## The data: loader-only rates")
     assert len(loaders) == 4 and all(r[1].isdigit() for r in loaders), loaders
     assert "one DataLoader worker" in loaders[2][0] and "DIS" in loaders[3][0]
-    on_data = _table_rows(text, "Training on the real loader:")
+    on_data = table_rows(text, "Training on the real loader:")
     assert [r[0] for r in on_data] == ["float32", "bf16-mixed"]
-    assert _number(_table_rows(text, "## Peak resident memory")[0][1]) > 50
-    faults = _table_rows(text, "## Host memory kept")
+    assert _number(table_rows(text, "## Peak resident memory")[0][1]) > 50
+    faults = table_rows(text, "## Host memory kept")
     assert [(r[0], r[1]) for r in faults] == [
         ("float32", "default"), ("float32", "kept"), ("bf16-mixed", "default"),
         ("bf16-mixed", "kept"),
@@ -135,13 +124,13 @@ def test_throughput_benchmark(tmp_path: Path) -> None:
     assert all(_number(r[4]) > 0 for r in faults)
     assert "aten::" in text  # the profiles
     assert "## Profile of the bare training step, batch 4, bf16-mixed" in text
-    kernels = _table_rows(text, "## Per-layer kernels")
+    kernels = table_rows(text, "## Per-layer kernels")
     assert kernels[0][0].startswith("`encoder.0 Conv2d") and "decoder_omega" in kernels[-1][0]
     # each convolution with the implementation each precision computes it with
     impls = {"native", "im2col", "channels_last"}
     assert all(set(r[1].split(" / ")) <= impls for r in kernels[:-2]), kernels
     assert kernels[-1][1] == "- / -"
-    candidates = {r[1] for r in _table_rows(text, "## Candidate speed-ups")}
+    candidates = {r[1] for r in table_rows(text, "## Candidate speed-ups")}
     assert {
         "float32 + channels-last",
         "bf16 + channels-last",
@@ -149,7 +138,7 @@ def test_throughput_benchmark(tmp_path: Path) -> None:
         "bf16 + first conv's input padded to 8 channels",
     } <= candidates
     # The sample cache, a section of its own: every loader's epochs 1 and 2, alone and training.
-    cache = {r[0]: r for r in _table_rows(text, "## The sample cache: samples computed once")}
+    cache = {r[0]: r for r in table_rows(text, "## The sample cache: samples computed once")}
     assert len(cache) == 6 and "cache, `prefetch=worker`" in cache
     for row in (r for r in cache.values() if r[1] != "-"):
         assert all(_number(c) > 0 for c in (*row[1:3], row[4], row[6])), row  # samples/s
@@ -171,7 +160,7 @@ def test_throughput_benchmark(tmp_path: Path) -> None:
     # every layer's three times and the choice, then the step with the choice against native.
     section = text.split("<!-- conv-impl:start -->", 1)[1].split("<!-- conv-impl:end -->")[0]
     assert "AVX2" in section and "AVX512-BF16" in section and "AMX" in section
-    layers = _table_rows(section, "## Convolution implementations per layer")
+    layers = table_rows(section, "## Convolution implementations per layer")
     assert [r[0].split()[0] for r in layers[:8]] == [
         f"`encoder.{i}`" for i in (0, 2, 4, 6, 8, 10, 12, 14)
     ]
@@ -179,7 +168,7 @@ def test_throughput_benchmark(tmp_path: Path) -> None:
     for row in layers:
         assert all(_number(c) > 0 for c in row[3:6]) and _number(row[7]) > 0, row
         assert row[6] in ("native", "im2col", "channels_last", "per layer"), row
-    step = _table_rows(section, "Training step with the chosen implementations")
+    step = table_rows(section, "Training step with the chosen implementations")
     assert step[0][:2] == ["4", "float32"] and _number(step[0][3]) > 0
 
 
@@ -190,7 +179,7 @@ def test_quick_start_benchmark(tmp_path: Path) -> None:
 
     text = _run_bench("throughput.py", tmp_path, "--threads", "1", "--quick-start")
     capability = torch.backends.cpu.get_cpu_capability()
-    rows = _table_rows(text, f"## The quick start at {capability}")
+    rows = table_rows(text, f"## The quick start at {capability}")
     assert [r[0].split(" (")[0].split(",")[0] for r in rows] == [
         "without the cache", "the defaults", "the defaults", "device-resident", "device-resident"
     ]  # fmt: skip
@@ -219,7 +208,7 @@ def test_flow_estimators_benchmark(tmp_path: Path, shared_poses: Path) -> None:
     assert "### Environment of this section" in text and "opencv" in text
     labels = ["DIS medium", "Farnebäck", "learned (PWC-Net design)"]
     for heading, seed in (("### Scene seed 0's worlds", 0), ("### The study's worlds", 7919)):
-        rows = _table_rows(text, heading)
+        rows = table_rows(text, heading)
         assert [r[0] for r in rows[:6:2]] == labels, heading
         assert [r[1] for r in rows[:6]] == ["noc", "all"] * 3
         assert all(_number(r[2]) > 0 and 0 < _number(r[-2]) < 100 for r in rows[:6])
@@ -232,9 +221,9 @@ def test_flow_estimators_benchmark(tmp_path: Path, shared_poses: Path) -> None:
 
 def test_scaleout_benchmark(tmp_path: Path) -> None:
     text = _run_bench("scaleout.py", tmp_path, "--threads", "1")
-    rates = _table_rows(text, "## Training throughput")
+    rates = table_rows(text, "## Training throughput")
     assert [r[0] for r in rates] == ["2"]  # the tiny run: DDP only
-    reduction = _table_rows(text, "## Metric reduction")
+    reduction = table_rows(text, "## Metric reduction")
     assert reduction[0][0] == "`test/trans_err`"
     worst = re.search(r"largest relative difference is ([\d.e+-]+)", text)
     assert worst and float(worst.group(1)) <= 1e-5
@@ -242,7 +231,7 @@ def test_scaleout_benchmark(tmp_path: Path) -> None:
 
 def test_flow_cache_benchmark(tmp_path: Path) -> None:
     text = _run_bench("flow_cache.py", tmp_path, "--threads", "1")
-    rows = {r[0]: r for r in _table_rows(text, "frame pairs of a")}
+    rows = {r[0]: r for r in table_rows(text, "frame pairs of a")}
     assert len(rows) == 4
     cold = rows["epoch 1 (cold cache: decode, DIS, write)"]
     warm = rows["epoch 2 (same dataset, cache hits)"]

@@ -4,34 +4,26 @@ and a rerun served from the cached stages. The numbers of a tiny run mean nothin
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import pytest
 
-from conftest import bench_module
+from bench_pages import bench_in_this_process, own_section
 from mfg_lightning.core.machine import cpu_kind
 
 pytestmark = pytest.mark.slow
 
 OTHER = "# Scale-out: data-parallel training (DDP)\n\n## Training throughput\n\nkeep me\n\n"
-ENVIRONMENT = "## Environment\n\n| a | b |\n|---|---:|\n| c | d |\n"
 
 
 def test_data_preparation_writes_its_scaling_section(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, threads_kept: None
 ) -> None:
-    monkeypatch.setenv("MFG_CACHE_DIR", str(tmp_path / "cache"))
-    monkeypatch.chdir(tmp_path)
-    (tmp_path / "scaleout.md").write_text(OTHER + ENVIRONMENT)
-    bench = bench_module("data_preparation")
-    monkeypatch.setattr(sys, "argv", ["bench/data_preparation.py", "--tiny"])
+    bench = bench_in_this_process("data_preparation", "scaleout.md", OTHER, tmp_path, monkeypatch)
     work = tmp_path / "work"
     argv = ["--tiny", "--out", str(tmp_path), "--work", str(work)]
     text = bench.main(argv).read_text()
-    assert text.startswith(OTHER) and text.endswith(ENVIRONMENT)
-    section = text.split(f"<!-- {bench.MARKER}:start -->")[1].split(f"<!-- {bench.MARKER}:end")[0]
-    assert f"## {bench.HEADING}" in section and "### Environment of this section" in section
+    section = own_section(text, bench, OTHER)
     assert f"CPU **{cpu_kind()}**" in section
     lines = section.split(f"## {bench.HEADING}")[1].splitlines()
     rows = [ln.strip("|").split("|") for ln in lines if ln.startswith("| ")][1:]

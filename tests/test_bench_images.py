@@ -7,50 +7,30 @@ from __future__ import annotations
 
 import math
 import re
-import sys
 from pathlib import Path
 
 import pytest
 
+from bench_pages import bench_in_this_process, own_section, table_rows
 from conftest import bench_module
 from mfg_lightning.core.machine import cpu_kind
 
 OTHER = "# Throughput: training, inference, data, memory\n\n## Training\n\nkeep me\n\n"
-ENVIRONMENT = "## Environment\n\n| a | b |\n|---|---:|\n| c | d |\n"
-
-
-def _rows(text: str, heading: str) -> list[list[str]]:
-    """The body rows of the first table after ``heading``."""
-    lines = text.split(heading, 1)[1].splitlines()
-    start = next(i for i, ln in enumerate(lines) if ln.startswith("|"))
-    rows = []
-    for ln in lines[start:]:
-        if not ln.startswith("|"):
-            break
-        rows.append([c.strip() for c in ln.strip().strip("|").split("|")])
-    return rows[2:]
 
 
 def test_images_to_poses_writes_its_section(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, threads_kept: None
 ) -> None:
-    monkeypatch.setenv("MFG_CACHE_DIR", str(tmp_path / "cache"))
-    monkeypatch.chdir(tmp_path)
-    (tmp_path / "throughput.md").write_text(OTHER + ENVIRONMENT)
+    bench = bench_in_this_process("images_to_poses", "throughput.md", OTHER, tmp_path, monkeypatch)
     readme = tmp_path / "README.md"
     readme.write_text("# x\n\n<!-- images-to-poses:start -->\nSTALE\n<!-- images-to-poses:end -->"
                       "\n\nend\n")  # fmt: skip
-    bench = bench_module("images_to_poses")
-    monkeypatch.setattr(sys, "argv", ["bench/images_to_poses.py", "--tiny"])
     path = bench.main(["--tiny", "--threads", "1", "--out", str(tmp_path), "--readme", str(readme)])
     text = path.read_text()
     # the rest of the file as it was, the section once, before the file's environment
-    assert text.startswith(OTHER) and text.endswith(ENVIRONMENT)
-    assert text.count("<!-- images-to-poses:start -->") == 1
-    section = text.split("<!-- images-to-poses:start -->")[1].split("<!-- images-to-poses:end")[0]
-    assert f"## {bench.HEADING}" in section and "### Environment of this section" in section
+    section = own_section(text, bench, OTHER)
     assert "bench/images_to_poses.py" in section  # the command that wrote it
-    rates = _rows(section, bench.HEADING)
+    rates = table_rows(section, bench.HEADING)
     # DIS's rows, then the learned flow's (the shipped weights) and an end-to-end checkpoint's
     # network at the same size
     flows = (("DIS", "DIS"), ("learned (`flow=learned`)", "learned"),
@@ -71,9 +51,9 @@ def test_images_to_poses_writes_its_section(
             continue  # a difference of two timings: on a loaded machine and 5 pairs, any sign
         assert float(row[4]) > 0 and float(row[5]) > 0, row
     for flow in ("learned", "end-to-end"):
-        net = {r[0]: r for r in _rows(section, f"### Where the time goes, 48 × 128, {flow}")}
+        net = {r[0]: r for r in table_rows(section, f"### Where the time goes, 48 × 128, {flow}")}
         assert float(net["flow"][2]) > 0 and float(net["network"][2]) > 0
-    stages = {r[0]: r for r in _rows(section, "### Where the time goes, 48 × 128, DIS flow")}
+    stages = {r[0]: r for r in table_rows(section, "### Where the time goes, 48 × 128, DIS flow")}
     assert list(stages) == ["read", "flow", "network", "recovery", "composition", "method",
                             "the rest of `predict`", "total"]  # fmt: skip
     for name in ("read", "flow", "network", "recovery", "composition"):

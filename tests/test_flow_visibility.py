@@ -32,8 +32,9 @@ from mfg_lightning.models.flow_module import (
     quality_names,
     score_flow,
 )
-from mfg_lightning.scene import camera, render, seeding
+from mfg_lightning.scene import camera, render
 from mfg_lightning.scene.worlds import World, WorldConfig
+from street_worlds import rendered_frames, street_world
 
 H, W = 48, 128
 
@@ -43,9 +44,8 @@ def static_world() -> World:
     """A world without moving objects (every point's motion is the camera's: its depth in the
     second camera follows from the geometry module alone) and with many parked cars (occluders
     in front of the facades)."""
-    poses = camera.procedural_trajectory(seeding.seeded_rng(5, "trajectory", "r"), 40)
     config = WorldConfig(cars_per_100m=0.0, pedestrians_per_100m=0.0, parked_per_100m=20.0)
-    return World.generate(poses, seed=5, name="r", config=config)
+    return street_world(40, config)
 
 
 @pytest.fixture(scope="module")
@@ -55,7 +55,7 @@ def K() -> torch.Tensor:
 
 @pytest.fixture(scope="module")
 def frames(static_world: World, K: torch.Tensor) -> dict[int, render.RenderedFrame]:
-    return {k: render.render_frame(static_world, k, K, H, W) for k in (20, 21, 23)}
+    return rendered_frames(static_world, K, (20, 21, 23), H, W)
 
 
 def _landing(flow: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -1,10 +1,6 @@
-"""A GPU user's first run, tested on a CPU: the install, ``make gpu-check``, no
-collective or host copy per step that a tensor op avoids, ``last.ckpt`` by wall time, and the
-test suite itself pinned to the CPU.
-
-The install is tested without a network: the Makefile's commands through a stand-in Python that
-records its arguments, and pip's choices by ``pip install --dry-run`` on a folder of stand-in
-wheels (metadata only), with none of this machine's pip settings.
+"""A GPU user's first run, tested on a CPU: ``make gpu-check``, no collective or host copy per
+step that a tensor op avoids, and the test suite itself pinned to the CPU. The install is tested
+in test_gpu_install.py, ``last.ckpt`` by wall time in test_last_checkpoint.py.
 """
 
 from __future__ import annotations
@@ -14,202 +10,24 @@ import glob
 import json
 import math
 import os
-import shlex
 import shutil
 import socket
 import subprocess
 import sys
 import traceback
-import zipfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import lightning as L
 import pytest
 import torch
 
-from conftest import REPO, bench_module, cuda_env, quiet_trainer, run_command
-from mfg_lightning.core.config import compose
+from conftest import REPO, bench_module, cuda_env, quiet_trainer, run_make
 from mfg_lightning.metrics.frame_errors import FiniteMean
 from mfg_lightning.models.mfg import bilinear_matrix
-from mfg_lightning.run.callbacks import LastCheckpoint
 
 BENCH = REPO / "bench"
 TESTS = Path(__file__).resolve().parent
-
-
-install_gpu = bench_module("install_gpu")
-
-
-# --------------------------------------------------------------------------------------------
-# The install
-# --------------------------------------------------------------------------------------------
-
-
-def _make(*args: str, cwd: Path = REPO, env: dict[str, str] | None = None, timeout: int = 60):
-    if shutil.which("make") is None:
-        pytest.skip("make is not installed")
-    return run_command(["make", "--no-print-directory", *args], cwd=cwd, env=env, timeout=timeout)
-
-
-def test_make_install_hands_a_torch_spec_with_options_to_pip_as_separate_arguments(
-    tmp_path: Path,
-) -> None:
-    """``TORCH_SPEC="torch==2.5.1 --index-url <URL>"``: pip used to get it as one argument
-    (``Invalid requirement``). A stand-in Python records each call's arguments and has no
-    torch, so the install branch runs."""
-    calls = tmp_path / "calls"
-    fake = tmp_path / "python"
-    fake.write_text(
-        "#!/bin/sh\n"
-        f"printf '%s\\n' \"$@\" >> {shlex.quote(str(calls))}\n"
-        f"echo '<end>' >> {shlex.quote(str(calls))}\n"
-        'if [ "$1" = "-c" ]; then exit 1; fi\n'  # `import torch` fails
-    )
-    fake.chmod(0o755)
-    spec = "torch==2.5.1 --index-url https://example.invalid/whl/cu121"
-    proc = _make("install", f"PYTHON={fake}", f"TORCH_SPEC={spec}")
-    assert proc.returncode == 0, proc.stderr
-    argv = [c.strip("\n").split("\n") for c in calls.read_text().split("<end>\n") if c]
-    assert argv[0] == ["-c", "import torch"]
-    assert argv[1] == ["-m", "pip", "install", *spec.split()]
-    assert argv[2] == ["bench/install_opencv.py"]  # a plain OpenCV wheel out of the way
-    assert argv[3] == ["-m", "pip", "install", "-e", ".[dev]"]  # the CPU set-up as before
-
-
-def test_make_install_gpu_hands_its_spec_to_the_installer_whole() -> None:
-    spec = "torch===2.5.1+cu121 --index-url https://example.invalid/whl/cu121"
-    proc = _make("-n", "install-gpu", f"TORCH_GPU_SPEC={spec}")
-    assert proc.returncode == 0, proc.stderr
-    argv = shlex.split(proc.stdout.strip().splitlines()[-1])
-    assert argv[1:] == ["bench/install_gpu.py", "--torch-spec", spec, "--extras", ""]
-    commands, _ = install_gpu.plan(install_gpu.Torch("2.13.0+cpu", None), spec, "python")
-    assert commands[0] == ["python", "-m", "pip", "install", *spec.split()]
-    # The default is an exact pin, and no dev extras are installed.
-    default = _make("-n", "install-gpu").stdout
-    assert f"--torch-spec '{install_gpu.DEFAULT_SPEC}'" in default
-    assert install_gpu.DEFAULT_SPEC.startswith("torch===")
-    assert all("[dev]" not in " ".join(c) for c in commands)
-
-
-def test_install_gpu_adds_the_sweeps_extra_when_asked() -> None:
-    proc = _make("-n", "install-gpu", "GPU_EXTRAS=sweeps")
-    assert shlex.split(proc.stdout.strip().splitlines()[-1])[-2:] == ["--extras", "sweeps"]
-    cuda = install_gpu.Torch("2.5.1+cu121", "12.1", True, 1)
-    # installed already and torch kept: nothing to do, unless an extra is asked for
-    assert install_gpu.plan(cuda, python="py", project_installed=True)[0] == []
-    commands, _ = install_gpu.plan(cuda, python="py", project_installed=True, extras="sweeps")
-    assert commands == [["py", "-m", "pip", "install", "-e", f"{install_gpu.REPO}[sweeps]"]]
-    with pytest.raises(ValueError, match="extras"):
-        install_gpu.plan(cuda, python="py", extras="sweeps; rm")
-
-
-@pytest.mark.parametrize(
-    ("torch_info", "kept"),
-    [
-        (install_gpu.Torch("2.5.1+cu121", "12.1", True, 1), True),
-        (install_gpu.Torch("2.4.0", "12.4", False, 0), True),  # kept; the check then advises
-        (install_gpu.Torch("2.13.0+cpu", None), False),
-        (install_gpu.Torch("2.3.1+cu121", "12.1", True, 1), False),  # pip would replace it
-        (None, False),
-    ],
-)
-def test_install_gpu_keeps_a_cuda_torch_from_2_4_on_and_installs_one_otherwise(
-    torch_info: Any, kept: bool
-) -> None:
-    commands, why = install_gpu.plan(torch_info, python="py", project_installed=True)
-    torch_install = [c for c in commands if "-e" not in c]
-    assert (not torch_install) == kept, why
-    if not kept:
-        assert torch_install == [["py", "-m", "pip", "install", install_gpu.DEFAULT_SPEC]]
-        assert commands[-1] == ["py", "-m", "pip", "install", "-e", str(REPO)]
-    else:
-        assert commands == []  # this checkout is installed and torch kept: no pip at all
-    assert install_gpu.release("2.10.0a0+git") == (2, 10, 0)
-
-
-def test_install_gpu_says_what_to_do_when_cuda_is_not_available() -> None:
-    cpu = install_gpu.advice(install_gpu.Torch("2.13.0+cpu", None))
-    assert "CPU-only build" in cpu and "TORCH_GPU_SPEC" in cpu
-    no_gpu = install_gpu.advice(install_gpu.Torch("2.13.0", "12.8", False, 0))
-    assert "nvidia-smi" in no_gpu and "12.8" in no_gpu and "--gpus all" in no_gpu
-
-
-def _wheel(folder: Path, version: str) -> None:
-    """A stand-in torch wheel: the metadata pip reads to resolve, nothing else."""
-    name = f"torch-{version}-py3-none-any.whl"
-    info = f"torch-{version}.dist-info"
-    with zipfile.ZipFile(folder / name, "w") as z:
-        z.writestr(f"{info}/METADATA", f"Metadata-Version: 2.1\nName: torch\nVersion: {version}\n")
-        z.writestr(
-            f"{info}/WHEEL", "Wheel-Version: 1.0\nRoot-Is-Purelib: true\nTag: py3-none-any\n"
-        )
-        z.writestr(f"{info}/RECORD", "")
-
-
-#: The first pip with ``install --dry-run`` and ``--report`` (22.2).
-PIP_WITH_DRY_RUN = (22, 2)
-
-
-def _pip_cannot_dry_run() -> str | None:
-    """Why this interpreter's pip cannot answer a dry run (no pip, or one older than
-    ``--dry-run --report``): causes outside the project; None when it can."""
-    import importlib.metadata
-
-    try:
-        version = importlib.metadata.version("pip")
-    except importlib.metadata.PackageNotFoundError:
-        return f"no pip in {sys.executable}"
-    parts = tuple(int(p) for p in version.split(".")[:2] if p.isdigit())
-    if parts < PIP_WITH_DRY_RUN:
-        return f"pip {version} has no install --dry-run --report (pip 22.2 and later)"
-    return None
-
-
-def _pip_dry_run(links: Path, report: Path, *requirement: str, ignore_installed: bool = True):
-    """What ``pip install`` would install from ``links`` alone: (returncode, [versions])."""
-    command = [sys.executable, "-m", "pip", "install", "--dry-run", "--no-deps",
-               "--no-index", "--find-links", str(links), "--report", str(report), "--quiet",
-               *(["--ignore-installed"] if ignore_installed else []), *requirement]  # fmt: skip
-    # None of this machine's pip settings (find-links, indexes, constraints): the folder alone.
-    env = {k: v for k, v in os.environ.items() if not k.startswith("PIP_")}
-    env["PIP_CONFIG_FILE"] = os.devnull
-    proc = subprocess.run(command, env=env, capture_output=True, text=True, timeout=120)
-    if proc.returncode:
-        return proc.returncode, proc.stderr
-    installs = json.loads(report.read_text()).get("install", [])
-    return 0, [i["metadata"]["version"] for i in installs]
-
-
-def test_pip_dry_run_the_gpu_spec_refuses_a_cpu_build_and_an_installed_torch_is_kept(
-    tmp_path: Path,
-) -> None:
-    both, cpu_only = tmp_path / "both", tmp_path / "cpu_only"
-    for folder, versions in (
-        (both, ("2.13.0", "2.13.0+cpu", "2.14.1")),
-        (cpu_only, ("2.13.0+cpu",)),
-    ):
-        folder.mkdir()
-        for version in versions:
-            _wheel(folder, version)
-    report = tmp_path / "report.json"
-    reason = _pip_cannot_dry_run()
-    if reason is not None:  # the environment, not the project: say which
-        pytest.skip(reason)
-    # Any other failure is the regression this test guards (a spec pip refuses or cannot meet).
-    code, chosen = _pip_dry_run(both, report, install_gpu.DEFAULT_SPEC)
-    assert code == 0, f"pip could not resolve {install_gpu.DEFAULT_SPEC}: {str(chosen)[-800:]}"
-    assert chosen == ["2.13.0"]  # the release, not the local +cpu build
-    # `==` takes the +cpu build where a find-links folder offers it: why the GPU route pins ===.
-    assert _pip_dry_run(both, report, "torch==2.13.0") == (0, ["2.13.0+cpu"])
-    code, err = _pip_dry_run(cpu_only, report, install_gpu.DEFAULT_SPEC)
-    assert code != 0 and "No matching distribution" in err  # refused, not taken
-    # The project's own `torch>=2.4` keeps the installed torch (a CUDA one on a GPU machine)
-    # though the folder offers a newer one: `pip install -e .` never replaces it.
-    installed = torch.__version__
-    assert install_gpu.release(installed) >= install_gpu.MIN_TORCH
-    assert _pip_dry_run(both, report, "torch>=2.4", ignore_installed=False) == (0, [])
 
 
 # --------------------------------------------------------------------------------------------
@@ -224,7 +42,7 @@ def test_make_gpu_check_runs_every_part_on_a_cpu(tmp_path: Path) -> None:
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", MFG_CACHE_DIR=str(tmp_path))
     env["PYTHON"] = sys.executable
     args = f"--tiny --precisions bf16-mixed --out {tmp_path}"
-    proc = _make(
+    proc = run_make(
         "gpu-check",
         f"PYTHON={sys.executable}",
         "GPU_CHECK_ACCELERATOR=cpu",
@@ -440,76 +258,6 @@ def test_two_gloo_processes_with_fewer_test_samples_than_processes(tmp_path: Pat
         or (single[k] is not None and not math.isclose(ddp[k], single[k], rel_tol=1e-6))
     }
     assert not differ, differ
-
-
-# --------------------------------------------------------------------------------------------
-# last.ckpt by wall time
-# --------------------------------------------------------------------------------------------
-
-
-class Clock(L.Callback):
-    """A test clock that moves ``seconds`` at the end of every training step."""
-
-    def __init__(self, seconds: float) -> None:
-        self.now, self.seconds = 0.0, seconds
-
-    def __call__(self) -> float:
-        return self.now
-
-    def on_train_batch_end(self, *args: Any) -> None:
-        self.now += self.seconds
-
-
-@pytest.mark.parametrize(
-    ("every_n_train_steps", "saved"), [(0, [2, 4, 6, 7]), (3, [2, 3, 5, 6, 7])]
-)
-def test_last_checkpoint_is_saved_by_wall_time_as_well_as_by_step(
-    tmp_path: Path, every_n_train_steps: int, saved: list[int]
-) -> None:
-    """A step every 30 s and a save every minute: steps 2, 4, 6 by time, 7 at the end; with a
-    save every 3 steps as well, 3 and 6 by step and 2 and 5 by time (the minute counts from the
-    latest save, whichever made it)."""
-    from test_precision import _dm, _module
-
-    clock = Clock(30.0)
-    last = LastCheckpoint(tmp_path, every_n_train_steps=every_n_train_steps, every_minutes=1)
-    last.clock = clock
-    steps: list[int] = []
-    save = last._save
-
-    def recorded(trainer: L.Trainer) -> None:
-        steps.append(trainer.global_step)
-        save(trainer)
-
-    last._save = recorded  # type: ignore[method-assign]
-    trainer = quiet_trainer(
-        max_steps=7, limit_val_batches=0, enable_checkpointing=True, callbacks=[clock, last]
-    )
-    trainer.fit(_module(), datamodule=_dm())
-    assert steps == saved
-    assert (tmp_path / "last.ckpt").is_file()
-
-
-@pytest.mark.parametrize(
-    ("config", "overrides", "steps"),
-    [
-        ("train", [], 300),
-        ("train", ["trainer=gpu"], 0),
-        ("train", ["trainer=ddp_slurm"], 0),
-        ("train", ["trainer=gpu", "callbacks.last_checkpoint.every_n_train_steps=50"], 50),
-        ("train_flow", [], 80),
-    ],
-)
-def test_last_checkpoint_period_settings(config: str, overrides: list[str], steps: int) -> None:
-    """Every 5 minutes everywhere; also every N steps on a CPU (about a minute of training
-    there), by time only on a GPU; a step period given on the command line applies anywhere."""
-    from hydra.utils import instantiate
-
-    cfg = compose(config, ["paths.output_dir=/tmp/unused", *overrides])
-    last = instantiate(cfg.callbacks.last_checkpoint)
-    assert last.every_seconds == 300.0 and last.every_n_train_steps == steps
-    with pytest.raises(ValueError, match="every_minutes must be positive"):
-        LastCheckpoint("/tmp/unused", every_minutes=0)
 
 
 # --------------------------------------------------------------------------------------------

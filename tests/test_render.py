@@ -22,14 +22,14 @@ from mfg_lightning.scene.render import (
 )
 from mfg_lightning.scene.worlds import World
 from mfg_lightning.trajectory.pose_io import read_kitti_poses
+from street_worlds import rendered_frames, street_world
 
 H, W = 96, 256
 
 
 @pytest.fixture(scope="module")
 def world() -> World:
-    poses = camera.procedural_trajectory(seeding.seeded_rng(5, "trajectory", "r"), 120)
-    return World.generate(poses, seed=5, name="r")
+    return street_world(120)
 
 
 @pytest.fixture(scope="module")
@@ -39,7 +39,7 @@ def K() -> torch.Tensor:
 
 @pytest.fixture(scope="module")
 def frames(world, K) -> dict[int, object]:
-    return {k: render_frame(world, k, K, H, W) for k in (60, 61, 62)}
+    return rendered_frames(world, K, (60, 61, 62), H, W)
 
 
 def _frame_with_moving_object(world: World, K: torch.Tensor) -> int:

@@ -19,7 +19,7 @@ from mfg_lightning.data.resumable_loader import (
     ResumeMismatchError,
     restarting_epochs,
 )
-from test_resume import RUN, _ckpt, _train
+from resume_runs import RUN, _ckpt, _train
 
 
 def _stopped_in_epoch_1(data: torch.Tensor) -> dict:
